@@ -1,0 +1,1134 @@
+"""The map store: the one module every part reads and writes maps through.
+
+SQLAlchemy 2 Core over SQLite (default: a file, WAL mode, foreign keys on, a
+busy timeout, write transactions taken with ``BEGIN IMMEDIATE``) or PostgreSQL
+(``LANEMAP_DATABASE_URL=postgresql://...``), with the same code for both. The
+schema belongs to Alembic (``migrations/``): an empty database is upgraded on
+first use, an older one must be upgraded with ``lanemap db upgrade``.
+
+Every write is one transaction; a failure leaves the database as it was.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, fields
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import and_, create_engine, delete, event, func, insert, or_, select, update
+from sqlalchemy.engine import Connection, Engine, make_url
+from sqlalchemy.exc import DBAPIError, IntegrityError
+
+from . import migrate
+from .crs import CRSError, metric_crs, to_wgs84, utm_crs_for
+from .model import SOURCES, STATUSES, Marking
+from .schema import GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings
+from .settings import Settings
+
+log = logging.getLogger(__name__)
+
+MAP_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+JOB_STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
+#: Distance within which a person's decision suppresses a rebuilt detection, metres.
+SUPPRESS_RADIUS_M = 0.5
+
+_MARKING_FIELDS = (
+    "x", "y", "length_m", "width_m", "bearing_deg", "weight", "score", "kind",
+    "source", "status", "x0", "y0", "x1", "y1", "tile_key", "extra",
+)  # fmt: skip
+#: Fields a caller may change on an existing marking (lon/lat are converted to x/y).
+EDITABLE_FIELDS = frozenset(_MARKING_FIELDS) | {"lon", "lat"}
+
+
+class StoreError(ValueError):
+    """Base class of the store's errors; the message names the problem."""
+
+
+class UnknownMapError(StoreError):
+    def __init__(self, map_id: str):
+        super().__init__(f"unknown map {map_id!r}")
+        self.map_id = map_id
+
+
+class MapExistsError(StoreError):
+    def __init__(self, map_id: str):
+        super().__init__(f"map {map_id!r} already exists")
+        self.map_id = map_id
+
+
+class UnknownMarkingError(StoreError):
+    def __init__(self, map_id: str, marking_id: int):
+        super().__init__(f"map {map_id!r} has no marking {marking_id}")
+        self.map_id, self.marking_id = map_id, marking_id
+
+
+class UnknownJobError(StoreError):
+    def __init__(self, job_id: int):
+        super().__init__(f"unknown job {job_id}")
+        self.job_id = job_id
+
+
+class UnknownImageryError(StoreError):
+    def __init__(self, imagery_id: int):
+        super().__init__(f"unknown imagery {imagery_id}")
+        self.imagery_id = imagery_id
+
+
+class UnknownChangesetError(StoreError):
+    def __init__(self, map_id: str, changeset_id: int):
+        super().__init__(f"map {map_id!r} has no changeset {changeset_id}")
+        self.changeset_id = changeset_id
+
+
+class InvalidMarkingError(StoreError):
+    """A marking's values are out of range; nothing was written."""
+
+
+class SchemaError(StoreError):
+    """The database schema is not the one this version of lanemap needs."""
+
+
+class StoreUnavailableError(StoreError):
+    """The database cannot be reached."""
+
+
+@dataclass
+class Conflict:
+    """One change of a changeset that cannot apply."""
+
+    id: int
+    reason: str  # "version" | "missing"
+    expected_version: int | None = None
+    actual_version: int | None = None
+
+
+class ConflictError(StoreError):
+    """Some changes of a changeset met a newer or missing marking; nothing was written."""
+
+    def __init__(self, conflicts: list[Conflict]):
+        ids = ", ".join(str(c.id) for c in conflicts)
+        super().__init__(f"{len(conflicts)} conflicting marking(s): {ids}")
+        self.conflicts = conflicts
+
+
+@dataclass
+class MapInfo:
+    id: str
+    title: str
+    crs: str | None
+    bounds: tuple[float, float, float, float] | None  # storage CRS
+    revision: int
+    created_at: datetime
+    updated_at: datetime
+    count: int | None = None
+
+    def bounds_wgs84(self) -> tuple[float, float, float, float] | None:
+        """Bounds as (west, south, east, north), degrees."""
+        if self.bounds is None or self.crs is None:
+            return None
+        return to_wgs84(self.crs).transform_bounds(*self.bounds, densify_pts=21)
+
+
+@dataclass
+class MarkingArrays:
+    """A map's markings as arrays, for numerics (the localizer's index)."""
+
+    id: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    weight: np.ndarray
+    length_m: np.ndarray
+    bearing_deg: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+
+@dataclass
+class JobInfo:
+    id: int
+    kind: str
+    map_id: str | None
+    status: str
+    progress: float
+    params: dict[str, Any]
+    error: str | None
+    created_at: datetime
+    updated_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+@dataclass
+class ImageryInfo:
+    id: int
+    map_id: str
+    path: str
+    crs: str
+    bounds: tuple[float, float, float, float]
+    resolution_m: float
+    created_at: datetime
+
+
+@dataclass
+class Change:
+    """One change of a changeset.
+
+    ``op`` is ``create`` (``marking`` given), ``update`` (``id``, ``fields``; a
+    partial set of :data:`EDITABLE_FIELDS`) or ``delete`` (``id``). ``version``,
+    when given, must equal the marking's current version.
+    """
+
+    op: str
+    id: int | None = None
+    version: int | None = None
+    marking: Marking | None = None
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class ChangesetResult:
+    changeset_id: int
+    results: list[dict[str, Any]]  # {"op", "id", "version"} per change, in order
+
+
+@dataclass
+class ChangesetInfo:
+    id: int
+    map_id: str
+    who: str
+    at: datetime
+    comment: str
+    n_create: int
+    n_update: int
+    n_delete: int
+    reverts: int | None
+
+
+@dataclass
+class EditInfo:
+    id: int
+    changeset_id: int
+    marking_id: int | None
+    op: str
+    who: str
+    at: datetime
+    before: dict[str, Any] | None
+    after: dict[str, Any] | None
+    comment: str
+
+
+def _now() -> datetime:
+    return datetime.now(timezone.utc)
+
+
+def _utc(value: datetime | None) -> datetime | None:
+    # SQLite hands back naive datetimes; everything stored is UTC.
+    if value is not None and value.tzinfo is None:
+        return value.replace(tzinfo=timezone.utc)
+    return value
+
+
+def normalize_url(url: str) -> str:
+    """Pick the psycopg 3 driver for plain ``postgresql://`` URLs."""
+    for prefix in ("postgres://", "postgresql://"):
+        if url.startswith(prefix):
+            return "postgresql+psycopg://" + url[len(prefix) :]
+    return url
+
+
+def check_map_id(map_id: str) -> str:
+    if not isinstance(map_id, str) or not MAP_ID_RE.match(map_id):
+        raise StoreError(
+            f"invalid map id {map_id!r}: use 1-64 letters, digits, '.', '_' or '-', "
+            "starting with a letter or digit"
+        )
+    return map_id
+
+
+def _finite(name: str, value: Any, *, optional: bool = False) -> float | None:
+    if value is None and optional:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InvalidMarkingError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise InvalidMarkingError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def marking_row(m: Marking, crs: str, now: datetime) -> dict[str, Any]:
+    """Validate a marking and turn it into a ``markings`` row (without id/map_id)."""
+    x, y = _finite("x", m.x), _finite("y", m.y)
+    weight = _finite("weight", m.weight)
+    if weight <= 0:
+        raise InvalidMarkingError(f"weight must be > 0, got {m.weight!r}")
+    length, width = _finite("length_m", m.length_m), _finite("width_m", m.width_m)
+    if length < 0 or width < 0:
+        raise InvalidMarkingError("length_m and width_m must be >= 0")
+    if m.source not in SOURCES:
+        raise InvalidMarkingError(f"source must be one of {', '.join(SOURCES)}, got {m.source!r}")
+    if m.status not in STATUSES:
+        raise InvalidMarkingError(
+            f"status must be one of {', '.join(STATUSES)}, got {m.status!r}"
+        )
+    lon, lat = to_wgs84(crs).transform(x, y)
+    if not (math.isfinite(lon) and math.isfinite(lat) and -180 <= lon <= 180 and -90 <= lat <= 90):
+        raise InvalidMarkingError(f"x={x}, y={y} is outside the valid area of {crs}")
+    extra = m.extra if m.extra is not None else {}
+    if not isinstance(extra, dict):
+        raise InvalidMarkingError("extra must be a JSON object")
+    return {
+        "tile_key": m.tile_key,
+        "gx": math.floor(x / GRID_CELL_M),
+        "gy": math.floor(y / GRID_CELL_M),
+        "x": x,
+        "y": y,
+        "lon": lon,
+        "lat": lat,
+        "weight": weight,
+        "length_m": length,
+        "width_m": width,
+        "bearing_deg": _finite("bearing_deg", m.bearing_deg) % 180.0,
+        "score": _finite("score", m.score, optional=True),
+        "kind": m.kind,
+        "source": m.source,
+        "status": m.status,
+        "x0": _finite("x0", m.x0, optional=True),
+        "y0": _finite("y0", m.y0, optional=True),
+        "x1": _finite("x1", m.x1, optional=True),
+        "y1": _finite("y1", m.y1, optional=True),
+        "extra": extra,
+        "created_at": now,
+        "updated_at": now,
+    }
+
+
+def _marking_from_row(r) -> Marking:
+    return Marking(
+        id=r.id, x=r.x, y=r.y, lon=r.lon, lat=r.lat, length_m=r.length_m, width_m=r.width_m,
+        bearing_deg=r.bearing_deg, weight=r.weight, score=r.score, kind=r.kind,
+        source=r.source, status=r.status, x0=r.x0, y0=r.y0, x1=r.x1, y1=r.y1,
+        tile_key=r.tile_key, extra=dict(r.extra or {}), version=r.version,
+    )  # fmt: skip
+
+
+def marking_to_json(m: Marking) -> dict[str, Any]:
+    """A marking as a JSON-safe dict (the edit log's before/after)."""
+    return {f.name: getattr(m, f.name) for f in fields(Marking)}
+
+
+def _bounds_of(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float, float, float]:
+    return (min(xs), min(ys), max(xs), max(ys))
+
+
+class Store:
+    """Access to the map database.
+
+    Parameters
+    ----------
+    url : str, optional
+        SQLAlchemy URL; default from :class:`~mapbuilder.settings.Settings`.
+    upgrade : bool
+        Apply the schema to an empty database (default). A database at an older
+        schema revision is never changed implicitly: :meth:`upgrade` does that.
+    """
+
+    def __init__(self, url: str | None = None, *, upgrade: bool = True):
+        self.url = normalize_url(url or Settings().resolved_database_url())
+        self.engine = self._make_engine(self.url)
+        self.dialect = self.engine.dialect.name
+        if upgrade:
+            self._ensure_schema()
+
+    # ------------------------------------------------------------------ engine
+    @staticmethod
+    def _make_engine(url: str) -> Engine:
+        try:
+            parsed = make_url(url)
+        except Exception as exc:
+            raise StoreError(f"invalid database URL {url!r}") from exc
+        if parsed.get_backend_name() == "sqlite":
+            if parsed.database and parsed.database != ":memory:":
+                Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+            engine = create_engine(url, connect_args={"timeout": 60})
+
+            @event.listens_for(engine, "connect")
+            def _sqlite_connect(dbapi_conn, _record):
+                # Let SQLAlchemy's "begin" event below decide how transactions start.
+                dbapi_conn.isolation_level = None
+                cur = dbapi_conn.cursor()
+                cur.execute("PRAGMA journal_mode=WAL")
+                cur.execute("PRAGMA foreign_keys=ON")
+                cur.execute("PRAGMA busy_timeout=60000")
+                cur.execute("PRAGMA synchronous=NORMAL")
+                cur.close()
+
+            @event.listens_for(engine, "begin")
+            def _sqlite_begin(conn):
+                # Writers take the lock up front: a deferred transaction that later
+                # writes can fail with "database is locked" instead of waiting.
+                write = conn.get_execution_options().get("lanemap_write", False)
+                conn.exec_driver_sql("BEGIN IMMEDIATE" if write else "BEGIN")
+
+            return engine
+        if parsed.get_backend_name() == "postgresql":
+            return create_engine(url, pool_pre_ping=True)
+        raise StoreError(f"unsupported database {parsed.get_backend_name()!r}: use sqlite or postgresql")
+
+    @contextmanager
+    def _tx(self, write: bool) -> Iterator[Connection]:
+        try:
+            with self.engine.connect() as conn:
+                conn = conn.execution_options(lanemap_write=write)
+                with conn.begin():
+                    yield conn
+        except DBAPIError as exc:
+            if exc.connection_invalidated or isinstance(exc.orig, (OSError,)) or _is_connect_error(exc):
+                raise StoreUnavailableError(f"database unavailable: {exc.orig}") from exc
+            raise
+
+    def _read(self):
+        return self._tx(write=False)
+
+    def _write(self):
+        return self._tx(write=True)
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    # ------------------------------------------------------------------ schema
+    def _lock_for_migration(self, conn: Connection) -> None:
+        if self.dialect == "postgresql":
+            conn.exec_driver_sql("SELECT pg_advisory_xact_lock(727256)")  # 'lanemap' schema lock
+
+    def schema_revision(self) -> str | None:
+        with self._read() as conn:
+            return migrate.current_revision(conn)
+
+    def _ensure_schema(self) -> None:
+        head = migrate.head_revision(self.url)
+        try:
+            current = self.schema_revision()
+        except DBAPIError as exc:
+            raise StoreUnavailableError(f"cannot open database {self._safe_url()}: {exc.orig}") from exc
+        if current == head:
+            return
+        if current is None:
+            self.upgrade()
+            return
+        raise SchemaError(
+            f"database schema is at revision {current}, this lanemap needs {head}: "
+            "run `lanemap db upgrade`"
+        )
+
+    def upgrade(self, revision: str = "head") -> tuple[str | None, str | None]:
+        """Apply migrations up to ``revision``; returns (before, after)."""
+        with self._write() as conn:
+            self._lock_for_migration(conn)
+            before = migrate.current_revision(conn)
+            migrate.upgrade(conn, self.url, revision)
+            after = migrate.current_revision(conn)
+        log.info("database schema %s -> %s", before, after)
+        return before, after
+
+    def _safe_url(self) -> str:
+        return make_url(self.url).render_as_string(hide_password=True)
+
+    # ------------------------------------------------------------------ maps
+    def create_map(self, map_id: str, title: str = "", crs: str | None = None) -> MapInfo:
+        """Create an empty map. ``crs`` must be metric; None: chosen at the first import."""
+        check_map_id(map_id)
+        if crs is not None:
+            try:
+                metric_crs(crs)
+            except CRSError as exc:
+                raise StoreError(str(exc)) from exc
+        now = _now()
+        try:
+            with self._write() as conn:
+                conn.execute(
+                    insert(maps).values(
+                        id=map_id, title=title or "", crs=crs, revision=0,
+                        created_at=now, updated_at=now,
+                    )
+                )  # fmt: skip
+        except IntegrityError:
+            raise MapExistsError(map_id) from None
+        return self.get_map(map_id)
+
+    def _map_row(self, conn: Connection, map_id: str, *, lock: bool = False):
+        q = select(maps).where(maps.c.id == map_id)
+        if lock and self.dialect == "postgresql":
+            q = q.with_for_update()
+        row = conn.execute(q).first()
+        if row is None:
+            raise UnknownMapError(map_id)
+        return row
+
+    @staticmethod
+    def _map_info(row, count: int | None = None) -> MapInfo:
+        bounds = None
+        if row.minx is not None:
+            bounds = (row.minx, row.miny, row.maxx, row.maxy)
+        return MapInfo(
+            id=row.id, title=row.title, crs=row.crs, bounds=bounds, revision=row.revision,
+            created_at=_utc(row.created_at), updated_at=_utc(row.updated_at), count=count,
+        )  # fmt: skip
+
+    def get_map(self, map_id: str, *, with_count: bool = False) -> MapInfo:
+        with self._read() as conn:
+            row = self._map_row(conn, map_id)
+            count = None
+            if with_count:
+                count = conn.execute(
+                    select(func.count()).select_from(markings).where(markings.c.map_id == map_id)
+                ).scalar_one()
+        return self._map_info(row, count)
+
+    def list_maps(self) -> list[MapInfo]:
+        with self._read() as conn:
+            counts = dict(
+                conn.execute(
+                    select(markings.c.map_id, func.count()).group_by(markings.c.map_id)
+                ).all()
+            )
+            rows = conn.execute(select(maps).order_by(maps.c.id)).all()
+        return [self._map_info(r, counts.get(r.id, 0)) for r in rows]
+
+    def delete_map(self, map_id: str) -> None:
+        """Delete a map with its markings, edit log, imagery records and jobs."""
+        with self._write() as conn:
+            self._map_row(conn, map_id, lock=True)
+            conn.execute(delete(maps).where(maps.c.id == map_id))
+
+    def map_revision(self, map_id: str) -> int:
+        with self._read() as conn:
+            return self._map_row(conn, map_id).revision
+
+    def _touch_map(self, conn: Connection, map_id: str, xs=(), ys=()) -> None:
+        row = self._map_row(conn, map_id)
+        values: dict[str, Any] = {"revision": maps.c.revision + 1, "updated_at": _now()}
+        if len(xs):
+            b = _bounds_of(xs, ys)
+            if row.minx is not None:
+                b = (min(b[0], row.minx), min(b[1], row.miny), max(b[2], row.maxx), max(b[3], row.maxy))
+            values.update(minx=b[0], miny=b[1], maxx=b[2], maxy=b[3])
+        conn.execute(update(maps).where(maps.c.id == map_id).values(**values))
+
+    def _crs_for_write(self, conn: Connection, map_id: str, lonlat_hint=None) -> str:
+        row = self._map_row(conn, map_id, lock=True)
+        if row.crs:
+            return row.crs
+        if lonlat_hint is None:
+            raise StoreError(
+                f"map {map_id!r} has no CRS yet: create it with a CRS or import lon/lat data first"
+            )
+        crs = utm_crs_for(*lonlat_hint)
+        conn.execute(update(maps).where(maps.c.id == map_id).values(crs=crs))
+        log.info("map %s: storage CRS set to %s", map_id, crs)
+        return crs
+
+    # ------------------------------------------------------------------ markings
+    def add_markings(
+        self,
+        map_id: str,
+        items: Iterable[Marking],
+        who: str = "cli",
+        comment: str = "",
+        *,
+        lonlat: bool = False,
+    ) -> list[int]:
+        """Insert markings in one transaction and log it as one ``import`` changeset.
+
+        Parameters
+        ----------
+        lonlat : bool
+            The markings' ``lon``/``lat`` hold their position (WGS84); ``x``/``y``
+            are computed in the map's CRS, which is chosen from the data when the
+            map has none yet.
+        """
+        items = list(items)
+        if not items:
+            return []
+        now = _now()
+        with self._write() as conn:
+            hint = None
+            if lonlat:
+                hint = (
+                    float(np.mean([m.lon for m in items])),
+                    float(np.mean([m.lat for m in items])),
+                )
+            crs = self._crs_for_write(conn, map_id, hint)
+            if lonlat:
+                from .crs import from_wgs84
+
+                xs, ys = from_wgs84(crs).transform(
+                    np.array([m.lon for m in items], float), np.array([m.lat for m in items], float)
+                )
+                for m, x, y in zip(items, np.atleast_1d(xs), np.atleast_1d(ys)):
+                    m.x, m.y = float(x), float(y)
+            rows = []
+            for i, m in enumerate(items):
+                try:
+                    row = marking_row(m, crs, now)
+                except InvalidMarkingError as exc:
+                    raise InvalidMarkingError(f"marking {i}: {exc}") from None
+                row["map_id"] = map_id
+                row["version"] = 1
+                rows.append(row)
+            ids = self._insert_rows(conn, rows)
+            cs = conn.execute(
+                insert(changesets).values(
+                    map_id=map_id, who=who, at=now, comment=comment, n_create=len(ids),
+                    n_update=0, n_delete=0,
+                )
+            ).inserted_primary_key[0]  # fmt: skip
+            conn.execute(
+                insert(edits).values(
+                    map_id=map_id, changeset_id=cs, marking_id=None, op="import", who=who, at=now,
+                    before=None, after={"count": len(ids), "first_id": min(ids), "last_id": max(ids)},
+                    comment=comment,
+                )
+            )  # fmt: skip
+            self._touch_map(conn, map_id, [r["x"] for r in rows], [r["y"] for r in rows])
+        return ids
+
+    def _insert_rows(self, conn: Connection, rows: list[dict[str, Any]]) -> list[int]:
+        if not rows:
+            return []
+        ids: list[int] = []
+        # RETURNING keeps ids exact on both SQLite (3.35+) and PostgreSQL.
+        for start in range(0, len(rows), 5000):
+            chunk = rows[start : start + 5000]
+            result = conn.execute(
+                insert(markings).returning(markings.c.id, sort_by_parameter_order=True), chunk
+            )
+            ids.extend(r[0] for r in result)
+        return ids
+
+    def bulk_load(self, map_id: str, items: Iterable[Marking], chunk: int = 20000) -> int:
+        """Insert many markings fast (benchmarks, large imports): no edit log, one transaction."""
+        now = _now()
+        n = 0
+        with self._write() as conn:
+            crs = self._crs_for_write(conn, map_id)
+            buf: list[dict[str, Any]] = []
+            minx = miny = math.inf
+            maxx = maxy = -math.inf
+            for m in items:
+                row = marking_row(m, crs, now)
+                row["map_id"], row["version"] = map_id, 1
+                minx, miny = min(minx, row["x"]), min(miny, row["y"])
+                maxx, maxy = max(maxx, row["x"]), max(maxy, row["y"])
+                buf.append(row)
+                if len(buf) >= chunk:
+                    conn.execute(insert(markings), buf)
+                    n += len(buf)
+                    buf = []
+            if buf:
+                conn.execute(insert(markings), buf)
+                n += len(buf)
+            if n:
+                self._touch_map(conn, map_id, [minx, maxx], [miny, maxy])
+        return n
+
+    def _bbox_clause(self, map_id: str, minx: float, miny: float, maxx: float, maxy: float):
+        for name, v in (("minx", minx), ("miny", miny), ("maxx", maxx), ("maxy", maxy)):
+            if not math.isfinite(v):
+                raise StoreError(f"bbox {name} must be finite")
+        if minx > maxx or miny > maxy:
+            raise StoreError("bbox must be (minx, miny, maxx, maxy) with min <= max")
+        gx0, gx1 = math.floor(minx / GRID_CELL_M), math.floor(maxx / GRID_CELL_M)
+        gy0, gy1 = math.floor(miny / GRID_CELL_M), math.floor(maxy / GRID_CELL_M)
+        c = markings.c
+        return and_(
+            c.map_id == map_id,
+            c.gx.between(gx0, gx1),
+            c.gy.between(gy0, gy1),
+            c.x.between(minx, maxx),
+            c.y.between(miny, maxy),
+        )
+
+    def query_bbox(
+        self,
+        map_id: str,
+        minx: float,
+        miny: float,
+        maxx: float,
+        maxy: float,
+        statuses: Sequence[str] | None = None,
+        limit: int | None = None,
+        offset: int = 0,
+    ) -> list[Marking]:
+        """Markings whose centroid lies in a box of the storage CRS, ordered by id."""
+        where = self._bbox_clause(map_id, minx, miny, maxx, maxy)
+        if statuses:
+            where = and_(where, markings.c.status.in_(list(statuses)))
+        q = select(markings).where(where).order_by(markings.c.id).offset(offset)
+        if limit is not None:
+            q = q.limit(limit)
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            return [_marking_from_row(r) for r in conn.execute(q)]
+
+    def count_bbox(self, map_id, minx, miny, maxx, maxy, statuses=None) -> int:
+        where = self._bbox_clause(map_id, minx, miny, maxx, maxy)
+        if statuses:
+            where = and_(where, markings.c.status.in_(list(statuses)))
+        with self._read() as conn:
+            return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+
+    def iter_markings(self, map_id: str, batch: int = 5000) -> Iterator[Marking]:
+        """Every marking of a map, by id, in batches (keyset pagination)."""
+        last = -1
+        while True:
+            with self._read() as conn:
+                self._map_row(conn, map_id)
+                rows = conn.execute(
+                    select(markings)
+                    .where(markings.c.map_id == map_id, markings.c.id > last)
+                    .order_by(markings.c.id)
+                    .limit(batch)
+                ).all()
+            if not rows:
+                return
+            for r in rows:
+                yield _marking_from_row(r)
+            last = rows[-1].id
+
+    def list_markings(
+        self, map_id: str, limit: int = 100, offset: int = 0, statuses=None
+    ) -> tuple[list[Marking], int]:
+        """A page of a map's markings by id, and the total count."""
+        where = markings.c.map_id == map_id
+        if statuses:
+            where = and_(where, markings.c.status.in_(list(statuses)))
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            rows = conn.execute(
+                select(markings).where(where).order_by(markings.c.id).limit(limit).offset(offset)
+            ).all()
+        return [_marking_from_row(r) for r in rows], total
+
+    def get_marking(self, map_id: str, marking_id: int) -> Marking:
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            row = conn.execute(
+                select(markings).where(markings.c.map_id == map_id, markings.c.id == marking_id)
+            ).first()
+        if row is None:
+            raise UnknownMarkingError(map_id, marking_id)
+        return _marking_from_row(row)
+
+    def marking_arrays(
+        self, map_id: str, statuses: Sequence[str] = ("unreviewed", "accepted")
+    ) -> MarkingArrays:
+        c = markings.c
+        q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg).where(
+            c.map_id == map_id, c.status.in_(list(statuses))
+        )
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            rows = conn.execute(q.order_by(c.id)).all()
+        a = np.array(rows, dtype=float).reshape(-1, 6)
+        return MarkingArrays(
+            id=a[:, 0].astype(np.int64), x=a[:, 1], y=a[:, 2], weight=a[:, 3],
+            length_m=a[:, 4], bearing_deg=a[:, 5],
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ edits
+    def apply_changeset(
+        self, map_id: str, changes: Sequence[Change], who: str, comment: str = "",
+        *, reverts: int | None = None,
+    ) -> ChangesetResult:  # fmt: skip
+        """Apply creates, updates and deletes atomically: all of them or none.
+
+        Raises
+        ------
+        ConflictError
+            If a marking to update or delete is missing or its version differs
+            from the expected one; nothing is written.
+        InvalidMarkingError
+            If a created or updated marking has values out of range.
+        """
+        if not changes:
+            raise StoreError("a changeset needs at least one change")
+        now = _now()
+        with self._write() as conn:
+            crs = self._crs_for_write(conn, map_id, _lonlat_hint(changes))
+            ids = [c.id for c in changes if c.op in ("update", "delete")]
+            seen: set[int] = set()
+            for i in ids:
+                if i in seen:
+                    raise StoreError(f"marking {i} appears more than once in the changeset")
+                seen.add(i)
+            current = {}
+            if ids:
+                q = select(markings).where(markings.c.map_id == map_id, markings.c.id.in_(ids))
+                if self.dialect == "postgresql":
+                    q = q.with_for_update()
+                current = {r.id: r for r in conn.execute(q)}
+            conflicts = []
+            for c in changes:
+                if c.op not in ("create", "update", "delete"):
+                    raise StoreError(f"unknown change op {c.op!r}")
+                if c.op == "create":
+                    continue
+                row = current.get(c.id)
+                if row is None:
+                    conflicts.append(Conflict(id=c.id, reason="missing", expected_version=c.version))
+                elif c.version is not None and c.version != row.version:
+                    conflicts.append(
+                        Conflict(c.id, "version", expected_version=c.version, actual_version=row.version)
+                    )
+            if conflicts:
+                raise ConflictError(conflicts)
+
+            cs_id = conn.execute(
+                insert(changesets).values(
+                    map_id=map_id, who=who, at=now, comment=comment or "",
+                    n_create=sum(c.op == "create" for c in changes),
+                    n_update=sum(c.op == "update" for c in changes),
+                    n_delete=sum(c.op == "delete" for c in changes),
+                    reverts=reverts,
+                )
+            ).inserted_primary_key[0]  # fmt: skip
+            results, xs, ys, log_rows = [], [], [], []
+            for i, c in enumerate(changes):
+                try:
+                    res, before, after = self._apply_one(conn, map_id, crs, c, current, now)
+                except InvalidMarkingError as exc:
+                    raise InvalidMarkingError(f"change {i} ({c.op}): {exc}") from None
+                results.append(res)
+                if after is not None:
+                    xs.append(after["x"])
+                    ys.append(after["y"])
+                log_rows.append(
+                    dict(
+                        map_id=map_id, changeset_id=cs_id, marking_id=res["id"], op=c.op, who=who,
+                        at=now, before=before, after=after, comment=comment or "",
+                    )
+                )  # fmt: skip
+            conn.execute(insert(edits), log_rows)
+            self._touch_map(conn, map_id, xs, ys)
+        return ChangesetResult(changeset_id=cs_id, results=results)
+
+    def _apply_one(self, conn, map_id, crs, c: Change, current, now):
+        if c.op == "create":
+            if c.marking is None:
+                raise StoreError("a create change needs a marking")
+            m = c.marking
+            if m.lon is not None and m.lat is not None and (m.x is None or m.y is None):
+                from .crs import from_wgs84
+
+                m.x, m.y = from_wgs84(crs).transform(float(m.lon), float(m.lat))
+            row = marking_row(m, crs, now)
+            row["map_id"] = map_id
+            row["version"] = 1
+            if c.id is not None:
+                # Re-creating a deleted marking (a revert) keeps its id, and its
+                # version moves on so that old ETags stay stale.
+                row["id"] = c.id
+                row["version"] = (m.version or 0) + 1
+            new_id = conn.execute(insert(markings).values(**row).returning(markings.c.id)).scalar_one()
+            after = marking_to_json(_marking_from_row(_row_obj(row, new_id)))
+            return {"op": "create", "id": new_id, "version": row["version"]}, None, after
+        row = current[c.id]
+        before_m = _marking_from_row(row)
+        before = marking_to_json(before_m)
+        if c.op == "delete":
+            conn.execute(delete(markings).where(markings.c.id == c.id))
+            return {"op": "delete", "id": c.id, "version": None}, before, None
+        unknown = set(c.fields) - EDITABLE_FIELDS
+        if unknown:
+            raise InvalidMarkingError(f"cannot change field(s) {', '.join(sorted(unknown))}")
+        m = _marking_from_row(row)
+        patch = dict(c.fields)
+        if "lon" in patch or "lat" in patch:
+            from .crs import from_wgs84
+
+            lon = _finite("lon", patch.pop("lon", m.lon))
+            lat = _finite("lat", patch.pop("lat", m.lat))
+            if not (-180 <= lon <= 180 and -90 <= lat <= 90):
+                raise InvalidMarkingError(f"lon/lat out of range: {lon}, {lat}")
+            patch["x"], patch["y"] = from_wgs84(crs).transform(lon, lat)
+        for k, v in patch.items():
+            setattr(m, k, v)
+        values = marking_row(m, crs, now)
+        values.pop("created_at")
+        values["version"] = row.version + 1
+        conn.execute(update(markings).where(markings.c.id == c.id).values(**values))
+        after = marking_to_json(_marking_from_row(_row_obj({**values, "created_at": row.created_at}, c.id, map_id)))
+        return {"op": "update", "id": c.id, "version": row.version + 1}, before, after
+
+    def changesets(self, map_id: str, limit: int = 50, offset: int = 0) -> tuple[list[ChangesetInfo], int]:
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            total = conn.execute(
+                select(func.count()).select_from(changesets).where(changesets.c.map_id == map_id)
+            ).scalar_one()
+            rows = conn.execute(
+                select(changesets).where(changesets.c.map_id == map_id)
+                .order_by(changesets.c.id.desc()).limit(limit).offset(offset)
+            ).all()  # fmt: skip
+        return [
+            ChangesetInfo(r.id, r.map_id, r.who, _utc(r.at), r.comment, r.n_create, r.n_update,
+                          r.n_delete, r.reverts)
+            for r in rows
+        ], total  # fmt: skip
+
+    def history(
+        self, map_id: str, limit: int = 50, offset: int = 0, changeset_id: int | None = None,
+        marking_id: int | None = None,
+    ) -> tuple[list[EditInfo], int]:  # fmt: skip
+        """The edit log of a map, newest first, with the total count."""
+        where = edits.c.map_id == map_id
+        if changeset_id is not None:
+            where = and_(where, edits.c.changeset_id == changeset_id)
+        if marking_id is not None:
+            where = and_(where, edits.c.marking_id == marking_id)
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            total = conn.execute(select(func.count()).select_from(edits).where(where)).scalar_one()
+            rows = conn.execute(
+                select(edits).where(where).order_by(edits.c.id.desc()).limit(limit).offset(offset)
+            ).all()
+        return [
+            EditInfo(r.id, r.changeset_id, r.marking_id, r.op, r.who, _utc(r.at), r.before,
+                     r.after, r.comment)
+            for r in rows
+        ], total  # fmt: skip
+
+    def revert_changeset(self, map_id: str, changeset_id: int, who: str, comment: str = "") -> ChangesetResult:
+        """Undo a changeset with a new changeset; conflicts if its markings changed since."""
+        log_rows, _ = self.history(map_id, limit=1_000_000, changeset_id=changeset_id)
+        if not log_rows:
+            raise UnknownChangesetError(map_id, changeset_id)
+        inverse: list[Change] = []
+        for e in sorted(log_rows, key=lambda e: e.id, reverse=True):
+            if e.op == "import":
+                raise StoreError(
+                    f"changeset {changeset_id} is an import; delete the map or its markings instead"
+                )
+            if e.op == "create":
+                inverse.append(Change("delete", id=e.marking_id, version=e.after["version"]))
+            elif e.op == "delete":
+                m = _marking_from_json(e.before)
+                m.version = e.before["version"]
+                inverse.append(Change("create", id=e.marking_id, marking=m))
+            else:
+                fields_ = {k: e.before[k] for k in _MARKING_FIELDS}
+                inverse.append(Change("update", id=e.marking_id, version=e.after["version"], fields=fields_))
+        return self.apply_changeset(
+            map_id, inverse, who, comment or f"revert changeset {changeset_id}", reverts=changeset_id
+        )
+
+    # ------------------------------------------------------------------ builds
+    def replace_detected(
+        self, map_id: str, tile_key: str, items: list[Marking], job_id: int | None = None
+    ) -> int:
+        """Replace a tile's unreviewed detections with a new set, in one transaction.
+
+        Markings a person decided on (source ``manual``, or status ``accepted`` or
+        ``rejected``) are never touched, and new detections within
+        :data:`SUPPRESS_RADIUS_M` of one are dropped: a rebuild keeps manual edits.
+        With ``job_id``, the tile is recorded as done for that job in the same
+        transaction, so a resumed build neither repeats nor loses it.
+
+        Returns
+        -------
+        int
+            The number of markings inserted.
+        """
+        now = _now()
+        c = markings.c
+        with self._write() as conn:
+            crs = self._crs_for_write(conn, map_id)
+            conn.execute(
+                delete(markings).where(
+                    c.map_id == map_id, c.tile_key == tile_key, c.source == "detected",
+                    c.status == "unreviewed",
+                )
+            )  # fmt: skip
+            rows = []
+            for i, m in enumerate(items):
+                m.source, m.status, m.tile_key = "detected", "unreviewed", tile_key
+                try:
+                    row = marking_row(m, crs, now)
+                except InvalidMarkingError as exc:
+                    raise InvalidMarkingError(f"tile {tile_key}, marking {i}: {exc}") from None
+                row["map_id"], row["version"] = map_id, 1
+                rows.append(row)
+            if rows:
+                xs = np.array([r["x"] for r in rows])
+                ys = np.array([r["y"] for r in rows])
+                r = SUPPRESS_RADIUS_M
+                kept = conn.execute(
+                    select(c.x, c.y).where(
+                        self._bbox_clause(map_id, xs.min() - r, ys.min() - r, xs.max() + r, ys.max() + r),
+                        or_(c.source == "manual", c.status.in_(["accepted", "rejected"])),
+                    )
+                ).all()
+                if kept:
+                    k = np.array(kept, float)
+                    d2 = (xs[:, None] - k[None, :, 0]) ** 2 + (ys[:, None] - k[None, :, 1]) ** 2
+                    keep = d2.min(axis=1) > r * r
+                    rows = [row for row, ok in zip(rows, keep) if ok]
+            if rows:
+                conn.execute(insert(markings), rows)
+            if job_id is not None:
+                conn.execute(
+                    insert(job_tiles).values(job_id=job_id, tile_key=tile_key, n_markings=len(rows), done_at=now)
+                )
+            self._touch_map(conn, map_id, [r["x"] for r in rows], [r["y"] for r in rows])
+        return len(rows)
+
+    def done_tiles(self, job_id: int) -> set[str]:
+        with self._read() as conn:
+            return set(conn.execute(select(job_tiles.c.tile_key).where(job_tiles.c.job_id == job_id)).scalars())
+
+    # ------------------------------------------------------------------ jobs
+    def create_job(self, kind: str, map_id: str | None, params: dict[str, Any] | None = None) -> int:
+        now = _now()
+        with self._write() as conn:
+            if map_id is not None:
+                self._map_row(conn, map_id)
+            return conn.execute(
+                insert(jobs).values(
+                    kind=kind, map_id=map_id, status="accepted", progress=0.0, params=params or {},
+                    created_at=now, updated_at=now,
+                )
+            ).inserted_primary_key[0]  # fmt: skip
+
+    def update_job(
+        self, job_id: int, *, status: str | None = None, progress: float | None = None,
+        error: str | None = None,
+    ) -> JobInfo:  # fmt: skip
+        now = _now()
+        values: dict[str, Any] = {"updated_at": now}
+        if status is not None:
+            if status not in JOB_STATUSES:
+                raise StoreError(f"job status must be one of {', '.join(JOB_STATUSES)}")
+            values["status"] = status
+            if status == "running":
+                values["started_at"] = func.coalesce(jobs.c.started_at, now)
+            if status in ("successful", "failed", "dismissed"):
+                values["finished_at"] = now
+        if progress is not None:
+            values["progress"] = max(0.0, min(100.0, float(progress)))
+        if error is not None:
+            values["error"] = error
+        with self._write() as conn:
+            n = conn.execute(update(jobs).where(jobs.c.id == job_id).values(**values)).rowcount
+            if not n:
+                raise UnknownJobError(job_id)
+        return self.get_job(job_id)
+
+    @staticmethod
+    def _job_info(r) -> JobInfo:
+        return JobInfo(
+            id=r.id, kind=r.kind, map_id=r.map_id, status=r.status, progress=r.progress,
+            params=dict(r.params or {}), error=r.error, created_at=_utc(r.created_at),
+            updated_at=_utc(r.updated_at), started_at=_utc(r.started_at),
+            finished_at=_utc(r.finished_at),
+        )  # fmt: skip
+
+    def get_job(self, job_id: int) -> JobInfo:
+        with self._read() as conn:
+            r = conn.execute(select(jobs).where(jobs.c.id == job_id)).first()
+        if r is None:
+            raise UnknownJobError(job_id)
+        return self._job_info(r)
+
+    def find_jobs(self, kind: str | None = None, map_id: str | None = None, status=None) -> list[JobInfo]:
+        q = select(jobs).order_by(jobs.c.id)
+        if kind is not None:
+            q = q.where(jobs.c.kind == kind)
+        if map_id is not None:
+            q = q.where(jobs.c.map_id == map_id)
+        if status is not None:
+            q = q.where(jobs.c.status.in_([status] if isinstance(status, str) else list(status)))
+        with self._read() as conn:
+            return [self._job_info(r) for r in conn.execute(q)]
+
+    # ------------------------------------------------------------------ imagery
+    def add_imagery(
+        self, map_id: str, path: str, crs: str, bounds: tuple[float, float, float, float],
+        resolution_m: float,
+    ) -> int:  # fmt: skip
+        with self._write() as conn:
+            self._map_row(conn, map_id)
+            return conn.execute(
+                insert(imagery).values(
+                    map_id=map_id, path=str(path), crs=crs, minx=bounds[0], miny=bounds[1],
+                    maxx=bounds[2], maxy=bounds[3], resolution_m=float(resolution_m),
+                    created_at=_now(),
+                )
+            ).inserted_primary_key[0]  # fmt: skip
+
+    @staticmethod
+    def _imagery_info(r) -> ImageryInfo:
+        return ImageryInfo(r.id, r.map_id, r.path, r.crs, (r.minx, r.miny, r.maxx, r.maxy),
+                           r.resolution_m, _utc(r.created_at))  # fmt: skip
+
+    def get_imagery(self, imagery_id: int) -> ImageryInfo:
+        with self._read() as conn:
+            r = conn.execute(select(imagery).where(imagery.c.id == imagery_id)).first()
+        if r is None:
+            raise UnknownImageryError(imagery_id)
+        return self._imagery_info(r)
+
+    def list_imagery(self, map_id: str) -> list[ImageryInfo]:
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            rows = conn.execute(select(imagery).where(imagery.c.map_id == map_id).order_by(imagery.c.id))
+            return [self._imagery_info(r) for r in rows]
+
+
+def _is_connect_error(exc: DBAPIError) -> bool:
+    text = str(exc.orig).lower()
+    return any(s in text for s in ("could not connect", "connection refused", "server closed", "terminating connection", "unable to open database"))
+
+
+def _lonlat_hint(changes: Sequence[Change]):
+    for c in changes:
+        if c.marking is not None and c.marking.lon is not None and c.marking.lat is not None:
+            return (float(c.marking.lon), float(c.marking.lat))
+    return None
+
+
+class _RowObj:
+    def __init__(self, d: dict[str, Any]):
+        self.__dict__.update(d)
+
+
+def _row_obj(values: dict[str, Any], marking_id: int, map_id: str | None = None) -> _RowObj:
+    d = dict(values)
+    d["id"] = marking_id
+    if map_id is not None:
+        d["map_id"] = map_id
+    return _RowObj(d)
+
+
+def _marking_from_json(d: dict[str, Any]) -> Marking:
+    keep = {f.name for f in fields(Marking)} - {"id", "version"}
+    return Marking(**{k: v for k, v in d.items() if k in keep})
+
+
+__all__ = [
+    "Change", "ChangesetInfo", "ChangesetResult", "Conflict", "ConflictError", "EditInfo",
+    "ImageryInfo", "InvalidMarkingError", "JobInfo", "MapExistsError", "MapInfo", "MarkingArrays",
+    "SchemaError", "Store", "StoreError", "StoreUnavailableError", "UnknownChangesetError",
+    "UnknownImageryError", "UnknownJobError", "UnknownMapError", "UnknownMarkingError",
+    "asdict", "marking_to_json",
+]  # fmt: skip
