@@ -1,0 +1,391 @@
+"""Cluster marking pixels into markings and measure them.
+
+A probability image from the classifier becomes markings in three steps:
+
+1. :func:`label_pixels` thresholds it and groups the marking pixels into
+   clusters (connected components, optionally joining pixels closer than a
+   link distance, the Euclidean clustering of Pink 2008).
+2. :func:`split_long` cuts clusters longer than a piece length into pieces, so
+   that the centroid of a long solid line is local. The cuts lie on a grid
+   anchored in world coordinates along the cluster's (quantised) direction,
+   so two tiles that see the same stretch of line cut it at the same places.
+3. :func:`measure_clusters` measures each cluster from the second moments of
+   its pixels: centroid, major-axis bearing, length, width, end points, pixel
+   count and mean probability; :func:`filter_clusters` drops shapes no lane
+   marking has.
+
+:func:`detect_markings` runs the three steps.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+from affine import Affine
+from scipy import ndimage as ndi
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ClusterParams:
+    """Parameters of clustering, splitting and filtering.
+
+    Attributes
+    ----------
+    threshold : float
+        Probability above which a pixel is a marking pixel.
+    link_m : float
+        Marking pixels closer than this (metres) join one cluster even when not
+        8-connected; 0 keeps plain 8-connectivity.
+    max_length_m : float
+        Length of the pieces long clusters are cut into, metres.
+    split_factor : float
+        Only clusters longer than ``split_factor * max_length_m`` are cut, so a
+        marking measured a little longer than a piece (a 3 m dash) stays whole.
+    min_width_m, max_width_m : float
+        Accepted range of marking widths, metres.
+    min_length_m : float
+        Shortest accepted marking (or piece), metres.
+    min_area_m2 : float
+        Smallest accepted painted area, square metres.
+    direction_step_deg : float
+        Quantisation of the cutting direction of long clusters, degrees.
+    """
+
+    threshold: float = 0.5
+    link_m: float = 0.0
+    max_length_m: float = 3.0
+    split_factor: float = 1.2
+    min_width_m: float = 0.08
+    max_width_m: float = 0.6
+    min_length_m: float = 0.3
+    min_area_m2: float = 0.04
+    direction_step_deg: float = 2.0
+
+    def __post_init__(self):
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
+        if self.max_length_m <= 0:
+            raise ValueError(f"max_length_m must be positive, got {self.max_length_m}")
+        if self.split_factor < 1.0:
+            raise ValueError(f"split_factor must be >= 1, got {self.split_factor}")
+        if not 0 <= self.min_width_m < self.max_width_m:
+            raise ValueError(
+                f"need 0 <= min_width_m < max_width_m, got {self.min_width_m}, {self.max_width_m}"
+            )
+        if self.link_m < 0:
+            raise ValueError(f"link_m must be >= 0, got {self.link_m}")
+
+
+@dataclass
+class Clusters:
+    """Measured clusters, one entry per cluster (all arrays of equal length).
+
+    Attributes
+    ----------
+    x, y : ndarray of float64
+        Centroid in the CRS of the transform, metres.
+    col, row : ndarray of float64
+        Centroid in pixel coordinates of the array (pixel (0, 0) spans [0, 1)).
+    weight : ndarray of int64
+        Pixel count (the weight γ).
+    length_m, width_m : ndarray of float64
+        Extent along the major axis, and area / length, metres.
+    bearing_deg : ndarray of float64
+        Major axis, degrees clockwise from grid north, in [0, 180).
+    x0, y0, x1, y1 : ndarray of float64
+        End points of the major axis; (x1 - x0, y1 - y0) points along ``bearing_deg``.
+    score : ndarray of float64
+        Mean probability of the cluster's pixels.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    col: np.ndarray
+    row: np.ndarray
+    weight: np.ndarray
+    length_m: np.ndarray
+    width_m: np.ndarray
+    bearing_deg: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+    x1: np.ndarray
+    y1: np.ndarray
+    score: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def take(self, index) -> "Clusters":
+        """The clusters selected by a boolean mask or index array."""
+        return Clusters(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    @classmethod
+    def empty(cls) -> "Clusters":
+        z = np.zeros(0)
+        return cls(**{f.name: z.copy() for f in fields(cls)})
+
+
+def label_pixels(
+    prob: np.ndarray,
+    valid: np.ndarray | None = None,
+    threshold: float = 0.5,
+    link_px: int = 0,
+) -> tuple[np.ndarray, int]:
+    """Group marking pixels into clusters.
+
+    Parameters
+    ----------
+    prob : (H, W) float
+        Probability of "marking" per pixel.
+    valid : (H, W) bool, optional
+        Pixels that may be marking pixels.
+    threshold : float
+        Pixels with ``prob > threshold`` are marking pixels.
+    link_px : int
+        Marking pixels up to this many pixels apart (Chebyshev) join one
+        cluster; 0 or 1 mean 8-connectivity.
+
+    Returns
+    -------
+    labels : (H, W) int32
+        0 for background, 1..n for clusters.
+    n : int
+        Number of clusters.
+    """
+    mask = prob > threshold
+    if valid is not None:
+        mask &= valid
+    structure = np.ones((3, 3), bool)
+    if link_px <= 1:
+        labels, n = ndi.label(mask, structure=structure)
+        return labels.astype(np.int32, copy=False), int(n)
+    # Dilating by half the link distance merges clusters whose gap is at most link_px.
+    grown = ndi.binary_dilation(mask, structure=np.ones((link_px, link_px), bool))
+    labels, n = ndi.label(grown, structure=structure)
+    labels[~mask] = 0
+    # Relabel densely: a dilated component may hold no original pixel only if empty.
+    used = np.unique(labels[mask])
+    lut = np.zeros(n + 1, np.int32)
+    lut[used] = np.arange(1, used.size + 1, dtype=np.int32)
+    return lut[labels], int(used.size)
+
+
+def _pixel_world(transform: Affine, rows: np.ndarray, cols: np.ndarray):
+    c = cols + 0.5
+    r = rows + 0.5
+    x = transform.a * c + transform.b * r + transform.c
+    y = transform.d * c + transform.e * r + transform.f
+    return x, y
+
+
+def _moments(lab: np.ndarray, x: np.ndarray, y: np.ndarray, k: int):
+    n = np.bincount(lab, minlength=k).astype(float)
+    d = np.maximum(n, 1.0)  # unused labels have no pixels
+    mx = np.bincount(lab, x, k) / d
+    my = np.bincount(lab, y, k) / d
+    dx = x - mx[lab]
+    dy = y - my[lab]
+    cxx = np.bincount(lab, dx * dx, k) / d
+    cyy = np.bincount(lab, dy * dy, k) / d
+    cxy = np.bincount(lab, dx * dy, k) / d
+    # Major axis as a unit vector (ux, uy) in x-east / y-north coordinates.
+    theta = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+    ux, uy = np.cos(theta), np.sin(theta)
+    # Orient along a bearing in [0, 180): pointing east, or due north.
+    flip = (ux < -1e-12) | ((np.abs(ux) <= 1e-12) & (uy < 0))
+    ux[flip] *= -1
+    uy[flip] *= -1
+    return n, mx, my, dx, dy, ux, uy
+
+
+def measure_clusters(
+    labels: np.ndarray,
+    prob: np.ndarray,
+    transform: Affine,
+    n_labels: int | None = None,
+) -> Clusters:
+    """Measure every cluster of a label image.
+
+    Parameters
+    ----------
+    labels : (H, W) int
+        0 for background, 1..n for clusters (as from :func:`label_pixels`).
+    prob : (H, W) float
+        Probability image, for the mean score.
+    transform : Affine
+        Pixel (col, row) to CRS metres of the array's (0, 0) corner.
+    n_labels : int, optional
+        Largest label; computed when omitted.
+
+    Returns
+    -------
+    Clusters
+        One entry per non-empty label, in label order.
+    """
+    rows, cols = np.nonzero(labels)
+    if rows.size == 0:
+        return Clusters.empty()
+    lab = labels[rows, cols].astype(np.int64)
+    k = int(n_labels if n_labels is not None else lab.max()) + 1
+    x, y = _pixel_world(transform, rows, cols)
+    n, mx, my, dx, dy, ux, uy = _moments(lab, x, y, k)
+    s = dx * ux[lab] + dy * uy[lab]
+    smin = np.full(k, np.inf)
+    smax = np.full(k, -np.inf)
+    np.minimum.at(smin, lab, s)
+    np.maximum.at(smax, lab, s)
+    score = np.bincount(lab, prob[rows, cols].astype(float), k) / np.maximum(n, 1)
+    mcol = np.bincount(lab, cols + 0.5, k) / np.maximum(n, 1)
+    mrow = np.bincount(lab, rows + 0.5, k) / np.maximum(n, 1)
+
+    keep = n > 0
+    keep[0] = False
+    res = math.sqrt(abs(transform.a * transform.e - transform.b * transform.d))
+    n, mx, my, ux, uy = n[keep], mx[keep], my[keep], ux[keep], uy[keep]
+    smin, smax = smin[keep] - 0.5 * res, smax[keep] + 0.5 * res
+    length = smax - smin
+    width = n * res * res / length
+    bearing = np.degrees(np.arctan2(ux, uy)) % 180.0
+    return Clusters(
+        x=mx,
+        y=my,
+        col=mcol[keep],
+        row=mrow[keep],
+        weight=n.astype(np.int64),
+        length_m=length,
+        width_m=width,
+        bearing_deg=bearing,
+        x0=mx + ux * smin,
+        y0=my + uy * smin,
+        x1=mx + ux * smax,
+        y1=my + uy * smax,
+        score=score[keep],
+    )
+
+
+def split_long(
+    labels: np.ndarray,
+    transform: Affine,
+    max_length_m: float = 3.0,
+    split_factor: float = 1.2,
+    direction_step_deg: float = 2.0,
+    rounds: int = 4,
+) -> tuple[np.ndarray, int]:
+    """Cut clusters longer than ``split_factor * max_length_m`` into pieces.
+
+    Each long cluster is cut perpendicular to its major axis (quantised to
+    ``direction_step_deg``) at multiples of ``max_length_m`` measured from
+    the CRS origin, so the cuts do not depend on which part of the line a
+    tile sees. Curved clusters whose pieces are still too long are cut again
+    along the pieces' own axes, up to ``rounds`` times.
+
+    Returns
+    -------
+    labels : (H, W) int32
+        New label image, 1..n.
+    n : int
+    """
+    out = labels.astype(np.int32, copy=True)
+    limit = split_factor * max_length_m
+    step = math.radians(direction_step_deg)
+    for _ in range(rounds):
+        rows, cols = np.nonzero(out)
+        if rows.size == 0:
+            return out, 0
+        lab = out[rows, cols].astype(np.int64)
+        k = int(lab.max()) + 1
+        x, y = _pixel_world(transform, rows, cols)
+        n, mx, my, dx, dy, ux, uy = _moments(lab, x, y, k)
+        s = dx * ux[lab] + dy * uy[lab]
+        smin = np.full(k, np.inf)
+        smax = np.full(k, -np.inf)
+        np.minimum.at(smin, lab, s)
+        np.maximum.at(smax, lab, s)
+        long_ = (smax - smin) > limit
+        long_[0] = False
+        if not long_.any():
+            break
+        theta = np.round(np.arctan2(uy, ux) / step) * step
+        qx, qy = np.cos(theta), np.sin(theta)
+        piece = np.zeros(lab.size, np.int64)
+        sel = long_[lab]
+        sw = x[sel] * qx[lab[sel]] + y[sel] * qy[lab[sel]]
+        piece[sel] = np.floor(sw / max_length_m).astype(np.int64)
+        pairs = np.stack([lab, piece], axis=1)
+        _, inv = np.unique(pairs, axis=0, return_inverse=True)
+        out[rows, cols] = inv.reshape(-1).astype(np.int32) + 1
+        # A cut can leave two parts of a curved line in one bin; separate them.
+        out, _ = _split_disconnected(out)
+    rows, cols = np.nonzero(out)
+    return out, int(out.max()) if rows.size else 0
+
+
+def _split_disconnected(labels: np.ndarray) -> tuple[np.ndarray, int]:
+    """Give each 8-connected part of every label its own label."""
+    structure = np.ones((3, 3), bool)
+    out = np.zeros_like(labels)
+    nxt = 0
+    for i, sl in enumerate(ndi.find_objects(labels), start=1):
+        if sl is None:
+            continue
+        sub = labels[sl] == i
+        parts, m = ndi.label(sub, structure=structure)
+        view = out[sl]
+        view[sub] = parts[sub] + nxt
+        nxt += m
+    return out, nxt
+
+
+def filter_clusters(clusters: Clusters, params: ClusterParams) -> Clusters:
+    """Keep clusters whose shape a lane marking can have."""
+    area = clusters.width_m * clusters.length_m
+    ok = (
+        (clusters.width_m >= params.min_width_m)
+        & (clusters.width_m <= params.max_width_m)
+        & (clusters.length_m >= params.min_length_m)
+        & (area >= params.min_area_m2)
+    )
+    return clusters.take(ok)
+
+
+def detect_markings(
+    prob: np.ndarray,
+    valid: np.ndarray | None,
+    transform: Affine,
+    params: ClusterParams | None = None,
+) -> Clusters:
+    """Probability image → measured, filtered markings (cluster, split, measure, filter).
+
+    Parameters
+    ----------
+    prob : (H, W) float
+        Probability of "marking" per pixel.
+    valid : (H, W) bool or None
+        Pixels that may be marking pixels.
+    transform : Affine
+        Pixel (col, row) of ``prob`` to CRS metres.
+    params : ClusterParams, optional
+    """
+    params = params or ClusterParams()
+    res = math.sqrt(abs(transform.a * transform.e - transform.b * transform.d))
+    link_px = int(round(params.link_m / res)) if params.link_m > 0 else 0
+    labels, n = label_pixels(prob, valid, params.threshold, link_px)
+    if n == 0:
+        return Clusters.empty()
+    # Shapes too small to be anything are dropped before the more costly steps.
+    min_px = max(1, int(params.min_area_m2 / (res * res)))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    small = sizes < min_px
+    small[0] = True
+    if small[1:].any():
+        labels[small[labels]] = 0
+    labels, n = split_long(
+        labels, transform, params.max_length_m, params.split_factor, params.direction_step_deg
+    )
+    clusters = measure_clusters(labels, prob, transform, n)
+    return filter_clusters(clusters, params)
