@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .crs import from_wgs84
+from .crs import from_wgs84, meridian_convergence_deg, to_wgs84
 from .model import Marking
 
 #: Painted line widths by Lanelet2 line type, metres (German urban practice).
@@ -134,7 +134,7 @@ def _segment_marking(
     mids = 0.5 * (pts[1:] + pts[:-1])
     centroid = (mids * seg[:, None]).sum(0) / max(seg.sum(), 1e-9)
     dx, dy = pts[-1] - pts[0]
-    bearing = math.degrees(math.atan2(dx, dy)) % 180.0  # axis, clockwise from grid north
+    bearing = math.degrees(math.atan2(dx, dy)) % 180.0  # grid north; made true below
     length = float(seg.sum())
     return Marking(
         x=float(centroid[0]),
@@ -175,7 +175,8 @@ def layout_markings(
     -------
     list of Marking
         ``source="imported"``; ``kind`` is ``dash``, ``solid`` or ``stop_line``.
-        Bearings are clockwise from grid north of ``lmap.crs``.
+        Bearings are clockwise from true north (grid bearings corrected by the
+        meridian convergence), in [0, 180).
     """
     out: list[Marking] = []
     period = dash_m + gap_m
@@ -202,4 +203,11 @@ def layout_markings(
             edges = np.linspace(0.0, total, n + 1)
             for a, b in zip(edges[:-1], edges[1:]):
                 out.append(_segment_marking(xy, s_cum, a, b, width, "solid"))
+    if out:
+        x = np.array([m.x for m in out])
+        y = np.array([m.y for m in out])
+        lon, lat = to_wgs84(lmap.crs).transform(x, y)
+        conv = meridian_convergence_deg(lmap.crs, lon, lat)
+        for m, c in zip(out, np.atleast_1d(conv)):
+            m.bearing_deg = float((m.bearing_deg + c) % 180.0)
     return out
