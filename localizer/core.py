@@ -1,0 +1,273 @@
+"""The public entry point :func:`localize`."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from .errors import LocalizationInputError
+from .frames import wrap_angle
+from .geometry import LocalMap, homogeneous
+from .index import MapIndex
+from .pink2008 import pink2008_icp
+from .robust import data_score, data_weights, fit_statistics, log_prior, noise_sigma, robust_refine
+from .search import correlative_search
+from .types import Hypothesis, Options, Pose, Prior
+
+log = logging.getLogger(__name__)
+
+METHODS = ("default", "pink2008")
+
+
+def parse_observations(observations, max_count: int = 500) -> np.ndarray:
+    """Validate observations into an ``(N, 3)`` array of ``x, y, weight``.
+
+    Parameters
+    ----------
+    observations : array_like (N, 3) or sequence of mappings
+        Vehicle-frame centroids (x forward, y left, metres) and weights γ > 0;
+        a mapping needs ``x`` and ``y``, ``weight`` defaults to 1.
+    max_count : int
+        Largest accepted N.
+
+    Raises
+    ------
+    LocalizationInputError
+        On malformed, non-finite or non-positive-weight values, or too many rows.
+    """
+    if isinstance(observations, Mapping):
+        raise LocalizationInputError("observations: expected a list or an (N, 3) array, got a mapping")
+    if isinstance(observations, np.ndarray):
+        arr = observations
+    elif isinstance(observations, Sequence) and observations and isinstance(observations[0], Mapping):
+        rows = []
+        for k, ob in enumerate(observations):
+            if not isinstance(ob, Mapping) or "x" not in ob or "y" not in ob:
+                raise LocalizationInputError(f"observations[{k}]: needs keys 'x' and 'y'")
+            try:
+                rows.append((float(ob["x"]), float(ob["y"]), float(ob.get("weight", 1.0))))
+            except (TypeError, ValueError) as exc:
+                raise LocalizationInputError(f"observations[{k}]: values must be numbers") from exc
+        arr = np.array(rows, float)
+    else:
+        try:
+            arr = np.asarray(observations, float)
+        except (TypeError, ValueError) as exc:
+            raise LocalizationInputError("observations: not an array of numbers") from exc
+    try:
+        arr = np.asarray(arr, float)
+    except (TypeError, ValueError) as exc:
+        raise LocalizationInputError("observations: not an array of numbers") from exc
+    if arr.size == 0:
+        return np.zeros((0, 3))
+    if arr.ndim != 2 or arr.shape[1] not in (2, 3):
+        raise LocalizationInputError(f"observations: expected shape (N, 3), got {arr.shape}")
+    if arr.shape[1] == 2:
+        arr = np.column_stack([arr, np.ones(len(arr))])
+    if len(arr) > max_count:
+        raise LocalizationInputError(
+            f"observations: {len(arr)} given, at most {max_count} are accepted per frame"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise LocalizationInputError("observations: contain NaN or infinite values")
+    if np.any(arr[:, 2] <= 0):
+        raise LocalizationInputError("observations: weights must be positive")
+    return arr
+
+
+def _check_prior(prior: Prior) -> None:
+    if not isinstance(prior, Prior):
+        raise LocalizationInputError("prior: expected a localizer.Prior")
+    for name in ("lat", "lon", "heading_deg", "position_sigma_m", "heading_sigma_deg"):
+        v = getattr(prior, name)
+        if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+            raise LocalizationInputError(f"prior.{name}: must be a finite number, got {v!r}")
+    if not -90.0 <= prior.lat <= 90.0:
+        raise LocalizationInputError(f"prior.lat: {prior.lat} is outside [-90, 90]")
+    if not -180.0 <= prior.lon <= 180.0:
+        raise LocalizationInputError(f"prior.lon: {prior.lon} is outside [-180, 180]")
+    if prior.position_sigma_m <= 0:
+        raise LocalizationInputError("prior.position_sigma_m: must be positive")
+    if prior.heading_sigma_deg <= 0:
+        raise LocalizationInputError("prior.heading_sigma_deg: must be positive")
+
+
+def localize(
+    map_index: MapIndex,
+    observations,
+    prior: Prior,
+    method: str = "default",
+    options: Options | None = None,
+) -> Pose:
+    """Localize a vehicle against a marking map.
+
+    Parameters
+    ----------
+    map_index : MapIndex
+        The map (see :meth:`MapIndex.from_arrays`), shared between calls.
+    observations : (N, 3) array_like or list of {"x", "y", "weight"}
+        Marking centroids seen by the camera in the vehicle frame (x forward,
+        y left, metres) with their pixel counts γ.
+    prior : Prior
+        GPS fix (WGS84, heading clockwise from true north) with its uncertainty.
+    method : {"default", "pink2008"}
+        ``default``: global correlative search over the prior's uncertainty,
+        robust annealed refinement, ambiguity detection and a calibrated
+        covariance. ``pink2008``: the paper's ICP with mixed l1/l2 IRLS from the prior.
+    options : Options, optional
+        Tuning; defaults are the benchmarked ones.
+
+    Returns
+    -------
+    Pose
+        ``status`` is ``ok``, ``ambiguous`` (see ``hypotheses``) or ``failed``
+        (see ``reason``).
+
+    Raises
+    ------
+    LocalizationInputError
+        For malformed input (NaN/inf, non-positive weights, too many
+        observations, an invalid prior or method).
+    """
+    options = options or Options()
+    if method not in METHODS:
+        raise LocalizationInputError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    if not isinstance(map_index, MapIndex):
+        raise LocalizationInputError("map_index: expected a localizer.MapIndex")
+    obs = parse_observations(observations, options.max_observations)
+    _check_prior(prior)
+    frame = map_index.frame
+    crs = map_index.crs
+    if len(obs) == 0:
+        return Pose(status="failed", crs=crs, reason="no observations")
+    px, py = frame.to_xy(prior.lon, prior.lat)
+    if not (math.isfinite(px) and math.isfinite(py)):
+        raise LocalizationInputError("prior: lat/lon cannot be projected to the map CRS")
+    yaw0 = float(frame.heading_to_grid_yaw(prior.heading_deg, prior.lon, prior.lat))
+    sigma_p = float(prior.position_sigma_m)
+    sigma_yaw = math.radians(prior.heading_sigma_deg)
+    obs_xy = obs[:, :2]
+    gamma = obs[:, 2]
+    rho = float(np.max(np.hypot(obs_xy[:, 0], obs_xy[:, 1])))
+
+    if method == "pink2008":
+        reach = options.max_pair_distance_m * 3 + rho
+        radius = reach
+    else:
+        radius = min(
+            max(options.search_sigmas * sigma_p, options.min_search_radius_m),
+            options.max_search_radius_m,
+        )
+        reach = radius + rho + 5.0
+    local = LocalMap(map_index, (px, py), reach)
+    if len(local) == 0:
+        return Pose(
+            status="failed",
+            crs=crs,
+            reason=f"no map markings within {reach:.0f} m of the prior",
+        )
+    prior_pose = (0.0, 0.0, yaw0)
+    prior_info = np.diag([1 / sigma_p**2, 1 / sigma_p**2, 1 / sigma_yaw**2])
+    w_data = data_weights(gamma)
+    sig = noise_sigma(obs_xy, options)
+
+    if method == "pink2008":
+        res = pink2008_icp(local, obs_xy, gamma, prior_pose, options)
+        pose, iterations, trace = res.pose, res.iterations, res.trace
+        hyps: list[tuple[tuple[float, float, float], float]] = [(pose, 1.0)]
+        status = "ok"
+    else:
+        w_ref = w_data / sig**2
+        w_ref = w_ref / w_ref.mean()
+        top = np.argsort(-w_data, kind="stable")[: options.max_search_observations]
+        cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, 1.5))
+        cands = correlative_search(
+            local, obs_xy[top], w_data[top], prior_pose, radius,
+            min(options.search_sigmas * sigma_yaw, math.pi), sigma_p, sigma_yaw, cell,
+            options.outlier_density, options.candidates, options.temperature,
+        )
+        refined = []
+        for k, cand in enumerate(cands):
+            r = robust_refine(
+                local, obs_xy, w_ref, (cand.x, cand.y, cand.yaw), options,
+                record=options.record_trace and k == 0,
+            )
+            score = data_score(local, obs_xy, w_data, sig, r.pose, options) / options.temperature
+            score += log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
+            refined.append((score, r, cand))
+        refined.sort(key=lambda t: -t[0])
+        kept: list[tuple[float, Any, Any]] = []
+        for item in refined:
+            pz = item[1].pose
+            if any(
+                math.hypot(pz[0] - o[1].pose[0], pz[1] - o[1].pose[1]) < 1.0
+                and abs(wrap_angle(pz[2] - o[1].pose[2])) < math.radians(2.0)
+                for o in kept
+            ):
+                continue
+            kept.append(item)
+        if not kept:
+            return Pose(status="failed", crs=crs, reason="the global search found no candidate")
+        scores = np.array([k[0] for k in kept])
+        prob = np.exp(scores - scores.max())
+        prob /= prob.sum()
+        best = kept[0][1]
+        pose, iterations = best.pose, best.iterations
+        trace = []
+        if options.record_trace:
+            trace = [prior_pose, (kept[0][2].x, kept[0][2].y, kept[0][2].yaw)] + best.trace[1:]
+        hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
+        status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
+
+    fit = fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
+    if fit.inliers < options.min_inliers:
+        return Pose(
+            status="failed",
+            crs=crs,
+            iterations=iterations,
+            inliers=fit.inliers,
+            reason=(
+                f"only {fit.inliers} of {len(obs)} observations match the map within "
+                f"{options.inlier_distance_m} m (need {options.min_inliers})"
+            ),
+        )
+    out = _make_pose(frame, local.origin, pose, status, crs)
+    out.covariance = fit.covariance
+    out.iterations = int(iterations)
+    out.inliers = fit.inliers
+    out.rms_m = fit.rms_m
+    if options.record_trace:
+        out.trace = [(t[0] + local.origin[0], t[1] + local.origin[1], t[2]) for t in trace]
+    if status == "ambiguous":
+        for hp, p in hyps[:5]:
+            if p < 0.01:
+                break
+            h = _make_pose(frame, local.origin, hp, "ok", crs)
+            out.hypotheses.append(
+                Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p)
+            )
+    return out
+
+
+def _make_pose(frame, origin, pose, status, crs) -> Pose:
+    e = float(pose[0] + origin[0])
+    n = float(pose[1] + origin[1])
+    yaw = float(wrap_angle(pose[2]))
+    lon, lat = frame.to_lonlat(e, n)
+    heading = float(frame.grid_yaw_to_heading(yaw, lon, lat))
+    return Pose(
+        status=status,
+        crs=crs,
+        lat=float(lat),
+        lon=float(lon),
+        heading_deg=heading,
+        easting=e,
+        northing=n,
+        yaw_enu_rad=float(wrap_angle(math.pi / 2 - math.radians(heading))),
+        yaw_grid_rad=yaw,
+        transformation=homogeneous((e, n, yaw)),
+    )

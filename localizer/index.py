@@ -1,0 +1,137 @@
+"""A map's spatial index, built once and shared by requests (and threads)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import LocalizationInputError
+from .frames import GeoFrame
+
+
+def _column(name: str, values, n: int | None = None) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise LocalizationInputError(f"{name}: not an array of numbers") from exc
+    if n is not None and arr.size != n:
+        raise LocalizationInputError(f"{name}: {arr.size} values, expected {n}")
+    if not np.all(np.isfinite(arr)):
+        raise LocalizationInputError(f"{name}: contains NaN or infinite values")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class MapIndex:
+    """Marking centroids of one map with a KD-tree over them.
+
+    Build it with :meth:`from_arrays`. It is immutable: share one instance
+    between requests and threads (KD-tree queries are read-only, and the
+    coordinate transformers of :class:`GeoFrame` are per thread).
+
+    Attributes
+    ----------
+    xy : (M, 2) ndarray
+        Marking centroids in the map CRS, metres.
+    weight : (M,) ndarray
+        Marking weights (pixel counts); informative only.
+    axis : (M, 2) ndarray
+        Unit direction of line-like markings (solid-line pieces), zero otherwise.
+    half_length : (M,) ndarray
+        Half length of line-like markings, metres; 0 for point-like markings.
+    tree : scipy.spatial.cKDTree
+        Over ``xy``.
+    frame : GeoFrame
+        WGS84 ↔ map CRS conversions.
+    """
+
+    xy: np.ndarray
+    weight: np.ndarray
+    axis: np.ndarray
+    half_length: np.ndarray
+    tree: cKDTree
+    frame: GeoFrame
+
+    @property
+    def crs(self) -> str:
+        return self.frame.crs
+
+    def __len__(self) -> int:
+        return int(self.xy.shape[0])
+
+    @property
+    def max_half_length(self) -> float:
+        return float(self.half_length.max()) if len(self) else 0.0
+
+    @classmethod
+    def from_arrays(
+        cls,
+        x,
+        y,
+        weight=None,
+        crs: str = "EPSG:25832",
+        *,
+        kind=None,
+        bearing_deg=None,
+        length_m=None,
+    ) -> "MapIndex":
+        """Build the index of a map.
+
+        Parameters
+        ----------
+        x, y : array_like, shape (M,)
+            Marking centroids in ``crs`` (easting, northing), metres.
+        weight : array_like, shape (M,), optional
+            Pixel counts γ of the markings (default 1).
+        crs : str
+            The map's projected, metric CRS.
+        kind, bearing_deg, length_m : array_like, shape (M,), optional
+            When all three are given, markings of kind ``"solid"`` become segments
+            (bearing clockwise from grid north, full length in metres): a camera
+            clusters a solid line at its own phase, so only the distance across the
+            line is informative. The paper's method always uses centroids.
+
+        Raises
+        ------
+        LocalizationInputError
+            On NaN/inf, mismatched lengths, non-positive weights or a bad CRS.
+        """
+        frame = GeoFrame(crs)
+        xs = _column("x", x)
+        ys = _column("y", y, xs.size)
+        w = np.ones_like(xs) if weight is None else _column("weight", weight, xs.size)
+        if np.any(w <= 0):
+            raise LocalizationInputError("weight: map marking weights must be positive")
+        xy = np.column_stack([xs, ys])
+        axis = np.zeros_like(xy)
+        half = np.zeros(xs.size)
+        if kind is not None and bearing_deg is not None and length_m is not None:
+            kinds = np.asarray(kind, dtype=object).reshape(-1)
+            if kinds.size != xs.size:
+                raise LocalizationInputError(f"kind: {kinds.size} values, expected {xs.size}")
+            b = np.radians(_column("bearing_deg", bearing_deg, xs.size))
+            length = _column("length_m", length_m, xs.size)
+            solid = np.array([k == "solid" for k in kinds], bool) & (length > 0.5)
+            axis[solid] = np.column_stack([np.sin(b[solid]), np.cos(b[solid])])
+            half[solid] = 0.5 * length[solid]
+        for arr in (xy, w, axis, half):
+            arr.setflags(write=False)
+        tree = cKDTree(xy) if xs.size else cKDTree(np.zeros((0, 2)))
+        return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame)
+
+    def near(self, center, radius: float) -> np.ndarray:
+        """Indices of markings within ``radius`` metres of ``center`` (x, y)."""
+        if len(self) == 0:
+            return np.zeros(0, dtype=np.intp)
+        idx = self.tree.query_ball_point(np.asarray(center, float), radius)
+        return np.asarray(sorted(idx), dtype=np.intp)
+
+    def distance_to_nearest(self, point) -> float:
+        """Distance from ``point`` (x, y) to the nearest marking, metres (inf when empty)."""
+        if len(self) == 0:
+            return math.inf
+        d, _ = self.tree.query(np.asarray(point, float))
+        return float(d)

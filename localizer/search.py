@@ -1,0 +1,153 @@
+"""Global correlative search over heading × translation.
+
+For each heading of a grid covering the prior's uncertainty, the rotated
+observations are correlated with a *likelihood raster* of the map around the
+prior: the per-observation log-likelihood ratio ``log(1 + exp(-d²/2s²)/π)``
+of being a marking (``d`` the distance to the nearest map marking) versus being
+clutter. Because the raster and the translation grid share their cell size,
+the score of every translation at one heading is a sum of shifted raster
+windows, one per observation. The GPS prior is added as a Gaussian
+log-density. Local maxima of the heading × translation volume are the
+candidates handed to the robust refinement.
+
+The raster is built per request from the KD-tree's neighbourhood by stamping
+each marking's kernel (line-like markings are sampled along their length), so
+the map needs no precomputed global field and any map size costs the same.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import maximum_filter
+
+from .geometry import LocalMap
+
+
+@dataclass(frozen=True)
+class Candidate:
+    x: float
+    y: float
+    yaw: float
+    score: float
+
+
+def _sample_markings(local_map: LocalMap, step: float) -> np.ndarray:
+    pts = [local_map.xy[local_map.half == 0]]
+    for i in np.flatnonzero(local_map.half > 0):
+        h = local_map.half[i]
+        n = max(2, int(math.ceil(2 * h / step)) + 1)
+        a = np.linspace(-h, h, n)
+        pts.append(local_map.xy[i] + a[:, None] * local_map.axis[i])
+    return np.concatenate(pts) if pts else np.zeros((0, 2))
+
+
+def likelihood_raster(
+    points: np.ndarray, x0: float, y0: float, shape: tuple[int, int], cell: float,
+    sigma: float, outlier_density: float,
+) -> np.ndarray:
+    """Log-likelihood-ratio raster of markings at ``points``.
+
+    Cell ``(i, j)`` has its centre at ``(x0 + j*cell, y0 + i*cell)``.
+    """
+    ny, nx = shape
+    radius = 3.0 * sigma
+    r = int(math.ceil(radius / cell))
+    off = np.arange(-r, r + 1)
+    oy, ox = np.meshgrid(off, off, indexing="ij")
+    d2 = np.full(ny * nx, np.inf)
+    if len(points):
+        ci = np.rint((points[:, 1] - y0) / cell).astype(np.int64)
+        cj = np.rint((points[:, 0] - x0) / cell).astype(np.int64)
+        ii = ci[:, None, None] + oy[None]
+        jj = cj[:, None, None] + ox[None]
+        dy = y0 + ii * cell - points[:, 1, None, None]
+        dx = x0 + jj * cell - points[:, 0, None, None]
+        ok = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
+        np.minimum.at(d2, (ii * nx + jj)[ok], (dx * dx + dy * dy)[ok])
+    lik = np.log1p(np.exp(-0.5 * d2 / sigma**2) / outlier_density)
+    return lik.reshape(ny, nx).astype(np.float32)
+
+
+def correlative_search(
+    local_map: LocalMap,
+    obs_xy: np.ndarray,
+    w_obs: np.ndarray,
+    prior_pose: tuple[float, float, float],
+    radius: float,
+    yaw_half_range: float,
+    sigma_p: float,
+    sigma_yaw: float,
+    cell: float,
+    outlier_density: float,
+    n_candidates: int,
+    temperature: float,
+) -> list[Candidate]:
+    """Best local maxima of the posterior score over the search volume.
+
+    Parameters
+    ----------
+    local_map : LocalMap
+        Markings around the prior (coordinates relative to its origin).
+    obs_xy, w_obs : ndarray
+        Observations (N, 2) in the vehicle frame and their weights (N,).
+    prior_pose : (x, y, yaw)
+        Prior in local map coordinates.
+    radius, yaw_half_range : float
+        Translation radius (m) and heading half range (rad) of the search.
+    sigma_p, sigma_yaw : float
+        Prior standard deviations (m, rad).
+    cell : float
+        Translation step and raster cell, metres; the heading step follows
+        from it and the farthest observation.
+    """
+    px, py, pyaw = prior_pose
+    rho = float(np.max(np.hypot(obs_xy[:, 0], obs_xy[:, 1]))) if len(obs_xy) else 1.0
+    kernel = max(cell, 0.3)
+    n = 2 * int(math.ceil(radius / cell)) + 1
+    half = (n - 1) // 2
+    margin = rho + 3.0 * kernel + cell
+    x0 = px - half * cell - margin
+    y0 = py - half * cell - margin
+    m = int(math.ceil(2 * margin / cell)) + n + 1
+    raster = likelihood_raster(
+        _sample_markings(local_map, cell / 2), x0, y0, (m, m), cell, kernel, outlier_density
+    )
+    step = min(max(cell / max(rho, 1.0), math.radians(0.25)), math.radians(3.0))
+    k = int(math.ceil(yaw_half_range / step))
+    yaws = pyaw + step * np.arange(-k, k + 1)
+    tx = (np.arange(n) - half) * cell  # offsets from the prior position
+    prior_t = -0.5 * (tx[None, :] ** 2 + tx[:, None] ** 2) / sigma_p**2
+    volume = np.empty((len(yaws), n, n), np.float32)
+    wf = (w_obs / temperature).astype(np.float32)
+    for a, yaw in enumerate(yaws):
+        c, s = math.cos(yaw), math.sin(yaw)
+        qx = c * obs_xy[:, 0] - s * obs_xy[:, 1] + px - half * cell
+        qy = s * obs_xy[:, 0] + c * obs_xy[:, 1] + py - half * cell
+        cj = np.rint((qx - x0) / cell).astype(np.int64)
+        ci = np.rint((qy - y0) / cell).astype(np.int64)
+        acc = np.zeros((n, n), np.float32)
+        for j in range(len(obs_xy)):
+            acc += wf[j] * raster[ci[j]:ci[j] + n, cj[j]:cj[j] + n]
+        dyaw = (yaw - pyaw) / sigma_yaw
+        volume[a] = acc + prior_t - 0.5 * dyaw * dyaw
+    # Inside the disc of the search radius only.
+    volume[:, (tx[None, :] ** 2 + tx[:, None] ** 2) > radius**2] = -np.inf
+    peaks = volume == maximum_filter(volume, size=(3, 5, 5), mode="nearest")
+    peaks &= np.isfinite(volume)
+    a, i, j = np.nonzero(peaks)
+    order = np.argsort(-volume[a, i, j])
+    out: list[Candidate] = []
+    for o in order:
+        cand = Candidate(px + tx[j[o]], py + tx[i[o]], float(yaws[a[o]]), float(volume[a[o], i[o], j[o]]))
+        if any(
+            math.hypot(cand.x - c.x, cand.y - c.y) < 1.5 and abs(cand.yaw - c.yaw) < math.radians(3)
+            for c in out
+        ):
+            continue
+        out.append(cand)
+        if len(out) >= n_candidates:
+            break
+    return out

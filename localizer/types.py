@@ -1,0 +1,222 @@
+"""Input and result records of the localizer (explicit dataclasses)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+Status = Literal["ok", "ambiguous", "failed"]
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A coarse GPS fix.
+
+    Attributes
+    ----------
+    lat, lon : float
+        WGS84 latitude and longitude, degrees.
+    heading_deg : float
+        Heading, degrees clockwise from true north.
+    position_sigma_m : float
+        Standard deviation of each horizontal position component, metres.
+    heading_sigma_deg : float
+        Standard deviation of the heading, degrees.
+    """
+
+    lat: float
+    lon: float
+    heading_deg: float
+    position_sigma_m: float = 5.0
+    heading_sigma_deg: float = 10.0
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One candidate pose of an ambiguous result.
+
+    ``score`` is the posterior probability of the candidate among all candidates found.
+    """
+
+    lat: float
+    lon: float
+    heading_deg: float
+    easting: float
+    northing: float
+    score: float
+
+    def to_dict(self) -> dict[str, float]:
+        return {
+            "lat": float(self.lat),
+            "lon": float(self.lon),
+            "heading_deg": float(self.heading_deg),
+            "easting": float(self.easting),
+            "northing": float(self.northing),
+            "score": float(self.score),
+        }
+
+
+@dataclass
+class Pose:
+    """Result of :func:`localizer.localize`.
+
+    Attributes
+    ----------
+    status : {"ok", "ambiguous", "failed"}
+        ``ambiguous``: several poses explain the observations about equally well
+        (repeating dashes, parallel lanes); see ``hypotheses``. ``failed``: see ``reason``.
+    lat, lon : float or None
+        WGS84 position of the vehicle frame origin, degrees.
+    heading_deg : float or None
+        Degrees clockwise from true north.
+    easting, northing : float or None
+        Position in the map CRS, metres.
+    crs : str
+        The map CRS.
+    yaw_enu_rad : float or None
+        Heading as REP-103 yaw: radians counter-clockwise from (true) east.
+    yaw_grid_rad : float or None
+        Yaw in the map CRS: radians counter-clockwise from the grid's +x axis.
+    covariance : (3, 3) ndarray or None
+        Covariance of (easting m, northing m, yaw rad).
+    iterations : int
+        Refinement iterations of the returned pose.
+    inliers : int
+        Observations matched to the map at the returned pose.
+    rms_m : float or None
+        Root-mean-square distance of the matched observations, metres.
+    hypotheses : list of Hypothesis
+        Best first; filled when ``status == "ambiguous"``.
+    reason : str or None
+        Why the localization failed.
+    transformation : (3, 3) ndarray or None
+        Homogeneous 2D transform taking vehicle coordinates to map CRS coordinates.
+    trace : list of (easting, northing, yaw_grid_rad)
+        Pose after each iteration (only when the options ask for it).
+    """
+
+    status: Status
+    crs: str
+    lat: float | None = None
+    lon: float | None = None
+    heading_deg: float | None = None
+    easting: float | None = None
+    northing: float | None = None
+    yaw_enu_rad: float | None = None
+    yaw_grid_rad: float | None = None
+    covariance: np.ndarray | None = None
+    iterations: int = 0
+    inliers: int = 0
+    rms_m: float | None = None
+    hypotheses: list[Hypothesis] = field(default_factory=list)
+    reason: str | None = None
+    transformation: np.ndarray | None = None
+    trace: list[tuple[float, float, float]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary for the API (no NaN, plain floats and lists)."""
+
+        def num(v):
+            if v is None:
+                return None
+            v = float(v)
+            return v if math.isfinite(v) else None
+
+        cov = None
+        if self.covariance is not None:
+            cov = [[num(v) for v in row] for row in np.asarray(self.covariance, float)]
+        return {
+            "status": self.status,
+            "lat": num(self.lat),
+            "lon": num(self.lon),
+            "heading_deg": num(self.heading_deg),
+            "easting": num(self.easting),
+            "northing": num(self.northing),
+            "crs": self.crs,
+            "yaw_enu_rad": num(self.yaw_enu_rad),
+            "covariance": cov,
+            "iterations": int(self.iterations),
+            "inliers": int(self.inliers),
+            "rms_m": num(self.rms_m),
+            "hypotheses": [h.to_dict() for h in self.hypotheses],
+            "reason": self.reason,
+        }
+
+
+@dataclass(frozen=True)
+class Options:
+    """Tuning of both methods; the defaults are the ones benchmarked.
+
+    Paper method (``pink2008``)
+    ---------------------------
+    max_pair_distance_m : float
+        Pairs farther apart than this are dropped (ICP's maximum tolerable distance).
+    epsilon_m : float
+        ε of the mixed l1/l2 weight ``w = 1 / max(d, ε)``.
+    max_iterations : int
+        Iteration cap.
+    tolerance_m, tolerance_rad : float
+        Stop when one iteration moves the pose by less than both.
+
+    Default method
+    --------------
+    search_sigmas : float
+        The global search covers ±``search_sigmas`` prior standard deviations.
+    max_search_radius_m, min_search_radius_m : float
+        Clamp of the translation search radius, metres.
+    search_cell_m : float or None
+        Translation step of the coarse search; None picks it from the search radius.
+    max_search_observations : int
+        The coarse search uses at most this many observations (highest weight first).
+    candidates : int
+        Coarse optima that are refined.
+    anneal_m : tuple of float
+        Robust (Geman-McClure) scales of the refinement, coarse to fine, metres.
+    noise_m, noise_range_coeff : float
+        Observation noise model ``sigma(r) = noise_m + noise_range_coeff * r**2``
+        (flat-ground camera: range error grows with range²).
+    outlier_density : float
+        Relative density of outliers in the per-observation likelihood.
+    temperature : float
+        Scores are divided by this before turning them into probabilities;
+        > 1 accounts for correlated observation errors.
+    ambiguity_probability : float
+        ``ok`` needs the best hypothesis to hold at least this posterior probability.
+    min_inliers : int
+        Fewer matched observations → ``failed``.
+    inlier_distance_m : float
+        An observation within this distance of the map (at the final pose) is an inlier.
+    covariance_inflation : float
+        Scale of the estimated covariance (calibrated on the benchmark).
+    max_observations : int
+        More observations than this are rejected as bad input.
+    record_trace : bool
+        Keep the pose after every iteration in ``Pose.trace``.
+    """
+
+    max_pair_distance_m: float = 5.0
+    epsilon_m: float = 0.05
+    max_iterations: int = 30
+    tolerance_m: float = 1e-3
+    tolerance_rad: float = 1e-4
+
+    search_sigmas: float = 3.0
+    max_search_radius_m: float = 45.0
+    min_search_radius_m: float = 3.0
+    search_cell_m: float | None = None
+    max_search_observations: int = 120
+    candidates: int = 8
+    anneal_m: tuple[float, ...] = (1.5, 0.8, 0.4, 0.2)
+    noise_m: float = 0.05
+    noise_range_coeff: float = 5e-4
+    outlier_density: float = 0.05
+    temperature: float = 3.0
+    ambiguity_probability: float = 0.95
+    min_inliers: int = 4
+    inlier_distance_m: float = 0.75
+    covariance_inflation: float = 1.0
+    max_observations: int = 500
+    record_trace: bool = False

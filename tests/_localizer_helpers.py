@@ -1,0 +1,47 @@
+"""Karlsruhe map geometry for the localizer's tests and benchmarks."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from localizer import MapIndex
+from localizer.simulate import SceneMap
+
+CRS = "EPSG:25832"
+KARLSRUHE_OSM = (
+    Path(__file__).resolve().parents[1].parent
+    / "shared" / "data" / "karlsruhe-lanelet2" / "mapping_example.osm"
+)
+
+
+@lru_cache(maxsize=2)
+def karlsruhe(path: str = str(KARLSRUHE_OSM)) -> tuple[MapIndex, SceneMap]:
+    """The Karlsruhe Lanelet2 map as a MapIndex and as simulator geometry."""
+    from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+
+    lmap = read_lanelet2(path, crs=CRS)
+    marks = layout_markings(lmap)
+    x = np.array([m.x for m in marks])
+    y = np.array([m.y for m in marks])
+    index = MapIndex.from_arrays(
+        x, y, np.array([m.weight for m in marks]), CRS,
+        kind=[m.kind for m in marks],
+        bearing_deg=[m.bearing_deg for m in marks],
+        length_m=[m.length_m for m in marks],
+    )
+    point_like = np.array([m.kind != "solid" for m in marks])
+    solid_lines = [
+        ln.xy for ln in lmap.lines_of("line_thin", "line_thick")
+        if ln.subtype not in ("dashed",)
+    ]
+    scene_map = SceneMap(
+        marking_xy=np.column_stack([x, y])[point_like],
+        marking_kind=np.array([m.kind for m in marks], object)[point_like],
+        solid_lines=solid_lines,
+        curbs=[ln.xy for ln in lmap.lines_of("curbstone", "road_border")],
+        centerlines=lmap.centerlines,
+    )
+    return index, scene_map
