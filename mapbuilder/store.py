@@ -828,7 +828,7 @@ class Store:
             if c.marking is None:
                 raise StoreError("a create change needs a marking")
             m = c.marking
-            if m.lon is not None and m.lat is not None and (m.x is None or m.y is None):
+            if m.lon is not None and m.lat is not None and not _is_position(m.x, m.y):
                 from .crs import from_wgs84
 
                 m.x, m.y = from_wgs84(crs).transform(float(m.lon), float(m.lat))
@@ -988,6 +988,9 @@ class Store:
                 conn.execute(insert(markings), rows)
             if job_id is not None:
                 conn.execute(
+                    delete(job_tiles).where(job_tiles.c.job_id == job_id, job_tiles.c.tile_key == tile_key)
+                )
+                conn.execute(
                     insert(job_tiles).values(job_id=job_id, tile_key=tile_key, n_markings=len(rows), done_at=now)
                 )
             self._touch_map(conn, map_id, [r["x"] for r in rows], [r["y"] for r in rows])
@@ -1098,6 +1101,10 @@ class Store:
 def _is_connect_error(exc: DBAPIError) -> bool:
     text = str(exc.orig).lower()
     return any(s in text for s in ("could not connect", "connection refused", "server closed", "terminating connection", "unable to open database"))
+
+
+def _is_position(x, y) -> bool:
+    return x is not None and y is not None and math.isfinite(x) and math.isfinite(y)
 
 
 def _lonlat_hint(changes: Sequence[Change]):

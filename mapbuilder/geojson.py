@@ -1,0 +1,235 @@
+"""GeoJSON (RFC 7946) and GeoPackage exchange of markings.
+
+A marking is a Feature with a Point geometry at its centroid, in WGS84
+lon/lat, and the properties ``weight``, ``length_m``, ``width_m``,
+``bearing_deg`` (clockwise from true north), ``score``, ``kind``, ``source``,
+``status`` and ``version``. Properties lanemap does not know are kept in the
+marking's ``extra`` and written back on export.
+
+GeoPackage export goes through pyogrio (GDAL), in the map's storage CRS, so
+that QGIS and other GIS open it directly.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .model import SOURCES, STATUSES, Marking
+
+#: Properties with a column of their own; anything else goes to ``extra``.
+KNOWN_PROPERTIES = (
+    "weight", "length_m", "width_m", "bearing_deg", "score", "kind", "source", "status",
+)  # fmt: skip
+#: Written on export, ignored on import (the store assigns them).
+OUTPUT_ONLY = ("version", "id")
+
+#: Largest GeoJSON file `read_geojson_file` accepts, bytes.
+MAX_FILE_BYTES = 1 << 30
+
+
+class GeoJSONError(ValueError):
+    """The GeoJSON cannot be read as markings; the message names the feature and problem."""
+
+
+def _num(where: str, name: str, value: Any, *, optional: bool = True) -> float | None:
+    if value is None:
+        if optional:
+            return None
+        raise GeoJSONError(f"{where}: property {name!r} is required")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise GeoJSONError(f"{where}: property {name!r} must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise GeoJSONError(f"{where}: property {name!r} must be finite")
+    return v
+
+
+def feature_to_marking(feature: Any, index: int | None = None, *, default_source: str = "imported") -> Marking:
+    """Turn one GeoJSON Feature into a :class:`Marking` positioned by ``lon``/``lat``.
+
+    Raises
+    ------
+    GeoJSONError
+        For a feature that is not an object, lacks a Point geometry, has
+        coordinates out of range or property values of the wrong type.
+    """
+    where = "feature" if index is None else f"feature {index}"
+    if not isinstance(feature, dict) or feature.get("type") != "Feature":
+        raise GeoJSONError(f"{where}: not a GeoJSON Feature object")
+    geom = feature.get("geometry")
+    if geom is None:
+        raise GeoJSONError(f"{where}: has no geometry (a Point at the marking's centroid is required)")
+    if not isinstance(geom, dict) or geom.get("type") != "Point":
+        kind = geom.get("type") if isinstance(geom, dict) else type(geom).__name__
+        raise GeoJSONError(f"{where}: geometry must be a Point, got {kind}")
+    coords = geom.get("coordinates")
+    if (
+        not isinstance(coords, (list, tuple))
+        or len(coords) < 2
+        or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in coords[:2])
+    ):
+        raise GeoJSONError(f"{where}: Point coordinates must be [lon, lat] numbers")
+    lon, lat = float(coords[0]), float(coords[1])
+    if not (math.isfinite(lon) and math.isfinite(lat) and -180 <= lon <= 180 and -90 <= lat <= 90):
+        raise GeoJSONError(
+            f"{where}: coordinates [{coords[0]}, {coords[1]}] out of range "
+            "(GeoJSON is [lon, lat] in degrees, lon in [-180, 180], lat in [-90, 90])"
+        )
+    props = feature.get("properties") or {}
+    if not isinstance(props, dict):
+        raise GeoJSONError(f"{where}: properties must be an object")
+    weight = _num(where, "weight", props.get("weight"))
+    if weight is not None and weight <= 0:
+        raise GeoJSONError(f"{where}: property 'weight' must be > 0, got {props['weight']!r}")
+    length = _num(where, "length_m", props.get("length_m"))
+    width = _num(where, "width_m", props.get("width_m"))
+    for name, v in (("length_m", length), ("width_m", width)):
+        if v is not None and v < 0:
+            raise GeoJSONError(f"{where}: property {name!r} must be >= 0")
+    source = props.get("source", default_source)
+    if source not in SOURCES:
+        raise GeoJSONError(f"{where}: property 'source' must be one of {', '.join(SOURCES)}, got {source!r}")
+    status = props.get("status", "unreviewed")
+    if status not in STATUSES:
+        raise GeoJSONError(f"{where}: property 'status' must be one of {', '.join(STATUSES)}, got {status!r}")
+    kind = props.get("kind")
+    if kind is not None and not isinstance(kind, str):
+        raise GeoJSONError(f"{where}: property 'kind' must be a string")
+    extra = {k: v for k, v in props.items() if k not in KNOWN_PROPERTIES and k not in OUTPUT_ONLY}
+    return Marking(
+        x=math.nan,
+        y=math.nan,
+        lon=lon,
+        lat=lat,
+        weight=weight if weight is not None else 1.0,
+        length_m=length or 0.0,
+        width_m=width or 0.0,
+        bearing_deg=(_num(where, "bearing_deg", props.get("bearing_deg")) or 0.0) % 180.0,
+        score=_num(where, "score", props.get("score")),
+        kind=kind,
+        source=source,
+        status=status,
+        extra=extra,
+    )
+
+
+def read_feature_collection(obj: Any) -> list[Marking]:
+    """Markings from a parsed GeoJSON FeatureCollection (or a single Feature)."""
+    if isinstance(obj, dict) and obj.get("type") == "Feature":
+        return [feature_to_marking(obj, 0)]
+    if not isinstance(obj, dict) or obj.get("type") != "FeatureCollection":
+        raise GeoJSONError("not a GeoJSON FeatureCollection (expected an object with \"type\": \"FeatureCollection\")")
+    feats = obj.get("features")
+    if not isinstance(feats, list):
+        raise GeoJSONError("FeatureCollection has no \"features\" array")
+    crs = obj.get("crs")
+    if crs is not None:
+        name = (crs.get("properties") or {}).get("name", "") if isinstance(crs, dict) else ""
+        if "CRS84" not in str(name) and "4326" not in str(name):
+            raise GeoJSONError(f"GeoJSON must be WGS84 lon/lat (RFC 7946); it declares crs {name!r}")
+    return [feature_to_marking(f, i) for i, f in enumerate(feats)]
+
+
+def _reject_constant(value: str):
+    raise GeoJSONError(f"invalid JSON number {value}")
+
+
+def read_geojson_file(path: str | Path) -> list[Marking]:
+    """Read markings from a GeoJSON file; every problem is a :class:`GeoJSONError`."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise GeoJSONError(f"cannot read {path}: {exc.strerror}") from None
+    if size > MAX_FILE_BYTES:
+        raise GeoJSONError(f"{path} is larger than {MAX_FILE_BYTES} bytes")
+    try:
+        text = path.read_text(encoding="utf-8")
+        obj = json.loads(text, parse_constant=_reject_constant)
+    except UnicodeDecodeError:
+        raise GeoJSONError(f"{path} is not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise GeoJSONError(f"{path} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    return read_feature_collection(obj)
+
+
+def marking_to_feature(m: Marking) -> dict[str, Any]:
+    """One marking as a GeoJSON Feature (WGS84 Point at the centroid)."""
+    props: dict[str, Any] = dict(m.extra or {})
+    props.update(
+        weight=m.weight, length_m=m.length_m, width_m=m.width_m, bearing_deg=m.bearing_deg,
+        score=m.score, kind=m.kind, source=m.source, status=m.status, version=m.version,
+    )  # fmt: skip
+    feature: dict[str, Any] = {
+        "type": "Feature",
+        "geometry": {"type": "Point", "coordinates": [m.lon, m.lat]},
+        "properties": props,
+    }
+    if m.id is not None:
+        feature["id"] = str(m.id)
+    return feature
+
+
+def markings_to_feature_collection(items: Iterable[Marking]) -> dict[str, Any]:
+    return {"type": "FeatureCollection", "features": [marking_to_feature(m) for m in items]}
+
+
+def write_geojson(path: str | Path, items: Iterable[Marking]) -> int:
+    """Write markings as a GeoJSON FeatureCollection, atomically (temp file + rename)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    n = 0
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write('{"type": "FeatureCollection", "features": [\n')
+        for m in items:
+            if n:
+                fh.write(",\n")
+            fh.write(json.dumps(marking_to_feature(m), allow_nan=False))
+            n += 1
+        fh.write("\n]}\n")
+    tmp.replace(path)
+    return n
+
+
+def write_gpkg(path: str | Path, items: Iterable[Marking], crs: str, layer: str = "markings") -> int:
+    """Write markings to a GeoPackage layer of Points in the storage CRS ``crs``."""
+    import pyogrio.raw
+    import shapely
+
+    items = list(items)
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part.gpkg")
+    tmp.unlink(missing_ok=True)
+    cols: dict[str, tuple[str, Any]] = {
+        "marking_id": ("int64", lambda m: m.id if m.id is not None else -1),
+        "weight": ("float64", lambda m: m.weight),
+        "length_m": ("float64", lambda m: m.length_m),
+        "width_m": ("float64", lambda m: m.width_m),
+        "bearing_deg": ("float64", lambda m: m.bearing_deg),
+        "score": ("float64", lambda m: np.nan if m.score is None else m.score),
+        "kind": ("object", lambda m: m.kind),
+        "source": ("object", lambda m: m.source),
+        "status": ("object", lambda m: m.status),
+        "version": ("int64", lambda m: m.version or 0),
+        "extra": ("object", lambda m: json.dumps(m.extra or {})),
+    }
+    field_data = [np.array([get(m) for m in items], dtype=dtype) for dtype, get in cols.values()]
+    geoms = shapely.to_wkb(shapely.points([m.x for m in items], [m.y for m in items])) if items else np.array([], dtype=object)
+    pyogrio.raw.write(
+        str(tmp),
+        geometry=np.asarray(geoms, dtype=object),
+        field_data=field_data,
+        fields=list(cols),
+        crs=crs,
+        geometry_type="Point",
+        driver="GPKG",
+        layer=layer,
+    )
+    tmp.replace(path)
+    return len(items)

@@ -1,0 +1,70 @@
+"""``lanemap import``, ``lanemap export`` and ``lanemap from-lanelet2``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mapbuilder.geojson import read_geojson_file, write_geojson, write_gpkg
+from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+from mapbuilder.store import Store
+
+from ..cli_errors import fail
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("import")
+    def import_(
+        map_id: str = typer.Argument(..., metavar="MAP", help="Target map (created if --create)."),
+        file: Path = typer.Argument(..., help="GeoJSON FeatureCollection of marking centroids (WGS84)."),
+        create: bool = typer.Option(False, "--create", help="Create the map if it does not exist."),
+        comment: str = typer.Option("", "--comment", help="Comment for the edit log."),
+    ) -> None:
+        """Import markings from GeoJSON in one transaction: all of them or none."""
+        items = read_geojson_file(file)  # parse everything before touching the database
+        store = Store()
+        if create and not any(m.id == map_id for m in store.list_maps()):
+            store.create_map(map_id)
+        ids = store.add_markings(map_id, items, who="cli", comment=comment or f"import {file.name}", lonlat=True)
+        typer.echo(f"imported {len(ids)} markings into {map_id}")
+
+    @app.command("export")
+    def export(
+        map_id: str = typer.Argument(..., metavar="MAP"),
+        file: Path = typer.Argument(..., help="Output .geojson (WGS84) or .gpkg (storage CRS)."),
+    ) -> None:
+        """Export a map's markings to GeoJSON or GeoPackage."""
+        suffix = file.suffix.lower()
+        if suffix not in (".geojson", ".json", ".gpkg"):
+            fail(f"cannot export to {file.name}: use a .geojson or .gpkg file name")
+        store = Store()
+        info = store.get_map(map_id)
+        if suffix == ".gpkg":
+            if info.crs is None:
+                fail(f"map {map_id} is empty and has no CRS yet")
+            n = write_gpkg(file, store.iter_markings(map_id), info.crs)
+        else:
+            n = write_geojson(file, store.iter_markings(map_id))
+        typer.echo(f"exported {n} markings to {file}")
+
+    @app.command("from-lanelet2")
+    def from_lanelet2(
+        osm: Path = typer.Argument(..., help="Lanelet2 map (OSM XML)."),
+        out: Path = typer.Argument(..., help="Output GeoJSON of marking centroids."),
+        crs: str = typer.Option("EPSG:25832", "--crs", help="Metric CRS used to lay out dashes."),
+        dash: float = typer.Option(3.0, "--dash", help="Dash length, m."),
+        gap: float = typer.Option(6.0, "--gap", help="Gap length, m."),
+        piece: float = typer.Option(3.0, "--piece", help="Longest solid-line piece, m."),
+    ) -> None:
+        """Lay a Lanelet2 map's lane markings out as centroid markings (GeoJSON)."""
+        lmap = read_lanelet2(osm, crs=crs)
+        items = layout_markings(lmap, dash_m=dash, gap_m=gap, piece_m=piece)
+        from mapbuilder.crs import to_wgs84
+
+        lon, lat = to_wgs84(crs).transform([m.x for m in items], [m.y for m in items])
+        for m, a, b in zip(items, lon, lat):
+            m.lon, m.lat = float(a), float(b)
+        n = write_geojson(out, items)
+        typer.echo(f"wrote {n} markings to {out}")
+

@@ -1,0 +1,73 @@
+"""``lanemap maps``: create, list, show and delete maps."""
+
+from __future__ import annotations
+
+import json
+
+import typer
+
+from mapbuilder.store import Store
+
+
+def register(app: typer.Typer) -> None:
+    maps = typer.Typer(help="Create, list, show and delete maps.", no_args_is_help=True)
+
+    @maps.command("list")
+    def list_(as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
+        """List the maps with their CRS and number of markings."""
+        infos = Store().list_maps()
+        if as_json:
+            typer.echo(json.dumps([_info_dict(i) for i in infos], indent=2))
+            return
+        if not infos:
+            typer.echo("no maps")
+            return
+        typer.echo(f"{'id':24} {'crs':12} {'markings':>9}  title")
+        for i in infos:
+            typer.echo(f"{i.id:24} {i.crs or '-':12} {i.count:>9}  {i.title}")
+
+    @maps.command("create")
+    def create(
+        map_id: str = typer.Argument(..., metavar="MAP", help="Map id (letters, digits, . _ -)."),
+        title: str = typer.Option("", "--title", help="Human-readable title."),
+        crs: str = typer.Option(
+            None, "--crs", help="Metric storage CRS, e.g. EPSG:25832. Default: the UTM zone of the first import."
+        ),
+    ) -> None:
+        """Create an empty map."""
+        info = Store().create_map(map_id, title, crs)
+        typer.echo(f"created map {info.id} ({info.crs or 'CRS chosen at first import'})")
+
+    @maps.command("show")
+    def show(map_id: str = typer.Argument(..., metavar="MAP")) -> None:
+        """Print a map's metadata as JSON."""
+        typer.echo(json.dumps(_info_dict(Store().get_map(map_id, with_count=True)), indent=2))
+
+    @maps.command("delete")
+    def delete(
+        map_id: str = typer.Argument(..., metavar="MAP"),
+        yes: bool = typer.Option(False, "--yes", "-y", help="Do not ask for confirmation."),
+    ) -> None:
+        """Delete a map with its markings, history, imagery records and jobs."""
+        store = Store()
+        info = store.get_map(map_id, with_count=True)
+        if not yes and not typer.confirm(f"delete map {map_id} and its {info.count} markings?"):
+            raise typer.Exit(1)
+        store.delete_map(map_id)
+        typer.echo(f"deleted map {map_id}")
+
+    app.add_typer(maps, name="maps")
+
+
+def _info_dict(i) -> dict:
+    return {
+        "id": i.id,
+        "title": i.title,
+        "crs": i.crs,
+        "bounds": list(i.bounds) if i.bounds else None,
+        "bounds_wgs84": list(i.bounds_wgs84()) if i.bounds else None,
+        "markings": i.count,
+        "revision": i.revision,
+        "created_at": i.created_at.isoformat(),
+        "updated_at": i.updated_at.isoformat(),
+    }

@@ -1,0 +1,333 @@
+"""The map store on a real SQLite file and a real PostgreSQL server."""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+
+import numpy as np
+import pytest
+from sqlalchemy import text
+
+from mapbuilder import migrate
+from mapbuilder.model import Marking
+from mapbuilder.schema import GRID_CELL_M
+from mapbuilder.store import (
+    Change,
+    ConflictError,
+    InvalidMarkingError,
+    MapExistsError,
+    SchemaError,
+    Store,
+    StoreError,
+    UnknownJobError,
+    UnknownMapError,
+    UnknownMarkingError,
+)
+
+E0, N0 = 457000.0, 5428000.0  # Karlsruhe, EPSG:25832
+
+
+def _m(dx: float, dy: float, **kw) -> Marking:
+    return Marking(x=E0 + dx, y=N0 + dy, length_m=3.0, width_m=0.12, weight=36, **kw)
+
+
+def _count(store: Store, map_id: str) -> int:
+    return store.get_map(map_id, with_count=True).count
+
+
+def test_empty_database_is_upgraded_on_first_use(db_url):
+    store = Store(db_url)
+    assert store.schema_revision() == migrate.head_revision()
+    with store.engine.connect() as conn:
+        tables = set(store.engine.dialect.get_table_names(conn))
+    assert {"maps", "markings", "edits", "changesets", "imagery", "jobs", "job_tiles"} <= tables
+    # A second open finds the schema current and changes nothing.
+    assert Store(db_url).schema_revision() == migrate.head_revision()
+
+
+def test_sqlite_connection_settings(sqlite_url):
+    store = Store(sqlite_url)
+    with store.engine.connect() as conn:
+        assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+        assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() >= 1000
+
+
+def test_unknown_schema_revision_is_refused(db_url):
+    Store(db_url)
+    store = Store(db_url)
+    with store.engine.begin() as conn:
+        conn.execute(text("UPDATE alembic_version SET version_num = 'ffff'"))
+    with pytest.raises(SchemaError, match="lanemap db upgrade"):
+        Store(db_url)
+
+
+def test_map_lifecycle(store):
+    info = store.create_map("ka", "Karlsruhe", "EPSG:25832")
+    assert (info.id, info.title, info.crs, info.bounds, info.revision) == (
+        "ka", "Karlsruhe", "EPSG:25832", None, 0,
+    )  # fmt: skip
+    with pytest.raises(MapExistsError, match="'ka' already exists"):
+        store.create_map("ka")
+    with pytest.raises(StoreError, match="invalid map id"):
+        store.create_map("no spaces/slashes")
+    with pytest.raises(StoreError, match="not projected"):
+        store.create_map("geo", crs="EPSG:4326")
+    store.add_markings("ka", [_m(0, 0), _m(10, 20)])
+    assert [(i.id, i.count) for i in store.list_maps()] == [("ka", 2)]
+    assert store.get_map("ka").bounds == (E0, N0, E0 + 10, N0 + 20)
+    store.delete_map("ka")
+    with pytest.raises(UnknownMapError, match="unknown map 'ka'"):
+        store.get_map("ka")
+    with store.engine.connect() as conn:  # cascaded, nothing left behind
+        assert conn.execute(text("SELECT count(*) FROM markings")).scalar() == 0
+        assert conn.execute(text("SELECT count(*) FROM edits")).scalar() == 0
+
+
+def test_add_markings_fills_lonlat_and_is_all_or_nothing(store):
+    store.create_map("ka", crs="EPSG:25832")
+    ids = store.add_markings("ka", [_m(0, 0), _m(5, 5)], who="alice", comment="first")
+    m = store.get_marking("ka", ids[0])
+    assert m.version == 1 and m.source == "imported" and m.status == "unreviewed"
+    assert 8.3 < m.lon < 8.5 and 48.9 < m.lat < 49.1
+    bad = [_m(1, 1), _m(2, 2, weight=0)] if False else [_m(1, 1), Marking(x=E0, y=N0, weight=0)]
+    with pytest.raises(InvalidMarkingError, match="marking 1: weight must be > 0"):
+        store.add_markings("ka", bad)
+    with pytest.raises(InvalidMarkingError, match="x must be finite"):
+        store.add_markings("ka", [_m(1, 1), Marking(x=math.nan, y=N0)])
+    with pytest.raises(InvalidMarkingError, match="source must be one of"):
+        store.add_markings("ka", [Marking(x=E0, y=N0, source="guessed")])
+    assert _count(store, "ka") == 2
+    history, total = store.history("ka")
+    assert total == 1 and history[0].op == "import" and history[0].after["count"] == 2
+    assert history[0].who == "alice" and history[0].comment == "first"
+
+
+def test_crs_is_chosen_from_first_lonlat_import(store):
+    store.create_map("anywhere")
+    with pytest.raises(StoreError, match="no CRS yet"):
+        store.add_markings("anywhere", [_m(0, 0)])
+    m = Marking(x=math.nan, y=math.nan, lon=-104.8, lat=38.8)  # Colorado Springs
+    store.add_markings("anywhere", [m], lonlat=True)
+    info = store.get_map("anywhere")
+    assert info.crs == "EPSG:32613"
+    back = store.query_bbox("anywhere", *info.bounds)[0]
+    assert back.lon == pytest.approx(-104.8, abs=1e-9) and back.lat == pytest.approx(38.8, abs=1e-9)
+
+
+def test_bbox_query_matches_brute_force(store):
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-500, 500, size=(3000, 2))
+    store.bulk_load("ka", (Marking(x=E0 + a, y=N0 + b) for a, b in pts))
+    for _ in range(20):
+        x0, y0 = rng.uniform(-520, 480, 2)
+        w, h = rng.uniform(0.5, 200, 2)
+        got = store.query_bbox("ka", E0 + x0, N0 + y0, E0 + x0 + w, N0 + y0 + h)
+        inside = (
+            (pts[:, 0] >= x0) & (pts[:, 0] <= x0 + w) & (pts[:, 1] >= y0) & (pts[:, 1] <= y0 + h)
+        )
+        assert len(got) == inside.sum()
+        assert store.count_bbox("ka", E0 + x0, N0 + y0, E0 + x0 + w, N0 + y0 + h) == inside.sum()
+        assert all(x0 <= m.x - E0 <= x0 + w and y0 <= m.y - N0 <= y0 + h for m in got)
+    # paging is stable and complete
+    box = (E0 - 100, N0 - 100, E0 + 100, N0 + 100)
+    everything = [m.id for m in store.query_bbox("ka", *box)]
+    pages = [m.id for off in range(0, len(everything), 7) for m in store.query_bbox("ka", *box, limit=7, offset=off)]
+    assert pages == everything == sorted(everything)
+    with pytest.raises(StoreError, match="min <= max"):
+        store.query_bbox("ka", E0 + 1, N0, E0, N0 + 1)
+    with pytest.raises(StoreError, match="finite"):
+        store.query_bbox("ka", math.nan, N0, E0, N0 + 1)
+
+
+def test_bbox_uses_the_grid_index(store):
+    store.create_map("ka", crs="EPSG:25832")
+    store.add_markings("ka", [_m(0, 0)])
+    m = store.query_bbox("ka", E0 - 1, N0 - 1, E0 + 1, N0 + 1)[0]
+    with store.engine.connect() as conn:
+        gx, gy = conn.execute(text("SELECT gx, gy FROM markings WHERE id = :i"), {"i": m.id}).one()
+        assert (gx, gy) == (math.floor(E0 / GRID_CELL_M), math.floor(N0 / GRID_CELL_M))
+        if store.dialect == "sqlite":
+            plan = " ".join(
+                str(r[-1])
+                for r in conn.exec_driver_sql(
+                    "EXPLAIN QUERY PLAN SELECT id FROM markings WHERE map_id='ka' AND gx BETWEEN 1 AND 2 "
+                    "AND gy BETWEEN 1 AND 2 AND x BETWEEN 1 AND 2 AND y BETWEEN 1 AND 2"
+                )
+            )
+            assert "ix_markings_grid" in plan
+
+
+def test_changeset_is_atomic_and_versioned(store):
+    store.create_map("ka", crs="EPSG:25832")
+    a, b, c = store.add_markings("ka", [_m(0, 0), _m(10, 0), _m(20, 0)])
+    rev = store.map_revision("ka")
+    res = store.apply_changeset(
+        "ka",
+        [
+            Change("update", id=a, version=1, fields={"status": "rejected"}),
+            Change("update", id=b, version=1, fields={"x": E0 + 11.0}),
+            Change("delete", id=c, version=1),
+            Change("create", marking=Marking(x=math.nan, y=math.nan, lon=8.42, lat=49.004, source="manual")),
+        ],
+        who="bob",
+        comment="review",
+    )
+    assert [r["op"] for r in res.results] == ["update", "update", "delete", "create"]
+    assert store.get_marking("ka", a).status == "rejected"
+    moved = store.get_marking("ka", b)
+    assert moved.version == 2 and moved.x == E0 + 11.0 and moved.lon != store.get_marking("ka", a).lon
+    with pytest.raises(UnknownMarkingError):
+        store.get_marking("ka", c)
+    assert store.map_revision("ka") == rev + 1
+
+    # A stale version anywhere rejects the whole changeset.
+    before = [(m.id, m.version, m.x, m.status) for m in store.list_markings("ka")[0]]
+    with pytest.raises(ConflictError) as err:
+        store.apply_changeset(
+            "ka",
+            [
+                Change("update", id=a, version=1, fields={"status": "accepted"}),  # stale
+                Change("delete", id=b, version=2),  # current
+                Change("delete", id=c, version=1),  # gone
+            ],
+            who="carol",
+        )
+    assert {(x.id, x.reason) for x in err.value.conflicts} == {(a, "version"), (c, "missing")}
+    # An invalid value anywhere also rejects it whole.
+    with pytest.raises(InvalidMarkingError, match="change 1"):
+        store.apply_changeset(
+            "ka",
+            [Change("delete", id=b, version=2), Change("update", id=a, version=2, fields={"weight": -1})],
+            who="carol",
+        )
+    with pytest.raises(InvalidMarkingError, match="cannot change field"):
+        store.apply_changeset("ka", [Change("update", id=a, fields={"version": 9})], who="carol")
+    assert [(m.id, m.version, m.x, m.status) for m in store.list_markings("ka")[0]] == before
+
+
+def test_history_and_revert(store):
+    store.create_map("ka", crs="EPSG:25832")
+    a, b = store.add_markings("ka", [_m(0, 0), _m(10, 0)])
+    cs = store.apply_changeset(
+        "ka",
+        [
+            Change("update", id=a, version=1, fields={"status": "accepted", "bearing_deg": 45.0}),
+            Change("delete", id=b, version=1),
+            Change("create", marking=_m(30, 0, source="manual")),
+        ],
+        who="dave",
+        comment="edit",
+    )
+    created = cs.results[2]["id"]
+    edits, total = store.history("ka", changeset_id=cs.changeset_id)
+    assert total == 3
+    upd = next(e for e in edits if e.op == "update")
+    assert upd.before["status"] == "unreviewed" and upd.after["status"] == "accepted"
+    assert upd.before["version"] == 1 and upd.after["version"] == 2 and upd.who == "dave"
+    assert next(e for e in edits if e.op == "delete").after is None
+
+    rv = store.revert_changeset("ka", cs.changeset_id, who="erin")
+    restored = store.get_marking("ka", a)
+    assert restored.status == "unreviewed" and restored.bearing_deg == 0.0 and restored.version == 3
+    again = store.get_marking("ka", b)  # re-created with its id; its version moved on
+    assert again.x == E0 + 10 and again.version == 2
+    with pytest.raises(UnknownMarkingError):
+        store.get_marking("ka", created)
+    infos, n = store.changesets("ka")
+    assert infos[0].id == rv.changeset_id and infos[0].reverts == cs.changeset_id and n == 3
+    # Reverting again conflicts: the markings changed since that changeset.
+    with pytest.raises(ConflictError):
+        store.revert_changeset("ka", cs.changeset_id, who="erin")
+
+
+def test_deleted_ids_are_never_reused(store):
+    store.create_map("ka", crs="EPSG:25832")
+    (a,) = store.add_markings("ka", [_m(0, 0)])
+    store.apply_changeset("ka", [Change("delete", id=a)], who="x")
+    (b,) = store.add_markings("ka", [_m(0, 0)])
+    assert b > a
+
+
+def test_replace_detected_keeps_what_people_decided(store):
+    store.create_map("ka", crs="EPSG:25832")
+    job = store.create_job("build", "ka", {"image": "x.tif"})
+    first = [_m(0, 0), _m(10, 0), _m(20, 0), _m(30, 0)]
+    assert store.replace_detected("ka", "t0", first, job_id=job) == 4
+    ids = [m.id for m in store.list_markings("ka")[0]]
+    # A person rejects one, moves another (accepted), and adds one by hand.
+    store.apply_changeset(
+        "ka",
+        [
+            Change("update", id=ids[0], fields={"status": "rejected"}),
+            Change("update", id=ids[1], fields={"status": "accepted", "x": E0 + 10.2}),
+            Change("create", marking=_m(40, 0, source="manual")),
+        ],
+        who="p",
+    )
+    # The rebuild detects the same four again plus the hand-added one.
+    again = [_m(0.1, 0), _m(10, 0.05), _m(20, 0), _m(30.02, 0), _m(40.1, 0)]
+    inserted = store.replace_detected("ka", "t0", again, job_id=job)
+    assert inserted == 2  # near the rejected, moved and manual ones: suppressed
+    got = sorted((m.x - E0, m.source, m.status) for m in store.list_markings("ka")[0])
+    assert got == [
+        (0.0, "detected", "rejected"),
+        (pytest.approx(10.2), "detected", "accepted"),
+        (20.0, "detected", "unreviewed"),
+        (pytest.approx(30.02), "detected", "unreviewed"),
+        (40.0, "manual", "unreviewed"),
+    ]
+    # Another tile is untouched by this tile's replacement.
+    store.replace_detected("ka", "t1", [_m(500, 0)], job_id=job)
+    store.replace_detected("ka", "t0", [], job_id=None)
+    assert _count(store, "ka") == 4  # t0's two unreviewed detections went, t1's stays
+    assert store.done_tiles(job) == {"t0", "t1"}
+
+
+def test_jobs(store):
+    store.create_map("ka", crs="EPSG:25832")
+    j = store.create_job("build", "ka", {"image": "a.tif"})
+    info = store.get_job(j)
+    assert (info.status, info.progress, info.params) == ("accepted", 0.0, {"image": "a.tif"})
+    store.update_job(j, status="running", progress=42.5)
+    info = store.update_job(j, status="failed", error="disk full")
+    assert info.status == "failed" and info.error == "disk full" and info.finished_at is not None
+    assert info.started_at is not None and info.progress == 42.5
+    assert [x.id for x in store.find_jobs(kind="build", map_id="ka", status="failed")] == [j]
+    with pytest.raises(StoreError, match="job status must be one of"):
+        store.update_job(j, status="done")
+    with pytest.raises(UnknownJobError):
+        store.get_job(999)
+    with pytest.raises(UnknownMapError):
+        store.create_job("build", "nope")
+
+
+def test_imagery_records(store):
+    store.create_map("ka", crs="EPSG:25832")
+    i = store.add_imagery("ka", "imagery/1.tif", "EPSG:25832", (1, 2, 3, 4), 0.1)
+    info = store.get_imagery(i)
+    assert (info.path, info.bounds, info.resolution_m) == ("imagery/1.tif", (1, 2, 3, 4), 0.1)
+    assert [x.id for x in store.list_imagery("ka")] == [i]
+
+
+def _writer(url: str, worker: int, n: int) -> None:
+    store = Store(url)
+    for k in range(n):
+        store.add_markings("ka", [_m(worker * 100 + k, 0)], who=f"w{worker}")
+    store.close()
+
+
+def test_concurrent_writers_from_processes(db_url):
+    Store(db_url).create_map("ka", crs="EPSG:25832")
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_writer, args=(db_url, w, 25)) for w in range(4)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+    assert [p.exitcode for p in procs] == [0, 0, 0, 0]
+    store = Store(db_url)
+    assert _count(store, "ka") == 100
+    assert store.map_revision("ka") == 100
