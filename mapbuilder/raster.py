@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ import rasterio
 from affine import Affine
 from pyproj import CRS as ProjCRS
 from rasterio.enums import ColorInterp, MaskFlags, Resampling
-from rasterio.errors import RasterioIOError
+from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.vrt import WarpedVRT
 from rasterio.warp import calculate_default_transform
 from rasterio.windows import Window
@@ -81,8 +82,10 @@ class PixelGrid:
     @property
     def bounds(self) -> tuple[float, float, float, float]:
         """``(minx, miny, maxx, maxy)`` of the grid in the storage CRS, metres."""
-        t = self.affine
-        xs, ys = zip(*(t * (c, r) for c in (0, self.width) for r in (0, self.height)))
+        a, b, c0, d, e, f0 = self.transform
+        corners = [(c, r) for c in (0, self.width) for r in (0, self.height)]
+        xs = [a * c + b * r + c0 for c, r in corners]
+        ys = [d * c + e * r + f0 for c, r in corners]
         return (min(xs), min(ys), max(xs), max(ys))
 
     @property
@@ -165,7 +168,10 @@ def default_storage_crs(path: str | os.PathLike) -> str:
     """
     path = str(path)
     try:
-        with rasterio.open(path) as src:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            src = rasterio.open(path)
+        with src:
             _check_source(src, path)
             own = _crs_string(src.crs)
             try:
@@ -204,7 +210,10 @@ def inspect_imagery(path: str | os.PathLike, storage_crs: str | None = None) -> 
     except CRSError as exc:
         raise ImageryError(str(exc)) from exc
     try:
-        src = rasterio.open(path)
+        with warnings.catch_warnings():
+            # A file without georeferencing is reported below as an ImageryError.
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            src = rasterio.open(path)
     except RasterioIOError as exc:
         raise ImageryError(f"cannot open image {path}: {exc}") from exc
     with src:

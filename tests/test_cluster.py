@@ -1,0 +1,178 @@
+"""Clustering marking pixels and measuring the clusters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from affine import Affine
+from skimage.draw import polygon
+
+from mapbuilder.cluster import (
+    ClusterParams,
+    detect_markings,
+    label_pixels,
+    measure_clusters,
+    split_long,
+)
+
+X0, Y0 = 456000.0, 5430000.0
+
+
+def _grid(res):
+    return Affine(res, 0, X0, 0, -res, Y0)
+
+
+def _draw(img, transform, cx, cy, length, width, bearing_deg, value=1.0):
+    """Paint a rectangle centred at world (cx, cy) with its long axis along a bearing."""
+    b = math.radians(bearing_deg)
+    u = np.array([math.sin(b), math.cos(b)])
+    v = np.array([u[1], -u[0]])
+    corners = [np.array([cx, cy]) + su * length / 2 * u + sv * width / 2 * v
+               for su, sv in [(-1, -1), (1, -1), (1, 1), (-1, 1)]]
+    inv = ~transform
+    cr = np.array([inv @ tuple(p) for p in corners]) - 0.5  # pixel centres at integers
+    rr, cc = polygon(cr[:, 1], cr[:, 0], img.shape)
+    img[rr, cc] = value
+    return len(rr)
+
+
+def _angle_diff(a, b):
+    d = (np.asarray(a) - np.asarray(b)) % 180.0
+    return np.minimum(d, 180.0 - d)
+
+
+def test_measures_centroid_bearing_length_width_of_rectangles():
+    res = 0.04
+    t = _grid(res)
+    img = np.zeros((800, 800), np.float32)
+    rng = np.random.default_rng(1)
+    truth = []
+    for i in range(9):
+        cx = X0 + 4 + (i % 3) * 11 + rng.uniform(-1, 1)
+        cy = Y0 - 4 - (i // 3) * 11 + rng.uniform(-1, 1)
+        bearing = rng.uniform(0, 180)
+        length = rng.uniform(1.0, 3.0)
+        width = rng.uniform(0.12, 0.45)
+        score = rng.uniform(0.6, 0.95)
+        n = _draw(img, t, cx, cy, length, width, bearing, score)
+        truth.append((cx, cy, bearing, length, width, score, n))
+    labels, n = label_pixels(img, None, 0.5)
+    c = measure_clusters(labels, img, t, n)
+    assert len(c) == 9
+    for cx, cy, bearing, length, width, score, npx in truth:
+        i = int(np.argmin(np.hypot(c.x - cx, c.y - cy)))
+        assert math.hypot(c.x[i] - cx, c.y[i] - cy) < 0.01
+        assert _angle_diff(c.bearing_deg[i], bearing) < 1.5
+        assert c.length_m[i] == pytest.approx(length, abs=0.06)
+        assert c.width_m[i] == pytest.approx(width, abs=0.03)
+        assert c.weight[i] == npx
+        assert c.score[i] == pytest.approx(score, rel=1e-5)
+        # End points lie on the axis, length apart, in the direction of the bearing.
+        dx, dy = c.x1[i] - c.x0[i], c.y1[i] - c.y0[i]
+        assert math.hypot(dx, dy) == pytest.approx(c.length_m[i], rel=1e-6)
+        assert math.degrees(math.atan2(dx, dy)) % 360 == pytest.approx(c.bearing_deg[i], abs=1e-6)
+        assert 0 <= c.bearing_deg[i] < 180
+        # Pixel centroid agrees with the world centroid.
+        assert t.c + c.col[i] * res == pytest.approx(c.x[i], abs=1e-6)
+        assert t.f - c.row[i] * res == pytest.approx(c.y[i], abs=1e-6)
+
+
+@pytest.mark.parametrize("bearing", [0.0, 45.0, 90.0, 135.0])
+def test_bearing_is_clockwise_from_north(bearing):
+    t = _grid(0.05)
+    img = np.zeros((200, 200), np.float32)
+    _draw(img, t, X0 + 5, Y0 - 5, 3.0, 0.2, bearing)
+    c = detect_markings(img, None, t)
+    assert len(c) == 1
+    assert _angle_diff(c.bearing_deg[0], bearing) < 0.5
+
+
+def test_shapes_no_marking_has_are_dropped():
+    t = _grid(0.05)
+    img = np.zeros((400, 400), np.float32)
+    _draw(img, t, X0 + 5, Y0 - 5, 2.5, 0.15, 30)     # a dash: kept
+    _draw(img, t, X0 + 12, Y0 - 5, 4.0, 1.8, 0)      # a car roof: too wide
+    _draw(img, t, X0 + 5, Y0 - 14, 0.1, 0.1, 0)      # a speck: too small
+    _draw(img, t, X0 + 14, Y0 - 14.01, 2.0, 0.03, 90)  # a thin crack: too narrow
+    c = detect_markings(img, None, t)
+    assert len(c) == 1
+    assert c.x[0] == pytest.approx(X0 + 5, abs=0.02)
+
+
+def test_invalid_pixels_are_never_marking_pixels():
+    t = _grid(0.05)
+    img = np.zeros((200, 200), np.float32)
+    _draw(img, t, X0 + 5, Y0 - 5, 2.5, 0.15, 0)
+    valid = np.ones_like(img, bool)
+    valid[:, :] = False
+    assert len(detect_markings(img, valid, t)) == 0
+
+
+def test_long_lines_are_cut_into_short_pieces():
+    res = 0.05
+    t = _grid(res)
+    img = np.zeros((600, 600), np.float32)
+    npx = _draw(img, t, X0 + 15, Y0 - 15, 20.0, 0.15, 60)
+    c = detect_markings(img, None, t, ClusterParams(max_length_m=3.0, min_length_m=0.1,
+                                                     min_area_m2=0.005))
+    assert 7 <= len(c) <= 9
+    assert c.length_m.max() <= 3.0 + 2 * res
+    assert c.weight.sum() >= 0.99 * npx  # only slivers at the ends may drop out
+    # Every piece lies on the line and keeps its direction.
+    u = np.array([math.sin(math.radians(60)), math.cos(math.radians(60))])
+    off = np.column_stack([c.x - X0 - 15, c.y - Y0 + 15])
+    assert np.abs(off @ np.array([u[1], -u[0]])).max() < 0.02
+    assert _angle_diff(c.bearing_deg, 60).max() < 1.0
+    # A marking not much longer than a piece (a 3 m dash) is not cut.
+    img[:] = 0
+    _draw(img, t, X0 + 15, Y0 - 15, 3.2, 0.15, 10)
+    assert len(detect_markings(img, None, t)) == 1
+
+
+def test_cuts_do_not_depend_on_the_window():
+    """Two overlapping windows of one long line cut it at the same places."""
+    res = 0.05
+    t = _grid(res)
+    img = np.zeros((400, 1600), np.float32)
+    _draw(img, t, X0 + 40, Y0 - 10, 76.0, 0.15, 88)
+    params = ClusterParams(min_length_m=0.1, min_area_m2=0.005)
+    a = detect_markings(img[:, :900], None, t, params)
+    b_t = t @ Affine.translation(700, 0)
+    b = detect_markings(img[:, 700:], None, b_t, params)
+    # Pieces well inside both windows (x 36..44 m) must be identical.
+    sel_a = (a.x > X0 + 37) & (a.x < X0 + 43)
+    sel_b = (b.x > X0 + 37) & (b.x < X0 + 43)
+    assert sel_a.sum() >= 2
+    np.testing.assert_allclose(np.sort(a.x[sel_a]), np.sort(b.x[sel_b]), atol=1e-9)
+    np.testing.assert_array_equal(np.sort(a.weight[sel_a]), np.sort(b.weight[sel_b]))
+
+
+def test_link_distance_joins_a_broken_dash():
+    res = 0.05
+    t = _grid(res)
+    img = np.zeros((200, 200), np.float32)
+    _draw(img, t, X0 + 5, Y0 - 4.2, 1.3, 0.15, 0)
+    _draw(img, t, X0 + 5, Y0 - 5.8, 1.3, 0.15, 0)   # a 0.3 m worn gap
+    params = ClusterParams(min_length_m=0.1)
+    assert len(detect_markings(img, None, t, params)) == 2
+    joined = detect_markings(img, None, t, ClusterParams(link_m=0.4, min_length_m=0.1))
+    assert len(joined) == 1
+    assert joined.length_m[0] == pytest.approx(2.9, abs=0.1)
+
+
+def test_split_long_keeps_short_clusters():
+    t = _grid(0.1)
+    labels = np.zeros((50, 50), np.int32)
+    labels[10:12, 5:20] = 1
+    out, n = split_long(labels, t)
+    assert n == 1
+    np.testing.assert_array_equal(out > 0, labels > 0)
+
+
+def test_bad_params_are_rejected():
+    with pytest.raises(ValueError, match="threshold"):
+        ClusterParams(threshold=1.5)
+    with pytest.raises(ValueError, match="width"):
+        ClusterParams(min_width_m=0.7)
