@@ -1,0 +1,583 @@
+"""The map-building job: imagery in, detected markings in the store.
+
+:func:`process_tile` is the unit of work: it takes plain data (an image path,
+the pixel grid, a tile's windows, the model path and the clustering
+parameters), reads one window, classifies it, clusters and measures the
+marking pixels, and returns the markings whose centroid lies in the tile's
+core. It runs in the calling process, in a local process pool, or on a Dask
+distributed cluster; tasks never carry open datasets.
+
+:func:`build_map` plans the tiles of one or more images, runs them, and
+writes each tile's markings through :meth:`Store.replace_detected` in the
+parent process (one transaction per tile, which also records the tile as done
+for the job). Running it again with the same map, images and parameters
+resumes the unfinished job and skips the tiles already done; a finished build
+run again replaces its detected, unreviewed markings and keeps everything a
+person decided on.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+from collections import OrderedDict
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+import multiprocessing as mp
+
+import numpy as np
+from rasterio.windows import Window
+from rasterio.windows import transform as window_transform
+
+from .cluster import ClusterParams, Clusters, detect_markings
+from .crs import meridian_convergence_deg, to_wgs84
+from .model import Marking
+from .raster import GridReader, ImageryError, PixelGrid, default_storage_crs, inspect_imagery, make_reader
+from .tiling import image_tag, tile_grid, tile_key
+
+log = logging.getLogger(__name__)
+
+JOB_KIND = "build"
+
+
+class BuildError(ValueError):
+    """A build cannot start or cannot go on (bad parameters, unusable map or imagery)."""
+
+
+@dataclass(frozen=True)
+class BuildParams:
+    """Parameters of a build; a resumed build must use the same ones.
+
+    Attributes
+    ----------
+    tile_px : int
+        Core size of a tile, pixels.
+    halo_m : float
+        Halo read around every core, metres. It must exceed the longest piece
+        a marking is cut into (``cluster.max_length_m * cluster.split_factor``)
+        so that every marking owned by a tile is seen whole.
+    model : str, model object or None
+        ONNX model file; None uses the default model shipped with lanemap. An
+        object with the ``predict(rgb, valid, resolution_m)`` method of
+        :class:`mapbuilder.classify.MarkingModel` is used as is (it must be
+        picklable to run in worker processes).
+    cluster : ClusterParams
+        Thresholding, clustering, splitting and filtering.
+    """
+
+    tile_px: int = 1024
+    halo_m: float = 4.0
+    model: Any = None
+    cluster: ClusterParams = field(default_factory=ClusterParams)
+
+    def __post_init__(self):
+        if self.tile_px < 64:
+            raise BuildError(f"tile size must be at least 64 pixels, got {self.tile_px}")
+        longest = self.cluster.max_length_m * self.cluster.split_factor
+        if self.halo_m <= longest:
+            raise BuildError(
+                f"halo {self.halo_m} m must exceed the longest marking piece ({longest:.2f} m)"
+            )
+        if isinstance(self.model, (str, os.PathLike)):
+            path = Path(self.model)
+            if not path.is_file():
+                raise BuildError(f"model file not found: {path}")
+            object.__setattr__(self, "model", str(path.resolve()))
+
+    def halo_px(self, resolution_m: float) -> int:
+        return int(math.ceil(self.halo_m / resolution_m))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form, stored with the job to recognise a resumable build."""
+        model = self.model
+        if model is not None and not isinstance(model, str):
+            model = f"{type(model).__module__}.{type(model).__qualname__}"
+        return {
+            "tile_px": self.tile_px,
+            "halo_m": self.halo_m,
+            "model": model,
+            "cluster": asdict(self.cluster),
+        }
+
+
+@dataclass(frozen=True)
+class TileTask:
+    """Everything a worker needs to process one tile (plain, picklable data)."""
+
+    path: str
+    grid: PixelGrid
+    key: str
+    core: tuple[int, int, int, int]
+    read: tuple[int, int, int, int]
+    model: Any
+    cluster: ClusterParams
+
+    @property
+    def megapixels(self) -> float:
+        return self.core[2] * self.core[3] / 1e6
+
+
+@dataclass
+class TileResult:
+    """What a worker returns for one tile."""
+
+    key: str
+    markings: list[Marking]
+    megapixels: float
+    seconds: float
+
+
+@dataclass
+class BuildResult:
+    """Summary of a build.
+
+    Attributes
+    ----------
+    map_id : str
+    job_id : int
+    images : list of str
+    tiles_total : int
+        Tiles of all images.
+    tiles_skipped : int
+        Tiles already done by the interrupted job this build resumed.
+    tiles_run : int
+        Tiles processed by this run.
+    markings : int
+        Markings stored by this run (after dropping those a person's decision overrides).
+    megapixels : float
+        Pixels processed by this run, millions.
+    seconds : float
+        Wall time of this run, including starting workers.
+    resumed : bool
+    """
+
+    map_id: str
+    job_id: int
+    images: list[str]
+    tiles_total: int
+    tiles_skipped: int
+    tiles_run: int
+    markings: int
+    megapixels: float
+    seconds: float
+    resumed: bool
+
+    @property
+    def mpx_per_s(self) -> float:
+        return self.megapixels / self.seconds if self.seconds > 0 else 0.0
+
+    def summary(self) -> str:
+        resumed = f", {self.tiles_skipped} resumed" if self.tiles_skipped else ""
+        return (
+            f"map {self.map_id}: {self.markings} markings from {self.tiles_run} tiles"
+            f"{resumed} of {len(self.images)} image(s), {self.megapixels:.1f} Mpx in "
+            f"{self.seconds:.1f} s ({self.mpx_per_s:.1f} Mpx/s), job {self.job_id}"
+        )
+
+
+# --------------------------------------------------------------------------- the tile function
+
+_READERS: "OrderedDict[tuple[str, PixelGrid], GridReader]" = OrderedDict()
+_MODELS: dict[Any, Any] = {}
+
+
+def _reader(path: str, grid: PixelGrid) -> GridReader:
+    key = (path, grid)
+    reader = _READERS.get(key)
+    if reader is None:
+        reader = make_reader(path, grid)
+        _READERS[key] = reader
+        while len(_READERS) > 4:
+            _READERS.popitem(last=False)[1].close()
+    else:
+        _READERS.move_to_end(key)
+    return reader
+
+
+def _model(spec):
+    """The model for a spec: a path (None = the default model) or a model object."""
+    if spec is not None and not isinstance(spec, (str, os.PathLike)):
+        return spec
+    model = _MODELS.get(spec)
+    if model is None:
+        from .classify import load_model
+
+        model = load_model(spec)
+        _MODELS[spec] = model
+    return model
+
+
+def clusters_to_markings(clusters: Clusters, crs: str, key: str | None = None) -> list[Marking]:
+    """Turn measured clusters into detected markings with true-north bearings."""
+    if len(clusters) == 0:
+        return []
+    lon, lat = to_wgs84(crs).transform(clusters.x, clusters.y)
+    conv = meridian_convergence_deg(crs, lon, lat)
+    bearing = (clusters.bearing_deg + conv) % 180.0
+    out = []
+    for i in range(len(clusters)):
+        out.append(
+            Marking(
+                x=float(clusters.x[i]),
+                y=float(clusters.y[i]),
+                length_m=float(clusters.length_m[i]),
+                width_m=float(clusters.width_m[i]),
+                bearing_deg=float(bearing[i]),
+                weight=float(clusters.weight[i]),
+                score=float(clusters.score[i]),
+                source="detected",
+                status="unreviewed",
+                x0=float(clusters.x0[i]),
+                y0=float(clusters.y0[i]),
+                x1=float(clusters.x1[i]),
+                y1=float(clusters.y1[i]),
+                tile_key=key,
+                lon=float(lon[i]),
+                lat=float(lat[i]),
+            )
+        )
+    return out
+
+
+def detect_window(
+    rgb: np.ndarray,
+    valid: np.ndarray,
+    transform,
+    resolution_m: float,
+    model,
+    cluster: ClusterParams | None = None,
+) -> tuple[Clusters, np.ndarray]:
+    """Classify and cluster one window already in memory.
+
+    Returns the measured clusters (grid bearings, window pixel coordinates)
+    and the probability image.
+    """
+    if valid.any():
+        prob = np.asarray(model.predict(rgb, valid, resolution_m), dtype=np.float32)
+    else:
+        prob = np.zeros(valid.shape, np.float32)
+    return detect_markings(prob, valid, transform, cluster or ClusterParams()), prob
+
+
+def process_tile(task: TileTask) -> TileResult:
+    """Detect the markings of one tile.
+
+    Reads the tile's window (core + halo), classifies it, clusters and
+    measures the marking pixels, and keeps the markings whose centroid lies in
+    the core.
+    """
+    t0 = time.perf_counter()
+    reader = _reader(task.path, task.grid)
+    window = Window(*task.read)
+    rgb, valid = reader.read(window)
+    transform = window_transform(window, task.grid.affine)
+    clusters, _ = detect_window(
+        rgb, valid, transform, task.grid.resolution_m, _model(task.model), task.cluster
+    )
+    c0, r0, w, h = task.core
+    col = clusters.col + task.read[0]
+    row = clusters.row + task.read[1]
+    own = (col >= c0) & (col < c0 + w) & (row >= r0) & (row < r0 + h)
+    markings = clusters_to_markings(clusters.take(own), task.grid.crs, task.key)
+    return TileResult(task.key, markings, task.megapixels, time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------- planning
+
+
+@dataclass
+class ImagePlan:
+    path: str
+    tag: str
+    grid: PixelGrid
+    tasks: list[TileTask]
+
+
+def plan_image(path: str | Path, storage_crs: str, params: BuildParams) -> ImagePlan:
+    """Validate an image and cut it into tile tasks on its grid in ``storage_crs``."""
+    info = inspect_imagery(path, storage_crs)
+    grid = info.grid
+    tiles = tile_grid(grid.width, grid.height, params.tile_px, params.halo_px(grid.resolution_m))
+    tag = image_tag(info.path)
+    tasks = [
+        TileTask(
+            path=info.path,
+            grid=grid,
+            key=tile_key(tag, tiles, t),
+            core=t.core,
+            read=t.read,
+            model=params.model,
+            cluster=params.cluster,
+        )
+        for t in tiles
+    ]
+    return ImagePlan(info.path, tag, grid, tasks)
+
+
+def _file_stamp(path: str) -> dict[str, Any]:
+    st = os.stat(path)
+    return {"path": path, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+# --------------------------------------------------------------------------- executors
+
+
+def _init_worker() -> None:
+    # Tiles parallelise across processes; one thread per process avoids oversubscription.
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    os.environ.setdefault("GDAL_CACHEMAX", "64")
+    if sys.platform.startswith("linux"):
+        # Die with the parent: a killed build leaves no orphaned workers.
+        try:
+            import ctypes
+            import signal
+
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
+        except OSError:
+            pass
+
+
+def _run_inline(tasks: Sequence[TileTask]) -> Iterator[TileResult]:
+    for task in tasks:
+        yield process_tile(task)
+
+
+def _run_pool(tasks: Sequence[TileTask], workers: int) -> Iterator[TileResult]:
+    ctx = mp.get_context("spawn")
+    in_flight_max = 2 * workers
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker) as pool:
+        pending = set()
+        it = iter(tasks)
+        try:
+            for task in it:
+                pending.add(pool.submit(process_tile, task))
+                if len(pending) >= in_flight_max:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in done:
+                        yield fut.result()
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    yield fut.result()
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+
+def _run_dask(tasks: Sequence[TileTask], address: str) -> Iterator[TileResult]:
+    from distributed import Client, as_completed
+
+    try:
+        client = Client(address, timeout="20s")
+    except (OSError, TimeoutError) as exc:
+        raise BuildError(f"cannot reach Dask scheduler at {address}: {exc}") from exc
+    try:
+        n_workers = max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values()))
+        in_flight_max = 2 * n_workers
+        it = iter(tasks)
+        first = [client.submit(process_tile, t, pure=False) for _, t in zip(range(in_flight_max), it)]
+        ac = as_completed(first)
+        for fut in ac:
+            result = fut.result()
+            fut.release()
+            nxt = next(it, None)
+            if nxt is not None:
+                ac.add(client.submit(process_tile, nxt, pure=False))
+            yield result
+    finally:
+        client.close()
+
+
+# --------------------------------------------------------------------------- the build
+
+
+def _find_resumable(store, map_id: str, job_params: dict[str, Any]):
+    jobs = store.find_jobs(kind=JOB_KIND, map_id=map_id, status=("accepted", "running", "failed"))
+    for job in reversed(jobs):
+        if job.params == job_params:
+            return job
+    return None
+
+
+def _ensure_map(store, map_id: str, first_image: str, title: str) -> str:
+    from .store import UnknownMapError
+
+    try:
+        info = store.get_map(map_id)
+    except UnknownMapError:
+        crs = default_storage_crs(first_image)
+        info = store.create_map(map_id, title=title, crs=crs)
+        log.info("created map %s in %s", map_id, crs)
+    if not info.crs:
+        raise BuildError(f"map {map_id!r} has no storage CRS; create it with a CRS first")
+    return info.crs
+
+
+def _register_imagery(store, map_id: str, plan: ImagePlan) -> None:
+    known = {i.path for i in store.list_imagery(map_id)}
+    if plan.path not in known:
+        store.add_imagery(map_id, plan.path, plan.grid.crs, plan.grid.bounds, plan.grid.resolution_m)
+
+
+def _drop_stale_tiles(store, map_id: str, plans: list[ImagePlan]) -> int:
+    """Empty tiles an earlier build of the same image made with another grid."""
+    dropped = 0
+    for plan in plans:
+        current = {t.key for t in plan.tasks}
+        prefix = plan.tag + "/"
+        stale = {
+            m.tile_key
+            for m in store.query_bbox(map_id, *plan.grid.bounds, statuses=["unreviewed"])
+            if m.source == "detected" and m.tile_key and m.tile_key.startswith(prefix)
+            and m.tile_key not in current
+        }
+        for key in sorted(stale):
+            store.replace_detected(map_id, key, [])
+            dropped += 1
+    return dropped
+
+
+def build_map(
+    store,
+    map_id: str,
+    images: Sequence[str | Path],
+    params: BuildParams | None = None,
+    *,
+    workers: int | None = None,
+    dask_address: str | None = None,
+    progress: bool = True,
+    resume: bool = True,
+    title: str = "",
+    on_tile: Callable[[TileResult], None] | None = None,
+) -> BuildResult:
+    """Build (or rebuild, or resume) a map's detected markings from imagery.
+
+    Parameters
+    ----------
+    store : mapbuilder.store.Store
+    map_id : str
+        The map; created in the first image's metric CRS (its own, or its UTM
+        zone) when it does not exist.
+    images : sequence of path
+        GeoTIFFs/COGs to build from.
+    params : BuildParams, optional
+    workers : int, optional
+        Local worker processes (default: all cores); 1 or 0 runs in this process.
+    dask_address : str, optional
+        Address of a Dask distributed scheduler to run the tiles on instead.
+    progress : bool
+        Show a tqdm bar on stderr (tiles done/total, rate, ETA).
+    resume : bool
+        Continue an unfinished job with the same map, images and parameters.
+    on_tile : callable, optional
+        Called with every tile's result after it is stored.
+
+    Raises
+    ------
+    BuildError, ImageryError
+        Bad parameters or imagery; nothing is written then.
+    """
+    from tqdm import tqdm
+
+    params = params or BuildParams()
+    if not images:
+        raise BuildError("no imagery given")
+    paths = []
+    for p in images:
+        p = Path(p)
+        if not p.is_file():
+            raise ImageryError(f"image not found: {p}")
+        paths.append(str(p.resolve()))
+    t0 = time.perf_counter()
+    # Load the model here too, so that a bad model file fails before any job starts.
+    _model(params.model)
+    crs = _ensure_map(store, map_id, paths[0], title)
+    plans = [plan_image(p, crs, params) for p in paths]
+    for plan in plans:
+        _register_imagery(store, map_id, plan)
+
+    job_params = {
+        "images": [_file_stamp(p) for p in paths],
+        "params": params.to_dict(),
+        "crs": crs,
+    }
+    job = _find_resumable(store, map_id, job_params) if resume else None
+    if job is not None:
+        job_id = job.id
+        done = store.done_tiles(job_id)
+        log.info("resuming build job %d: %d tiles already done", job_id, len(done))
+    else:
+        job_id = store.create_job(JOB_KIND, map_id, job_params)
+        done = set()
+    store.update_job(job_id, status="running")
+
+    all_tasks = [t for plan in plans for t in plan.tasks]
+    todo = [t for t in all_tasks if t.key not in done]
+    skipped = len(all_tasks) - len(todo)
+    if workers is None:
+        workers = os.cpu_count() or 1
+    if dask_address:
+        results = _run_dask(todo, dask_address)
+    elif workers <= 1 or len(todo) <= 1:
+        results = _run_inline(todo)
+    else:
+        results = _run_pool(todo, min(workers, len(todo)))
+
+    n_markings = 0
+    mpx = 0.0
+    n_run = 0
+    last_update = time.monotonic()
+    bar = tqdm(
+        total=len(all_tasks),
+        initial=skipped,
+        unit="tile",
+        desc=f"build {map_id}",
+        disable=not progress,
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
+    try:
+        with bar:
+            for result in results:
+                n_markings += store.replace_detected(map_id, result.key, result.markings, job_id)
+                mpx += result.megapixels
+                n_run += 1
+                bar.update(1)
+                bar.set_postfix(markings=n_markings, refresh=False)
+                if on_tile is not None:
+                    on_tile(result)
+                now = time.monotonic()
+                if now - last_update > 2.0:
+                    store.update_job(job_id, progress=100.0 * (skipped + n_run) / len(all_tasks))
+                    last_update = now
+        if skipped == 0 and len(store.find_jobs(kind=JOB_KIND, map_id=map_id)) > 1:
+            _drop_stale_tiles(store, map_id, plans)
+    except BaseException as exc:
+        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        try:
+            store.update_job(job_id, status="failed", error=reason or exc.__class__.__name__)
+        except Exception:  # the store itself may be what failed
+            log.exception("could not mark job %d failed", job_id)
+        raise
+    store.update_job(job_id, status="successful", progress=100.0)
+    result = BuildResult(
+        map_id=map_id,
+        job_id=job_id,
+        images=paths,
+        tiles_total=len(all_tasks),
+        tiles_skipped=skipped,
+        tiles_run=n_run,
+        markings=n_markings,
+        megapixels=mpx,
+        seconds=time.perf_counter() - t0,
+        resumed=job is not None,
+    )
+    log.info("%s", result.summary())
+    return result

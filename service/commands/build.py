@@ -1,0 +1,82 @@
+"""``lanemap build``: detect lane markings in aerial imagery and store them in a map."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from mapbuilder.build import BuildParams, build_map
+from mapbuilder.cluster import ClusterParams
+
+from ..cli_errors import fail
+
+log = logging.getLogger(__name__)
+
+
+def build(
+    images: List[Path] = typer.Argument(..., help="GeoTIFF/COG aerial images (RGB or RGBA)."),
+    map_id: str = typer.Option(..., "--map", "-m", help="Map to build into (created if missing)."),
+    title: str = typer.Option("", help="Title of a newly created map."),
+    model: Optional[Path] = typer.Option(
+        None, "--model", help="ONNX marking model (default: the one shipped with lanemap)."
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", "-j", help="Local worker processes (default: all cores)."
+    ),
+    dask: Optional[str] = typer.Option(
+        None, "--dask", help="Run tiles on this Dask scheduler (e.g. tcp://host:8786)."
+    ),
+    tile_px: int = typer.Option(1024, "--tile-size", help="Tile core size, pixels."),
+    halo_m: float = typer.Option(4.0, "--halo", help="Halo around each tile, metres."),
+    threshold: float = typer.Option(0.5, help="Marking probability threshold."),
+    piece_m: float = typer.Option(
+        3.0, "--piece-length", help="Long markings are cut into pieces of this length, metres."
+    ),
+    restart: bool = typer.Option(
+        False, "--restart", help="Start afresh instead of resuming an unfinished build."
+    ),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+) -> None:
+    """Detect lane markings in IMAGES and store them in the map MAP.
+
+    A rebuild replaces the map's detected, unreviewed markings of these images
+    and keeps every marking a person added, accepted or rejected. A build that
+    was interrupted resumes from the tiles already done when run again with
+    the same map, images and parameters.
+    """
+    from mapbuilder.store import Store
+
+    try:
+        params = BuildParams(
+            tile_px=tile_px,
+            halo_m=halo_m,
+            model=str(model) if model is not None else None,
+            cluster=ClusterParams(threshold=threshold, max_length_m=piece_m),
+        )
+    except ValueError as exc:
+        fail(str(exc))
+    store = Store()
+    try:
+        result = build_map(
+            store,
+            map_id,
+            [str(p) for p in images],
+            params,
+            workers=workers,
+            dask_address=dask,
+            progress=progress,
+            resume=not restart,
+            title=title,
+        )
+    except ValueError as exc:
+        fail(str(exc))
+    finally:
+        store.close()
+    typer.echo(result.summary())
+
+
+def register(app: typer.Typer) -> None:
+    app.command("build")(build)
