@@ -1,0 +1,135 @@
+"""Marking probability per pixel, from an ONNX model run with onnxruntime.
+
+A model file is any ONNX classifier taking ``features`` (N, F) float32 —
+the features of :mod:`mapbuilder.features` — and returning class
+probabilities (N, 2). The default model ships in ``mapbuilder/data/``; train
+your own with :mod:`mapbuilder.train` or ``lanemap train``.
+
+Only candidate pixels (narrow white top-hat above a few grey levels, low
+saturation) are evaluated; every other pixel gets probability 0.
+"""
+
+from __future__ import annotations
+
+import logging
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .features import CANDIDATE_TOPHAT, FEATURE_NAMES, FEATURE_VERSION, candidate_features
+
+log = logging.getLogger(__name__)
+
+#: File name of the default model inside ``mapbuilder/data``.
+DEFAULT_MODEL = "marking_svm.onnx"
+
+
+class ModelError(ValueError):
+    """A model file that cannot be loaded or does not fit lanemap's features."""
+
+
+def default_model_path() -> Path:
+    """Path of the default model shipped with the package."""
+    return Path(str(resources.files("mapbuilder") / "data" / DEFAULT_MODEL))
+
+
+class MarkingModel:
+    """A pixel classifier for lane markings.
+
+    Parameters
+    ----------
+    path : path
+        ONNX model file.
+    threads : int
+        onnxruntime intra-op threads; 1 so that tiles parallelise across processes.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1):
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ModelError(f"model file {self.path} does not exist")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(
+                str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:
+            raise ModelError(f"cannot load model {self.path}: {exc}") from exc
+        meta = self._session.get_modelmeta().custom_metadata_map
+        self.metadata = dict(meta)
+        version = meta.get("lanemap.feature_version")
+        if version is not None and version != FEATURE_VERSION:
+            raise ModelError(
+                f"model {self.path} was trained on features v{version}, "
+                f"this lanemap computes v{FEATURE_VERSION}")
+        inputs = self._session.get_inputs()
+        if len(inputs) != 1 or inputs[0].shape[-1] not in (len(FEATURE_NAMES), None, "None"):
+            raise ModelError(
+                f"model {self.path} must take one (N, {len(FEATURE_NAMES)}) input, "
+                f"got {[(i.name, i.shape) for i in inputs]}")
+        self._input = inputs[0].name
+        outs = self._session.get_outputs()
+        prob = [o for o in outs if "prob" in o.name.lower()]
+        self._output = (prob[0] if prob else outs[-1]).name
+        self.candidate_tophat = float(meta.get("lanemap.candidate_tophat", CANDIDATE_TOPHAT))
+
+    def __repr__(self) -> str:
+        return f"MarkingModel({str(self.path)!r})"
+
+    def predict_features(self, feats: np.ndarray) -> np.ndarray:
+        """P(marking) for rows of features, (N,) float32."""
+        if len(feats) == 0:
+            return np.zeros(0, np.float32)
+        out = self._session.run([self._output], {self._input: np.ascontiguousarray(feats, np.float32)})[0]
+        out = np.asarray(out)
+        return (out[:, 1] if out.ndim == 2 else out).astype(np.float32)
+
+    def predict(self, rgb: np.ndarray, valid: np.ndarray | None, resolution_m: float) -> np.ndarray:
+        """Probability of "marking" per pixel.
+
+        Parameters
+        ----------
+        rgb : (H, W, 3) uint8
+            Image window including its halo.
+        valid : (H, W) bool or None
+            False at nodata / alpha-0 / outside-image pixels.
+        resolution_m : float
+            Ground sampling distance, metres per pixel.
+
+        Returns
+        -------
+        (H, W) float32
+            P(marking) in [0, 1]; 0 at invalid pixels and at pixels that cannot be
+            markings (not brighter than their surroundings).
+        """
+        feats, idx = candidate_features(rgb, valid, resolution_m, self.candidate_tophat)
+        h, w = rgb.shape[:2]
+        prob = np.zeros(h * w, np.float32)
+        prob[idx] = self.predict_features(feats)
+        return prob.reshape(h, w)
+
+
+_cache: dict[str, MarkingModel] = {}
+
+
+def load_model(path: str | Path | None = None) -> MarkingModel:
+    """Load a marking model (cached per process).
+
+    Parameters
+    ----------
+    path : path or None
+        ONNX model file; None loads the default model shipped in ``mapbuilder/data``.
+    """
+    p = default_model_path() if path is None else Path(path)
+    key = str(p.resolve())
+    model = _cache.get(key)
+    if model is None:
+        model = MarkingModel(p)
+        _cache[key] = model
+    return model

@@ -1,0 +1,367 @@
+"""Train a marking classifier and export it to ONNX.
+
+The model is a linear SVM on the degree-2 polynomial expansion of the
+features of :mod:`mapbuilder.features` (an explicit quadratic kernel: cheap to
+evaluate, and it lets the margin use products such as "bright *and*
+unsaturated"), with Platt scaling so that it outputs a probability. It is
+trained on candidate pixels only — the pixels :func:`candidate_features`
+keeps — exactly as :class:`mapbuilder.classify.MarkingModel` evaluates it.
+
+Labelled imagery comes from :mod:`mapbuilder.synth` renders or from a GeoTIFF
+plus labels (:func:`train_from_files`): a GeoJSON of markings (Points with
+``length_m``, ``width_m``, ``bearing_deg`` become oriented rectangles;
+LineStrings are buffered by ``width_m`` or 0.15 m; Polygons are used as they
+are) or a label GeoTIFF aligned with the image (non-zero = marking).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .features import CANDIDATE_TOPHAT, FEATURE_NAMES, FEATURE_VERSION, candidate_features
+
+log = logging.getLogger(__name__)
+
+#: Fewest marking pixels a training set must have.
+MIN_POSITIVE_PIXELS = 200
+
+
+class TrainingError(ValueError):
+    """Training inputs that cannot produce a model."""
+
+
+@dataclass
+class TrainingSet:
+    """Candidate-pixel features and labels gathered from labelled images."""
+
+    X: list[np.ndarray] = field(default_factory=list)
+    y: list[np.ndarray] = field(default_factory=list)
+    positives_total: int = 0  # labelled marking pixels, candidates or not
+
+    def add(self, X: np.ndarray, y: np.ndarray, positives_total: int) -> None:
+        self.X.append(X)
+        self.y.append(y)
+        self.positives_total += int(positives_total)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.X:
+            return np.empty((0, len(FEATURE_NAMES)), np.float32), np.empty(0, bool)
+        return np.concatenate(self.X), np.concatenate(self.y)
+
+
+def sample_pixels(
+    rgb: np.ndarray,
+    label: np.ndarray,
+    valid: np.ndarray | None,
+    resolution_m: float,
+    rng: np.random.Generator,
+    neg_per_pos: float = 6.0,
+    max_pixels: int = 60000,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Features and labels of a sample of candidate pixels of one image.
+
+    All candidate marking pixels are kept (up to ``max_pixels`` / (1 + neg_per_pos))
+    and ``neg_per_pos`` times as many candidate background pixels.
+
+    Returns
+    -------
+    X : (N, F) float32
+    y : (N,) bool
+    """
+    feats, idx = candidate_features(rgb, valid, resolution_m)
+    y = np.asarray(label, bool).ravel()[idx]
+    pos = np.flatnonzero(y)
+    neg = np.flatnonzero(~y)
+    n_pos = min(len(pos), int(max_pixels / (1 + neg_per_pos)))
+    n_neg = min(len(neg), max(int(n_pos * neg_per_pos), 2000))
+    keep = np.concatenate([rng.choice(pos, n_pos, replace=False) if n_pos else pos[:0],
+                           rng.choice(neg, n_neg, replace=False) if n_neg else neg[:0]])
+    return feats[keep], y[keep]
+
+
+def fit_svm(X: np.ndarray, y: np.ndarray, C: float = 0.5, seed: int = 0):
+    """Fit the calibrated quadratic-feature linear SVM.
+
+    Returns
+    -------
+    sklearn.pipeline.Pipeline
+        ``predict_proba`` gives P(marking).
+    """
+    from sklearn.calibration import CalibratedClassifierCV
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import PolynomialFeatures, StandardScaler
+    from sklearn.svm import LinearSVC
+
+    y = np.asarray(y, bool)
+    if y.sum() < MIN_POSITIVE_PIXELS:
+        raise TrainingError(
+            f"too few marking pixels to train: {int(y.sum())} (need {MIN_POSITIVE_PIXELS})")
+    if (~y).sum() < MIN_POSITIVE_PIXELS:
+        raise TrainingError(f"too few background pixels to train: {int((~y).sum())}")
+    svm = LinearSVC(C=C, dual=False, max_iter=5000, random_state=seed)
+    model = Pipeline([
+        ("scale", StandardScaler()),
+        ("poly", PolynomialFeatures(degree=2, include_bias=False)),
+        ("svm", CalibratedClassifierCV(svm, method="sigmoid", cv=3, ensemble=False)),
+    ])
+    model.fit(X.astype(np.float32), y.astype(np.int64))
+    return model
+
+
+def export_onnx(model, path: str | Path, metadata: dict | None = None) -> Path:
+    """Write a fitted scikit-learn classifier as ONNX with lanemap metadata.
+
+    The graph takes ``features`` (N, F) float32 and outputs ``probabilities``
+    (N, 2) float32 (column 1: marking).
+    """
+    import onnx
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    onx = convert_sklearn(
+        model,
+        initial_types=[("features", FloatTensorType([None, len(FEATURE_NAMES)]))],
+        options={id(model): {"zipmap": False}},
+        target_opset=17,
+    )
+    meta = {
+        "lanemap.kind": "marking-pixel-classifier",
+        "lanemap.feature_version": FEATURE_VERSION,
+        "lanemap.features": ",".join(FEATURE_NAMES),
+        "lanemap.candidate_tophat": str(CANDIDATE_TOPHAT),
+    }
+    meta.update({k: str(v) for k, v in (metadata or {}).items()})
+    for k, v in meta.items():
+        entry = onx.metadata_props.add()
+        entry.key, entry.value = k, v
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(onx, str(path))
+    return path
+
+
+# --------------------------------------------------------------------------- synthetic data
+
+
+def synthetic_training_set(
+    seeds: Sequence[int],
+    resolutions: Sequence[float] = (0.05, 0.075, 0.1, 0.15, 0.2),
+    size_m: float = 70.0,
+    lanelet_map=None,
+    progress: bool = False,
+    neg_per_pos: float = 6.0,
+) -> TrainingSet:
+    """Render procedural (and, with ``lanelet_map``, Karlsruhe) scenes and sample pixels.
+
+    Each seed gives one scene at one resolution (cycling through
+    ``resolutions``), with JPEG compression on every other render.
+    """
+    from tqdm import tqdm
+
+    from .synth import lanelet_scene, procedural_scene, render_array
+
+    ts = TrainingSet()
+    rng = np.random.default_rng(12345 + int(seeds[0]) if len(seeds) else 0)
+    lanes = None
+    if lanelet_map is not None:
+        lanes = [c for c in lanelet_map.centerlines if len(c) > 5]
+    for i, seed in enumerate(tqdm(list(seeds), desc="render+sample", disable=not progress)):
+        res = float(resolutions[i % len(resolutions)])
+        side = min(size_m, 1000 * res)  # at most 1000 px a side
+        if lanes and i % 3 == 2:
+            c = lanes[int(rng.integers(len(lanes)))]
+            x, y = c[len(c) // 2]
+            scene = lanelet_scene(lanelet_map, seed=int(seed),
+                                  bounds=(x - side / 2, y - side / 2, x + side / 2, y + side / 2))
+        else:
+            scene = procedural_scene((side, side), seed=int(seed))
+        jpeg = int(rng.integers(60, 95)) if i % 2 else None
+        rgb, label, _ = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
+        X, y = sample_pixels(rgb, label, None, res, rng, neg_per_pos=neg_per_pos)
+        ts.add(X, y, int(label.sum()))
+    return ts
+
+
+# --------------------------------------------------------------------------- labelled files
+
+
+def _read_image(path: Path):
+    import rasterio
+
+    try:
+        ds = rasterio.open(path)
+    except Exception as exc:
+        raise TrainingError(f"cannot open image {path}: {exc}") from exc
+    with ds:
+        if ds.crs is None or ds.transform.is_identity:
+            raise TrainingError(f"image {path} has no georeferencing")
+        if not ds.crs.is_projected:
+            raise TrainingError(f"image {path} must be in a projected metric CRS, got {ds.crs}")
+        if ds.count < 3:
+            raise TrainingError(f"image {path} has {ds.count} band(s), RGB expected")
+        if ds.width * ds.height > 200_000_000:
+            raise TrainingError(f"image {path} is too large to train on at once "
+                                f"({ds.width}x{ds.height}); crop it")
+        rgb = np.moveaxis(ds.read([1, 2, 3]), 0, -1)
+        if rgb.dtype != np.uint8:
+            raise TrainingError(f"image {path} must be 8-bit, got {rgb.dtype}")
+        valid = ds.dataset_mask() > 0
+        res = float(abs(ds.transform.a))
+        return rgb, valid, res, ds.transform, ds.crs, (ds.height, ds.width), ds.bounds
+
+
+def _geojson_shapes(path: Path, dst_crs) -> list:
+    import shapely
+    from pyproj import CRS, Transformer
+    from shapely.geometry import LineString, Point, shape
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise TrainingError(f"cannot read labels {path}: {exc}") from exc
+    feats = data.get("features") if isinstance(data, dict) else None
+    if not isinstance(feats, list) or not feats:
+        raise TrainingError(f"labels {path} hold no GeoJSON features")
+    t = Transformer.from_crs(CRS.from_epsg(4326), dst_crs, always_xy=True)
+    shapes = []
+    for k, f in enumerate(feats):
+        try:
+            g = shape(f["geometry"])
+        except Exception as exc:
+            raise TrainingError(f"labels {path}: feature {k} has a bad geometry: {exc}") from exc
+        props = f.get("properties") or {}
+        g = shapely.transform(g, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
+        if g.geom_type == "Point":
+            try:
+                length = float(props["length_m"])
+                width = float(props["width_m"])
+                bearing = float(props["bearing_deg"])
+            except (KeyError, TypeError, ValueError):
+                raise TrainingError(
+                    f"labels {path}: point feature {k} needs numeric length_m, width_m, bearing_deg"
+                ) from None
+            # bearing is clockwise from true north; close enough to grid north for a label raster
+            h = math.radians(bearing)
+            dx, dy = 0.5 * length * math.sin(h), 0.5 * length * math.cos(h)
+            p = Point(g)
+            g = LineString([(p.x - dx, p.y - dy), (p.x + dx, p.y + dy)]).buffer(
+                width / 2, cap_style="flat")
+        elif g.geom_type in ("LineString", "MultiLineString"):
+            g = g.buffer(float(props.get("width_m", 0.15)) / 2, cap_style="flat")
+        elif g.geom_type not in ("Polygon", "MultiPolygon"):
+            raise TrainingError(f"labels {path}: unsupported geometry {g.geom_type} in feature {k}")
+        shapes.append(g)
+    return shapes
+
+
+def read_labels(labels: str | Path, transform, crs, shape: tuple[int, int], bounds) -> np.ndarray:
+    """Label mask (True = marking) aligned with an image grid, from GeoJSON or a label GeoTIFF."""
+    import rasterio
+    from rasterio.features import rasterize
+
+    labels = Path(labels)
+    if not labels.exists():
+        raise TrainingError(f"labels file {labels} does not exist")
+    suffix = labels.suffix.lower()
+    if suffix in (".geojson", ".json"):
+        shapes = _geojson_shapes(labels, crs)
+        return rasterize(((g, 1) for g in shapes), out_shape=shape, transform=transform,
+                         fill=0, dtype="uint8").astype(bool)
+    if suffix in (".tif", ".tiff"):
+        try:
+            ds = rasterio.open(labels)
+        except Exception as exc:
+            raise TrainingError(f"cannot open label raster {labels}: {exc}") from exc
+        with ds:
+            if ds.crs is None or ds.crs != crs:
+                raise TrainingError(f"label raster CRS {ds.crs} differs from the image CRS {crs}")
+            if (ds.height, ds.width) != tuple(shape) or not ds.transform.almost_equals(transform):
+                lb = ds.bounds
+                overlap = not (lb.right <= bounds.left or lb.left >= bounds.right
+                               or lb.top <= bounds.bottom or lb.bottom >= bounds.top)
+                if not overlap:
+                    raise TrainingError(f"label raster {labels} does not overlap the image")
+                raise TrainingError(
+                    f"label raster {labels} is not aligned with the image "
+                    f"(shape {ds.height}x{ds.width} vs {shape[0]}x{shape[1]}, or transform)")
+            return ds.read(1) != 0
+    raise TrainingError(f"labels must be .geojson/.json or .tif, got {labels.name}")
+
+
+@dataclass
+class TrainResult:
+    """A trained model file and what it was trained on."""
+
+    path: Path
+    n_pixels: int
+    n_positive: int
+    candidate_recall: float  # share of labelled marking pixels that are candidates
+    train_precision: float
+    train_recall: float
+
+
+def train_from_files(
+    image: str | Path,
+    labels: str | Path,
+    out: str | Path,
+    C: float = 0.5,
+    seed: int = 0,
+) -> TrainResult:
+    """Train a model from one labelled GeoTIFF and write it as ONNX.
+
+    Raises
+    ------
+    TrainingError
+        Unreadable or ungeoreferenced image, labels in another CRS, not
+        overlapping or misaligned, or too few marking pixels.
+    """
+    image, labels = Path(image), Path(labels)
+    if not image.exists():
+        raise TrainingError(f"image {image} does not exist")
+    rgb, valid, res, transform, crs, shape, bounds = _read_image(image)
+    if not 0.02 <= res <= 0.3:
+        raise TrainingError(f"image resolution {res:.3f} m/px is outside 0.02–0.3 m")
+    label = read_labels(labels, transform, crs, shape, bounds)
+    label &= valid
+    n_lab = int(label.sum())
+    if n_lab < MIN_POSITIVE_PIXELS:
+        raise TrainingError(
+            f"labels cover {n_lab} valid image pixels; at least {MIN_POSITIVE_PIXELS} needed "
+            "(do the labels overlap the image?)")
+    rng = np.random.default_rng(seed)
+    X, y = sample_pixels(rgb, label, valid, res, rng, max_pixels=200000)
+    model = fit_svm(X, y, C=C, seed=seed)
+    p = model.predict_proba(X)[:, 1] > 0.5
+    tp = int((p & y).sum())
+    path = export_onnx(model, out, {"lanemap.trained_on": image.name})
+    return TrainResult(
+        path=path, n_pixels=len(y), n_positive=int(y.sum()),
+        candidate_recall=float(y.sum() / max(n_lab, 1)),
+        train_precision=tp / max(int(p.sum()), 1), train_recall=tp / max(int(y.sum()), 1),
+    )
+
+
+def train_synthetic(
+    out: str | Path,
+    seeds: Iterable[int] = range(1000, 1060),
+    lanelet_map=None,
+    C: float = 0.5,
+    progress: bool = False,
+) -> Path:
+    """Train the default model on synthetic renders and write it as ONNX."""
+    seeds = list(seeds)
+    ts = synthetic_training_set(seeds, lanelet_map=lanelet_map, progress=progress)
+    X, y = ts.arrays()
+    log.info("training on %d pixels (%d marking)", len(y), int(y.sum()))
+    model = fit_svm(X, y, C=C)
+    return export_onnx(model, out, {
+        "lanemap.trained_on": f"synthetic renders, seeds {seeds[0]}..{seeds[-1]}",
+        "lanemap.n_pixels": len(y),
+    })
