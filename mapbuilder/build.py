@@ -371,11 +371,11 @@ def _run_pool(tasks: Sequence[TileTask], workers: int) -> Iterator[TileResult]:
                 fut.cancel()
 
 
-def _run_dask(tasks: Sequence[TileTask], address: str) -> Iterator[TileResult]:
+def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iterator[TileResult]:
     from distributed import Client, as_completed
 
     try:
-        client = Client(address, timeout="20s")
+        client = Client(address, timeout=f"{timeout_s}s")
     except (OSError, TimeoutError) as exc:
         raise BuildError(f"cannot reach Dask scheduler at {address}: {exc}") from exc
     try:
@@ -452,6 +452,7 @@ def build_map(
     *,
     workers: int | None = None,
     dask_address: str | None = None,
+    dask_timeout_s: float = 20.0,
     progress: bool = True,
     resume: bool = True,
     title: str = "",
@@ -472,6 +473,8 @@ def build_map(
         Local worker processes (default: all cores); 1 or 0 runs in this process.
     dask_address : str, optional
         Address of a Dask distributed scheduler to run the tiles on instead.
+    dask_timeout_s : float
+        How long to try to reach the scheduler, seconds.
     progress : bool
         Show a tqdm bar on stderr (tiles done/total, rate, ETA).
     resume : bool
@@ -524,7 +527,7 @@ def build_map(
     if workers is None:
         workers = os.cpu_count() or 1
     if dask_address:
-        results = _run_dask(todo, dask_address)
+        results = _run_dask(todo, dask_address, dask_timeout_s)
     elif workers <= 1 or len(todo) <= 1:
         results = _run_inline(todo)
     else:

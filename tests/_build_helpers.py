@@ -52,3 +52,8 @@ def match(detected_xy: np.ndarray, truth_xy: np.ndarray, radius: float = 0.3):
         pairs.append((int(i), int(j)))
         dists.append(d[i, j])
     return pairs, np.array(dists)
+
+
+def pipeline_model():
+    """The classifier the pipeline tests run with."""
+    return BrightnessModel()

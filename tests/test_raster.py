@@ -9,7 +9,7 @@ from rasterio.transform import from_origin
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 from rasterio.windows import Window
 
-from _build_helpers import USGS_ALPHA, USGS_BASE, USGS_NODATA
+from tests._build_helpers import USGS_ALPHA, USGS_BASE, USGS_NODATA
 from mapbuilder.raster import (
     ImageryError,
     default_storage_crs,
