@@ -183,6 +183,10 @@ def _pixel_world(transform: Affine, rows: np.ndarray, cols: np.ndarray):
     return x, y
 
 
+def _resolution(transform: Affine) -> float:
+    return math.sqrt(abs(transform.a * transform.e - transform.b * transform.d))
+
+
 def _moments(lab: np.ndarray, x: np.ndarray, y: np.ndarray, k: int):
     n = np.bincount(lab, minlength=k).astype(float)
     d = np.maximum(n, 1.0)  # unused labels have no pixels
@@ -203,6 +207,50 @@ def _moments(lab: np.ndarray, x: np.ndarray, y: np.ndarray, k: int):
     return n, mx, my, dx, dy, ux, uy
 
 
+def _extent(lab, s, k):
+    smin = np.full(k, np.inf)
+    smax = np.full(k, -np.inf)
+    np.minimum.at(smin, lab, s)
+    np.maximum.at(smax, lab, s)
+    return smin, smax
+
+
+def _measure(rows, cols, lab, score, transform: Affine) -> Clusters:
+    """Measure clusters given as pixel lists (rows, cols, label, probability)."""
+    if rows.size == 0:
+        return Clusters.empty()
+    k = int(lab.max()) + 1
+    x, y = _pixel_world(transform, rows, cols)
+    n, mx, my, dx, dy, ux, uy = _moments(lab, x, y, k)
+    smin, smax = _extent(lab, dx * ux[lab] + dy * uy[lab], k)
+    d = np.maximum(n, 1)
+    mean_score = np.bincount(lab, score.astype(float), k) / d
+    mcol = np.bincount(lab, cols + 0.5, k) / d
+    mrow = np.bincount(lab, rows + 0.5, k) / d
+
+    keep = n > 0
+    keep[0] = False
+    res = _resolution(transform)
+    n, mx, my, ux, uy = n[keep], mx[keep], my[keep], ux[keep], uy[keep]
+    smin, smax = smin[keep] - 0.5 * res, smax[keep] + 0.5 * res
+    length = smax - smin
+    return Clusters(
+        x=mx,
+        y=my,
+        col=mcol[keep],
+        row=mrow[keep],
+        weight=n.astype(np.int64),
+        length_m=length,
+        width_m=n * res * res / length,
+        bearing_deg=np.degrees(np.arctan2(ux, uy)) % 180.0,
+        x0=mx + ux * smin,
+        y0=my + uy * smin,
+        x1=mx + ux * smax,
+        y1=my + uy * smax,
+        score=mean_score[keep],
+    )
+
+
 def measure_clusters(
     labels: np.ndarray,
     prob: np.ndarray,
@@ -220,52 +268,88 @@ def measure_clusters(
     transform : Affine
         Pixel (col, row) to CRS metres of the array's (0, 0) corner.
     n_labels : int, optional
-        Largest label; computed when omitted.
+        Unused; kept for symmetry with :func:`label_pixels`.
 
     Returns
     -------
     Clusters
         One entry per non-empty label, in label order.
+
+    Notes
+    -----
+    The centroid is the mean of the pixel centres; the bearing is that of the
+    major axis of their second moments; length is the extent of the pixels
+    along that axis plus one pixel, width is area / length (robust to ragged
+    edges); the end points are the ends of that extent on the axis.
     """
     rows, cols = np.nonzero(labels)
-    if rows.size == 0:
-        return Clusters.empty()
     lab = labels[rows, cols].astype(np.int64)
-    k = int(n_labels if n_labels is not None else lab.max()) + 1
-    x, y = _pixel_world(transform, rows, cols)
-    n, mx, my, dx, dy, ux, uy = _moments(lab, x, y, k)
-    s = dx * ux[lab] + dy * uy[lab]
-    smin = np.full(k, np.inf)
-    smax = np.full(k, -np.inf)
-    np.minimum.at(smin, lab, s)
-    np.maximum.at(smax, lab, s)
-    score = np.bincount(lab, prob[rows, cols].astype(float), k) / np.maximum(n, 1)
-    mcol = np.bincount(lab, cols + 0.5, k) / np.maximum(n, 1)
-    mrow = np.bincount(lab, rows + 0.5, k) / np.maximum(n, 1)
+    return _measure(rows, cols, lab, prob[rows, cols], transform)
 
-    keep = n > 0
-    keep[0] = False
-    res = math.sqrt(abs(transform.a * transform.e - transform.b * transform.d))
-    n, mx, my, ux, uy = n[keep], mx[keep], my[keep], ux[keep], uy[keep]
-    smin, smax = smin[keep] - 0.5 * res, smax[keep] + 0.5 * res
-    length = smax - smin
-    width = n * res * res / length
-    bearing = np.degrees(np.arctan2(ux, uy)) % 180.0
-    return Clusters(
-        x=mx,
-        y=my,
-        col=mcol[keep],
-        row=mrow[keep],
-        weight=n.astype(np.int64),
-        length_m=length,
-        width_m=width,
-        bearing_deg=bearing,
-        x0=mx + ux * smin,
-        y0=my + uy * smin,
-        x1=mx + ux * smax,
-        y1=my + uy * smax,
-        score=score[keep],
-    )
+
+def _components(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray) -> np.ndarray:
+    """8-connected parts of equal label among sparse pixels, as labels 0..m-1."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = rows.size
+    width = int(cols.max()) + 3
+    key = (rows.astype(np.int64) + 1) * width + (cols.astype(np.int64) + 1)
+    order = np.argsort(key)
+    skey = key[order]
+    src, dst = [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        nkey = key + dr * width + dc
+        pos = np.searchsorted(skey, nkey)
+        pos[pos == n] = 0
+        j = order[pos]
+        hit = (skey[pos] == nkey) & (lab[j] == lab)
+        src.append(np.flatnonzero(hit))
+        dst.append(j[hit])
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(src.size, np.int8), (src, dst)), shape=(n, n))
+    _, parts = connected_components(graph, directed=False)
+    return parts
+
+
+def _split_sparse(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    lab: np.ndarray,
+    transform: Affine,
+    max_length_m: float,
+    split_factor: float,
+    direction_step_deg: float,
+    rounds: int = 4,
+) -> np.ndarray:
+    """Labels after cutting long clusters; see :func:`split_long`."""
+    lab = lab.astype(np.int64, copy=True)
+    if lab.size == 0:
+        return lab
+    limit = split_factor * max_length_m
+    step = math.radians(direction_step_deg)
+    x, y = _pixel_world(transform, rows, cols)
+    for _ in range(rounds):
+        k = int(lab.max()) + 1
+        n, mx, my, dx, dy, ux, uy = _moments(lab, x, y, k)
+        smin, smax = _extent(lab, dx * ux[lab] + dy * uy[lab], k)
+        long_ = (smax - smin) > limit
+        long_[0] = False
+        if not long_.any():
+            break
+        sel = np.flatnonzero(long_[lab])
+        ls = lab[sel]
+        theta = np.round(np.arctan2(uy, ux) / step) * step
+        qx, qy = np.cos(theta), np.sin(theta)
+        piece = np.floor((x[sel] * qx[ls] + y[sel] * qy[ls]) / max_length_m).astype(np.int64)
+        piece -= piece.min()
+        _, dense = np.unique(ls * (int(piece.max()) + 1) + piece, return_inverse=True)
+        new = dense.reshape(-1) + 1
+        # A cut can leave two parts of a curved line in one bin: give each part its own label.
+        lab[sel] = k + _components(rows[sel], cols[sel], new)
+    # Dense labels 1..m.
+    _, dense = np.unique(lab, return_inverse=True)
+    return dense.reshape(-1) + 1
 
 
 def split_long(
@@ -290,55 +374,14 @@ def split_long(
         New label image, 1..n.
     n : int
     """
-    out = labels.astype(np.int32, copy=True)
-    limit = split_factor * max_length_m
-    step = math.radians(direction_step_deg)
-    for _ in range(rounds):
-        rows, cols = np.nonzero(out)
-        if rows.size == 0:
-            return out, 0
-        lab = out[rows, cols].astype(np.int64)
-        k = int(lab.max()) + 1
-        x, y = _pixel_world(transform, rows, cols)
-        n, mx, my, dx, dy, ux, uy = _moments(lab, x, y, k)
-        s = dx * ux[lab] + dy * uy[lab]
-        smin = np.full(k, np.inf)
-        smax = np.full(k, -np.inf)
-        np.minimum.at(smin, lab, s)
-        np.maximum.at(smax, lab, s)
-        long_ = (smax - smin) > limit
-        long_[0] = False
-        if not long_.any():
-            break
-        theta = np.round(np.arctan2(uy, ux) / step) * step
-        qx, qy = np.cos(theta), np.sin(theta)
-        piece = np.zeros(lab.size, np.int64)
-        sel = long_[lab]
-        sw = x[sel] * qx[lab[sel]] + y[sel] * qy[lab[sel]]
-        piece[sel] = np.floor(sw / max_length_m).astype(np.int64)
-        pairs = np.stack([lab, piece], axis=1)
-        _, inv = np.unique(pairs, axis=0, return_inverse=True)
-        out[rows, cols] = inv.reshape(-1).astype(np.int32) + 1
-        # A cut can leave two parts of a curved line in one bin; separate them.
-        out, _ = _split_disconnected(out)
-    rows, cols = np.nonzero(out)
-    return out, int(out.max()) if rows.size else 0
-
-
-def _split_disconnected(labels: np.ndarray) -> tuple[np.ndarray, int]:
-    """Give each 8-connected part of every label its own label."""
-    structure = np.ones((3, 3), bool)
-    out = np.zeros_like(labels)
-    nxt = 0
-    for i, sl in enumerate(ndi.find_objects(labels), start=1):
-        if sl is None:
-            continue
-        sub = labels[sl] == i
-        parts, m = ndi.label(sub, structure=structure)
-        view = out[sl]
-        view[sub] = parts[sub] + nxt
-        nxt += m
-    return out, nxt
+    rows, cols = np.nonzero(labels)
+    out = np.zeros(labels.shape, np.int32)
+    if rows.size == 0:
+        return out, 0
+    lab = _split_sparse(rows, cols, labels[rows, cols], transform, max_length_m, split_factor,
+                        direction_step_deg, rounds)
+    out[rows, cols] = lab
+    return out, int(lab.max())
 
 
 def filter_clusters(clusters: Clusters, params: ClusterParams) -> Clusters:
@@ -372,20 +415,23 @@ def detect_markings(
     params : ClusterParams, optional
     """
     params = params or ClusterParams()
-    res = math.sqrt(abs(transform.a * transform.e - transform.b * transform.d))
+    res = _resolution(transform)
     link_px = int(round(params.link_m / res)) if params.link_m > 0 else 0
     labels, n = label_pixels(prob, valid, params.threshold, link_px)
     if n == 0:
         return Clusters.empty()
+    # Work on the marking pixels only: a few percent of the window.
+    flat = labels.ravel()
+    idx = np.flatnonzero(flat != 0)
+    lab = flat[idx].astype(np.int64)
     # Shapes too small to be anything are dropped before the more costly steps.
     min_px = max(1, int(params.min_area_m2 / (res * res)))
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    small = sizes < min_px
-    small[0] = True
-    if small[1:].any():
-        labels[small[labels]] = 0
-    labels, n = split_long(
-        labels, transform, params.max_length_m, params.split_factor, params.direction_step_deg
-    )
-    clusters = measure_clusters(labels, prob, transform, n)
+    keep = np.bincount(lab, minlength=n + 1)[lab] >= min_px
+    idx, lab = idx[keep], lab[keep]
+    if idx.size == 0:
+        return Clusters.empty()
+    rows, cols = np.divmod(idx, labels.shape[1])
+    lab = _split_sparse(rows, cols, lab, transform, params.max_length_m, params.split_factor,
+                        params.direction_step_deg)
+    clusters = _measure(rows, cols, lab, prob.ravel()[idx], transform)
     return filter_clusters(clusters, params)

@@ -176,3 +176,18 @@ def test_bad_params_are_rejected():
         ClusterParams(threshold=1.5)
     with pytest.raises(ValueError, match="width"):
         ClusterParams(min_width_m=0.7)
+
+
+def test_a_hairpin_is_cut_into_single_strokes():
+    """Both legs of a U fall in the same cut bins; each piece must still be one stroke."""
+    res = 0.05
+    t = _grid(res)
+    img = np.zeros((400, 400), np.float32)
+    _draw(img, t, X0 + 10, Y0 - 6, 10.0, 0.15, 90)
+    _draw(img, t, X0 + 10, Y0 - 6.8, 10.0, 0.15, 90)
+    _draw(img, t, X0 + 14.95, Y0 - 6.4, 0.95, 0.15, 0)   # the bend joining the legs
+    c = detect_markings(img, None, t, ClusterParams(min_length_m=0.1, min_area_m2=0.005))
+    assert len(c) >= 7
+    legs = c.width_m < 0.3
+    assert legs.sum() >= len(c) - 1
+    assert set(np.round(c.y[legs] - Y0, 1)) <= {-6.0, -6.8}
