@@ -1,0 +1,185 @@
+"""GeoJSON/GeoPackage import and export, through the library and the real `lanemap` command."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyogrio
+import pytest
+
+from mapbuilder.geojson import GeoJSONError, read_feature_collection, read_geojson_file
+from mapbuilder.store import Store
+
+from .conftest import KARLSRUHE_OSM
+
+LANEMAP = [sys.executable, "-m", "service.cli"]
+
+
+def run(args, db_url, cwd, check=True):
+    env = dict(os.environ, LANEMAP_DATABASE_URL=db_url, LANEMAP_DATA_DIR=str(cwd / "data"))
+    env.pop("LANEMAP_DEBUG", None)
+    proc = subprocess.run(
+        [*LANEMAP, *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"lanemap {args} failed: {proc.stderr}")
+    return proc
+
+
+def _props(fc):
+    """Features as sortable tuples; positions kept to 1e-7° (1 cm) for sorting."""
+    out = []
+    for f in fc["features"]:
+        p = f["properties"]
+        lon, lat = f["geometry"]["coordinates"]
+        out.append(
+            (round(lon, 7), round(lat, 7), p["kind"], round(p["length_m"], 6),
+             round(p["width_m"], 6), round(p["bearing_deg"], 6), float(p["weight"]),
+             p["source"], p["status"], lon, lat)
+        )  # fmt: skip
+    return sorted(out)
+
+
+def _same_features(a, b):
+    pa, pb = _props(a), _props(b)
+    assert len(pa) == len(pb)
+    for x, y in zip(pa, pb):
+        assert x[2:9] == y[2:9]
+        assert x[9:] == pytest.approx(y[9:], abs=1e-9)  # lon/lat within 0.1 mm
+
+
+def test_karlsruhe_round_trip_through_the_cli(db_url, tmp_path):
+    run(["from-lanelet2", KARLSRUHE_OSM, "ka.geojson"], db_url, tmp_path)
+    source = json.loads((tmp_path / "ka.geojson").read_text())
+    assert len(source["features"]) > 800
+    run(["maps", "create", "ka", "--title", "Karlsruhe", "--crs", "EPSG:25832"], db_url, tmp_path)
+    out = run(["import", "ka", "ka.geojson"], db_url, tmp_path).stdout
+    assert f"imported {len(source['features'])} markings" in out
+    run(["export", "ka", "out.geojson"], db_url, tmp_path)
+    exported = json.loads((tmp_path / "out.geojson").read_text())
+    _same_features(exported, source)
+    assert all(f["properties"]["version"] == 1 and f["id"] for f in exported["features"])
+
+    # The export imports again into a new map unchanged (ids and versions are the store's).
+    run(["import", "ka2", "out.geojson", "--create"], db_url, tmp_path)
+    run(["export", "ka2", "again.geojson"], db_url, tmp_path)
+    _same_features(json.loads((tmp_path / "again.geojson").read_text()), source)
+
+    # GeoPackage: points in the storage CRS, readable by GDAL.
+    run(["export", "ka", "ka.gpkg"], db_url, tmp_path)
+    info = pyogrio.read_info(tmp_path / "ka.gpkg")
+    assert info["crs"] == "EPSG:25832" and info["features"] == len(source["features"])
+    assert info["geometry_type"] == "Point"
+    store = Store(db_url)
+    ours = {m.id: m for m in store.iter_markings("ka")}
+    meta, _, geometry, field_data = pyogrio.raw.read(tmp_path / "ka.gpkg")
+    ids = field_data[list(meta["fields"]).index("marking_id")]
+    import shapely
+
+    pts = shapely.from_wkb(geometry)
+    for i, p in zip(ids[:50], pts[:50]):
+        assert (p.x, p.y) == pytest.approx((ours[int(i)].x, ours[int(i)].y), abs=1e-6)
+
+    listing = json.loads(run(["maps", "list", "--json"], db_url, tmp_path).stdout)
+    assert {m["id"]: m["markings"] for m in listing} == {"ka": len(source["features"]), "ka2": len(source["features"])}
+
+
+def _fc(*features):
+    return {"type": "FeatureCollection", "features": list(features)}
+
+
+def _pt(lon=8.43, lat=49.0, **props):
+    return {"type": "Feature", "geometry": {"type": "Point", "coordinates": [lon, lat]}, "properties": props}
+
+
+BAD_FILES = [
+        ("{not json", "is not valid JSON"),
+        ('{"type": "Feature"}', "has no geometry"),
+        (json.dumps(_fc(_pt(), {"type": "Feature", "geometry": None, "properties": {}})), "feature 1: has no geometry"),
+        (json.dumps(_fc(_pt(lon=49.0, lat=108.4))), "feature 0: coordinates [49.0, 108.4] out of range"),
+        (json.dumps(_fc(_pt(weight=0))), "feature 0: property 'weight' must be > 0"),
+        (json.dumps(_fc(_pt(weight="heavy"))), "property 'weight' must be a number"),
+        (json.dumps(_fc(_pt(source="guess"))), "property 'source' must be one of"),
+        ('{"type": "FeatureCollection", "features": [{"type": "Feature", "geometry": {"type": "Point", "coordinates": [NaN, 1]}}]}', "invalid JSON number NaN"),
+        (json.dumps({"type": "FeatureCollection"}), "no \"features\" array"),
+        (json.dumps({"type": "Topology"}), "not a GeoJSON FeatureCollection"),
+        (json.dumps(_fc({"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}})), "geometry must be a Point"),
+]
+
+
+def test_bad_input_is_one_clear_line_and_writes_nothing(db_url, tmp_path):
+    good = tmp_path / "good.geojson"
+    good.write_text(json.dumps(_fc(_pt(), _pt(8.431, 49.001))))
+    run(["import", "m", good, "--create"], db_url, tmp_path)
+    for k, (content, message) in enumerate(BAD_FILES):
+        bad = tmp_path / f"bad{k}.geojson"
+        bad.write_text(content)
+        proc = run(["import", "m", bad], db_url, tmp_path, check=False)
+        assert proc.returncode == 1
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], proc.stderr
+        assert "Traceback" not in proc.stderr
+    # A file whose last feature is bad writes none of the good ones before it.
+    many = _fc(*[_pt(8.43 + i * 1e-4, 49.0) for i in range(500)], _pt(lon=200.0))
+    (tmp_path / "many.geojson").write_text(json.dumps(many))
+    assert run(["import", "m", "many.geojson"], db_url, tmp_path, check=False).returncode == 1
+    assert Store(db_url).get_map("m", with_count=True).count == 2
+
+
+CLI_ERRORS = [
+        (["import", "nope", "good.geojson"], "unknown map 'nope'"),
+        (["maps", "create", "m"], "map 'm' already exists"),
+        (["maps", "create", "bad id"], "invalid map id"),
+        (["maps", "create", "geo", "--crs", "EPSG:4326"], "not projected"),
+        (["export", "nope", "x.geojson"], "unknown map 'nope'"),
+        (["export", "m", "x.shp"], "use a .geojson or .gpkg"),
+        (["import", "m", "missing.geojson"], "cannot read missing.geojson"),
+        (["maps", "delete", "nope", "--yes"], "unknown map 'nope'"),
+]
+
+
+def test_cli_errors(sqlite_url, tmp_path):
+    (tmp_path / "good.geojson").write_text(json.dumps(_fc(_pt())))
+    run(["import", "m", "good.geojson", "--create"], sqlite_url, tmp_path)
+    for args, message in CLI_ERRORS:
+        proc = run(args, sqlite_url, tmp_path, check=False)
+        assert proc.returncode != 0, args
+        assert message in proc.stderr and "Traceback" not in proc.stderr, (args, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_unknown_properties_survive_a_round_trip(store, tmp_path):
+    store.create_map("m")
+    items = read_feature_collection(_fc(_pt(lane="3", survey={"by": "x"}, kind="dash", weight=40)))
+    store.add_markings("m", items, lonlat=True)
+    from mapbuilder.geojson import write_geojson
+
+    write_geojson(tmp_path / "o.geojson", store.iter_markings("m"))
+    back = read_geojson_file(tmp_path / "o.geojson")[0]
+    assert back.extra == {"lane": "3", "survey": {"by": "x"}}
+    assert (back.kind, back.weight) == ("dash", 40)
+
+
+def test_non_wgs84_crs_member_is_refused():
+    fc = _fc(_pt())
+    fc["crs"] = {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::25832"}}
+    with pytest.raises(GeoJSONError, match="must be WGS84"):
+        read_feature_collection(fc)
+
+
+def test_delete_map_cli(sqlite_url, tmp_path):
+    (tmp_path / "g.geojson").write_text(json.dumps(_fc(_pt())))
+    run(["import", "m", "g.geojson", "--create"], sqlite_url, tmp_path)
+    assert "deleted map m" in run(["maps", "delete", "m", "--yes"], sqlite_url, tmp_path).stdout
+    assert "no maps" in run(["maps", "list"], sqlite_url, tmp_path).stdout
+
+
+def test_db_upgrade_cli(sqlite_url, tmp_path):
+    out = run(["db", "upgrade"], sqlite_url, tmp_path).stdout
+    assert "(empty) -> 0001" in out
+    assert "database: 0001" in run(["db", "current"], sqlite_url, tmp_path).stdout
