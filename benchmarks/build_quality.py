@@ -1,0 +1,269 @@
+"""End-to-end quality of ``lanemap build`` on held-out renders at 10 cm and on the USGS crop.
+
+Each held-out scene (procedural seeds from 9000 and crops of the east half of
+the Karlsruhe Lanelet2 map; the default model trains on seeds 1000–1999 and
+the west half) is rendered to a GeoTIFF, built into a map with
+:func:`mapbuilder.build.build_map` (tiles, workers, store), read back from
+the store and compared with the renderer's truth:
+
+* a detection matches a discrete true marking (dash, stop line, stall line)
+  when the centroids are within 0.3 m (one-to-one, Hungarian assignment);
+* pieces of continuous lines are cut at arbitrary places, so there a
+  detection is correct when its centroid lies within 0.3 m of a true piece's
+  axis, and a true piece is found when a detection's axis passes within 0.3 m
+  of its centroid;
+* precision = correct detections / detections; recall = found / countable
+  truth (at least 90 % visible, centroid at least 2 m inside the image);
+* centroid RMSE over the matched discrete markings, and the cross-track RMSE
+  of detections on continuous lines.
+
+The USGS crop (15 cm, real) is built in its three variants (plain, alpha,
+nodata): the figures are the detections on the stall lines and elsewhere.
+Overlays of detections on the imagery go to ``benchmarks/out/``.
+
+Usage::
+
+    .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from scipy.optimize import linear_sum_assignment
+
+from mapbuilder.build import BuildParams, build_map
+from mapbuilder.lanelet2 import read_lanelet2
+from mapbuilder.store import Store
+from mapbuilder.synth import lanelet_scene, procedural_scene, render
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+OUT = ROOT / "benchmarks" / "out"
+KARLSRUHE = DATA / "karlsruhe-lanelet2" / "mapping_example.osm"
+USGS_DIR = DATA / "usgs-hro-colorado"
+USGS_VARIANTS = {
+    "plain": USGS_DIR / "201404_13SED190110_201404_0x1500m_CL_1.tif",
+    "alpha": USGS_DIR / "201404_13SED190110_201404_0x1500m_CL_1_alpha.tif",
+    "nodata": USGS_DIR / "201404_13SED190110_201404_0x1500m_CL_1_nodata.tif",
+}
+#: Stall lines of the USGS crop (EPSG:26913) by hand on an enlarged view: x of
+#: each line, and the y range they span. Four are clearly visible; a fifth,
+#: east of them, is mostly under the tree canopy.
+USGS_STALLS_X = (519487.2, 519490.0, 519493.0, 519496.0, 519499.0)
+USGS_STALLS_Y = (4311652.5, 4311659.5)
+HELDOUT_SEED = 9000
+TOL = 0.3
+
+
+def heldout_scenes(n: int, size_m: float):
+    lmap = read_lanelet2(KARLSRUHE)
+    xs = np.array([c[len(c) // 2, 0] for c in lmap.centerlines])
+    east = [c for c, x in zip(lmap.centerlines, xs) if x >= np.median(xs) and len(c) > 5]
+    rng = np.random.default_rng(HELDOUT_SEED)
+    for i in range(n):
+        seed = HELDOUT_SEED + i
+        if i % 3 == 2:
+            c = east[int(rng.integers(len(east)))]
+            x, y = c[len(c) // 2]
+            h = size_m / 2
+            yield f"karlsruhe-{seed}", lanelet_scene(lmap, seed=seed,
+                                                     bounds=(x - h, y - h, x + h, y + h))
+        else:
+            yield f"procedural-{seed}", procedural_scene((size_m, size_m), seed=seed)
+
+
+def _seg_dist(px, py, seg):
+    """Distance of points (P,) to segments (S, 4) as (P, S)."""
+    x0, y0, x1, y1 = (seg[:, i][None] for i in range(4))
+    dx, dy = x1 - x0, y1 - y0
+    l2 = np.maximum(dx * dx + dy * dy, 1e-12)
+    t = np.clip(((px[:, None] - x0) * dx + (py[:, None] - y0) * dy) / l2, 0, 1)
+    return np.hypot(px[:, None] - (x0 + t * dx), py[:, None] - (y0 + t * dy))
+
+
+def score(det, truth, bounds, border=2.0, min_visible=0.9) -> dict:
+    """Match detected markings to true ones (see the module docstring)."""
+    xmin, ymin, xmax, ymax = bounds
+
+    def inside(x, y):
+        return (x > xmin + border) & (x < xmax - border) & (y > ymin + border) & (y < ymax - border)
+
+    dx = np.array([m.x for m in det])
+    dy = np.array([m.y for m in det])
+    keep = inside(dx, dy) if len(det) else np.zeros(0, bool)
+    det = [m for m, k in zip(det, keep) if k]
+    dx, dy = dx[keep], dy[keep]
+    dseg = np.array([[m.x0, m.y0, m.x1, m.y1] for m in det], float).reshape(-1, 4)
+    tx = np.array([m.x for m in truth])
+    ty = np.array([m.y for m in truth])
+    cont = np.array([bool(m.extra.get("continuous")) for m in truth], bool)
+    vis = np.array([float(m.extra.get("visible", 1.0)) for m in truth])
+    counted = inside(tx, ty) & (vis >= min_visible)
+    det_ok = np.zeros(len(det), bool)
+    det_kind = np.full(len(det), "", object)
+    found = np.zeros(len(truth), bool)
+    errors, cross = [], []
+    disc = np.flatnonzero(~cont)
+    if len(det) and len(disc):
+        d = np.hypot(dx[:, None] - tx[disc][None], dy[:, None] - ty[disc][None])
+        cost = np.where(d <= TOL, d, 1e6)
+        r, c = linear_sum_assignment(cost)
+        ok = cost[r, c] <= TOL
+        det_ok[r[ok]] = True
+        found[disc[c[ok]]] = True
+        errors = list(d[r[ok], c[ok]][counted[disc[c[ok]]]])
+    conti = np.flatnonzero(cont)
+    if len(det) and len(conti):
+        tseg = np.array([[truth[i].x0, truth[i].y0, truth[i].x1, truth[i].y1] for i in conti])
+        dist = _seg_dist(dx, dy, tseg).min(axis=1)
+        on_line = (~det_ok) & (dist <= TOL)
+        det_ok |= on_line
+        cross = list(dist[on_line])
+        found[conti] = _seg_dist(tx[conti], ty[conti], dseg).min(axis=1) <= TOL
+    det_kind[det_ok] = "tp"
+    det_kind[~det_ok] = "fp"
+    return {
+        "tp_det": int(det_ok.sum()),
+        "n_det": len(det),
+        "tp_truth": int((found & counted).sum()),
+        "n_truth": int(counted.sum()),
+        "tp_truth_discrete": int((found & counted & ~cont).sum()),
+        "n_truth_discrete": int((counted & ~cont).sum()),
+        "errors": errors,
+        "cross": cross,
+        "_det": det,
+        "_det_kind": det_kind,
+        "_missed": [t for t, f, c in zip(truth, found, counted) if c and not f],
+    }
+
+
+def overlay(path_png: Path, image: Path, det, kinds, missed, title: str, window=None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with rasterio.open(image) as ds:
+        rgb = ds.read((1, 2, 3)).transpose(1, 2, 0)
+        b = ds.bounds
+    fig, ax = plt.subplots(figsize=(10, 10 * rgb.shape[0] / rgb.shape[1] + 0.6))
+    ax.imshow(rgb, extent=(b.left, b.right, b.bottom, b.top))
+    for m, k in zip(det, kinds):
+        ax.plot([m.x0, m.x1], [m.y0, m.y1], "-", color="lime" if k == "tp" else "red", lw=1.5)
+        ax.plot(m.x, m.y, "+", color="yellow" if k == "tp" else "red", ms=5)
+    for t in missed:
+        ax.plot(t.x, t.y, "o", mfc="none", mec="cyan", ms=7)
+    if window is not None:
+        ax.set_xlim(window[0], window[2])
+        ax.set_ylim(window[1], window[3])
+    ax.set_title(title + "  (green: correct, red: false, cyan circle: missed)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path_png, dpi=110)
+    plt.close(fig)
+
+
+def run_usgs(store: Store, params: BuildParams, workers: int) -> dict:
+    out = {}
+    sx = np.array(USGS_STALLS_X)
+    for name, path in USGS_VARIANTS.items():
+        map_id = f"usgs-{name}"
+        build_map(store, map_id, [path], params, workers=workers, progress=False)
+        det = list(store.iter_markings(map_id))
+        on_stall = [
+            m for m in det
+            if np.min(np.abs(sx - m.x)) < 0.4 and USGS_STALLS_Y[0] <= m.y <= USGS_STALLS_Y[1]
+        ]
+        lines = {int(np.argmin(np.abs(sx - m.x))) for m in on_stall}
+        out[name] = {
+            "detections": len(det),
+            "on_stall_lines": len(on_stall),
+            "stall_lines_found": len(lines),
+            "elsewhere": len(det) - len(on_stall),
+            "stalls": sorted((round(m.x, 2), round(m.y, 2), round(m.length_m, 2),
+                              round(m.bearing_deg, 1)) for m in on_stall),
+        }
+        if name == "plain":
+            kinds = np.array(["tp" if m in on_stall else "fp" for m in det], object)
+            overlay(OUT / "build_quality_usgs.png", path, det, kinds, [],
+                    f"USGS crop 15 cm: {len(on_stall)} detections on stall lines, "
+                    f"{len(det) - len(on_stall)} elsewhere")
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=6, help="held-out scenes")
+    ap.add_argument("--size", type=float, default=150.0, help="scene side, metres")
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--workers", type=int, default=os.cpu_count())
+    args = ap.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    params = BuildParams(model=args.model)
+    totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
+                             "n_truth_discrete")}
+    errors, cross, per_scene = [], [], []
+    t_build = 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        store = Store(f"sqlite:///{tmp}/quality.sqlite")
+        for i, (name, scene) in enumerate(heldout_scenes(args.n, args.size)):
+            tif = Path(tmp) / f"{name}.tif"
+            r = render(scene, tif, 0.1, seed=HELDOUT_SEED + 100 + i,
+                       jpeg_quality=85 if i % 2 else None)
+            t0 = time.perf_counter()
+            build_map(store, name, [tif], params, workers=args.workers, progress=False)
+            t_build += time.perf_counter() - t0
+            det = list(store.iter_markings(name))
+            with rasterio.open(tif) as ds:
+                bounds = tuple(ds.bounds)
+            s = score(det, r.markings, bounds)
+            for k in totals:
+                totals[k] += s[k]
+            errors += s["errors"]
+            cross += s["cross"]
+            p = s["tp_det"] / max(s["n_det"], 1)
+            rc = s["tp_truth"] / max(s["n_truth"], 1)
+            per_scene.append((name, s["n_det"], s["n_truth"], round(p, 3), round(rc, 3)))
+            print(f"{name:>18}: {s['n_det']:4d} detections, {s['n_truth']:4d} true, "
+                  f"precision {p:.3f}, recall {rc:.3f}")
+            if i < 3:
+                cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
+                overlay(OUT / f"build_quality_{name}.png", tif, s["_det"], s["_det_kind"],
+                        s["_missed"], f"{name}, 10 cm (centre 60 m)",
+                        window=(cx - 30, cy - 30, cx + 30, cy + 30))
+        usgs = run_usgs(store, params, args.workers)
+        store.close()
+    errors, cross = np.array(errors), np.array(cross)
+    figures = {
+        "scenes": args.n,
+        "scene_side_m": args.size,
+        "precision": round(totals["tp_det"] / max(totals["n_det"], 1), 4),
+        "recall": round(totals["tp_truth"] / max(totals["n_truth"], 1), 4),
+        "recall_discrete": round(totals["tp_truth_discrete"] / max(totals["n_truth_discrete"], 1), 4),
+        "centroid_rmse_m": round(float(np.sqrt(np.mean(errors**2))), 4) if errors.size else None,
+        "cross_track_rmse_m": round(float(np.sqrt(np.mean(cross**2))), 4) if cross.size else None,
+        "detections": totals["n_det"],
+        "true_countable": totals["n_truth"],
+        "build_seconds": round(t_build, 1),
+        "usgs": usgs,
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    for k, v in figures.items():
+        if k != "usgs":
+            print(f"{k:>20}: {v}")
+    for name, u in usgs.items():
+        print(f"  usgs {name:>6}: {u['stall_lines_found']} stall lines "
+              f"({u['on_stall_lines']} detections), {u['elsewhere']} detections elsewhere")
+    (OUT / "build_quality.json").write_text(json.dumps(figures, indent=2))
+
+
+if __name__ == "__main__":
+    main()
