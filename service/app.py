@@ -1,0 +1,132 @@
+"""The FastAPI application: OGC API Features over the map store, builds, tiles, localization.
+
+Create it with :func:`create_app`; ``lanemap serve`` runs it under uvicorn.
+Routes are thin: every piece of work is done by :mod:`mapbuilder` and
+:mod:`localizer`.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.staticfiles import StaticFiles
+
+from mapbuilder.settings import Settings as StoreSettings
+from mapbuilder.store import Store
+
+from . import problems
+from .deps import Context
+from .middleware import BodyGuard
+from .settings import ServiceSettings, Token, resolve_tokens
+
+log = logging.getLogger(__name__)
+
+EDITOR_DIR = Path(__file__).resolve().parent / "static" / "editor"
+#: Routes that stream their own body (uploads), past the JSON body guard.
+STREAM_PATHS = r"^/collections/[^/]+/imagery/?$"
+
+API_DESCRIPTION = """\
+Lane-marking maps as OGC API Features (Part 1 Core, Part 4 editing), atomic
+changesets with history and revert, imagery upload and map builds, imagery
+tiles, and vehicle localization against a map.
+
+Reads are open unless the server requires a token; every write needs
+`Authorization: Bearer <token>`. Errors are RFC 9457 `application/problem+json`.
+"""
+
+
+def create_app(
+    store: Store | None = None,
+    settings: ServiceSettings | None = None,
+    data_dir: Path | None = None,
+    tokens: list[Token] | None = None,
+    *,
+    run_jobs: bool = True,
+) -> FastAPI:
+    """Build the application.
+
+    Parameters
+    ----------
+    store : Store, optional
+        Default: the store of ``LANEMAP_DATABASE_URL`` (or the SQLite file in
+        the data folder).
+    settings : ServiceSettings, optional
+        Default: from ``LANEMAP_*`` environment variables.
+    data_dir : Path, optional
+        Where uploads and the token live; default ``LANEMAP_DATA_DIR``.
+    tokens : list of Token, optional
+        Write tokens; default ``LANEMAP_API_TOKENS`` or the stored token.
+    run_jobs : bool
+        Start build jobs in worker processes (off: jobs stay ``accepted``).
+    """
+    settings = settings or ServiceSettings()
+    store_settings = StoreSettings()
+    data_dir = Path(data_dir or store_settings.data_dir).resolve()
+    store = store or Store(store_settings.resolved_database_url())
+    tokens = tokens if tokens is not None else resolve_tokens(settings, data_dir)
+    if not tokens:
+        log.warning("no write token configured: every write will be refused")
+
+    from .jobs import JobRunner
+
+    ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens)
+    if run_jobs:
+        ctx.jobs = JobRunner(store, data_dir, workers=settings.build_workers)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        if ctx.jobs is not None:
+            ctx.jobs.start()
+        try:
+            yield
+        finally:
+            if ctx.jobs is not None:
+                ctx.jobs.stop()
+
+    app = FastAPI(
+        title="lanemap",
+        version="0.1.0",
+        description=API_DESCRIPTION,
+        lifespan=lifespan,
+        openapi_tags=[
+            {"name": "Capabilities", "description": "Landing page and conformance (OGC API Common)"},
+            {"name": "Maps", "description": "Maps as OGC API Features collections"},
+            {"name": "Features", "description": "Markings: read (Part 1) and edit (Part 4)"},
+            {"name": "Changesets", "description": "Atomic multi-feature edits, history, revert"},
+            {"name": "Imagery", "description": "Imagery upload and basemap tiles"},
+            {"name": "Jobs", "description": "Map builds (OGC API Processes job status)"},
+            {"name": "Localization", "description": "Vehicle pose from observed markings"},
+        ],
+    )
+    app.state.ctx = ctx
+    problems.install(app)
+
+    from .routers import changesets, collections, imagery, jobs, landing, localize
+
+    for module in (landing, collections, changesets, imagery, jobs, localize):
+        app.include_router(module.router)
+
+    if EDITOR_DIR.is_dir():
+        app.mount("/editor", StaticFiles(directory=EDITOR_DIR, html=True), name="editor")
+
+    # Outermost first: CORS must also answer for requests the body guard refuses.
+    app.add_middleware(BodyGuard, max_bytes=settings.max_body_bytes, stream_paths=STREAM_PATHS)
+    origins = settings.cors_origin_list()
+    if origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=origins,
+            allow_methods=["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"],
+            allow_headers=["Authorization", "Content-Type", "If-Match", "If-None-Match"],
+            expose_headers=["ETag", "Location", "Link"],
+        )
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for ``uvicorn --factory service.app:app_from_env`` (used with several workers)."""
+    return create_app()

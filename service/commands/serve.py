@@ -1,0 +1,76 @@
+"""``lanemap serve``: run the HTTP API under uvicorn."""
+
+from __future__ import annotations
+
+import logging
+import socket
+
+import typer
+
+from ..cli_errors import fail
+
+
+def _check_port(host: str, port: int) -> None:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("serve")
+    def serve(
+        host: str = typer.Option("127.0.0.1", help="Address to listen on."),
+        port: int = typer.Option(8000, min=0, max=65535, help="Port to listen on."),
+        demo: bool = typer.Option(False, "--demo", help="Create the Karlsruhe demo map on first start."),
+        workers: int = typer.Option(1, min=1, max=64, help="Server processes."),
+        log_level: str = typer.Option("info", help="uvicorn log level."),
+    ) -> None:
+        """Serve the REST API (OGC API Features, builds, tiles, localization)."""
+        import uvicorn
+
+        from mapbuilder.settings import Settings as StoreSettings
+        from mapbuilder.store import Store
+
+        from ..app import create_app
+        from ..settings import ServiceSettings, ensure_token_file, parse_tokens, token_path
+
+        settings = ServiceSettings()
+        store_settings = StoreSettings()
+        data_dir = store_settings.data_dir.resolve()
+        _check_port(host, port)
+        store = Store(store_settings.resolved_database_url())
+        token_note = None
+        if not parse_tokens(settings.api_tokens):
+            token, created = ensure_token_file(data_dir)
+            token_note = (
+                f"write token ({'generated, ' if created else ''}kept in {token_path(data_dir)}): {token}"
+            )
+        if demo:
+            from ..demo import ensure_demo
+
+            typer.echo("preparing the demo map (first start takes a little while)...", err=True)
+            info = ensure_demo(store, data_dir)
+            state = "created" if info.created else "found"
+            typer.echo(f"demo map {info.map_id} {state}: {info.markings} markings", err=True)
+        base = f"http://{'[' + host + ']' if ':' in host else host}:{port}"
+        typer.echo(f"lanemap API:  {base}/")
+        typer.echo(f"API docs:     {base}/docs")
+        typer.echo(f"map editor:   {base}/editor/")
+        if demo:
+            typer.echo(f"demo map:     {base}/collections/karlsruhe/items")
+        if token_note:
+            typer.echo(token_note)
+        else:
+            typer.echo("write tokens: from LANEMAP_API_TOKENS")
+        logging.getLogger("service").setLevel(logging.INFO)
+        if workers == 1:
+            uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
+                        log_level=log_level)  # fmt: skip
+        else:
+            store.close()
+            uvicorn.run("service.app:app_from_env", factory=True, host=host, port=port, workers=workers,
+                        log_level=log_level)  # fmt: skip

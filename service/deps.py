@@ -1,0 +1,76 @@
+"""Request-scoped access to the app's context, and bearer-token checks."""
+
+from __future__ import annotations
+
+import hmac
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from mapbuilder.store import Store
+
+from .problems import Problem
+from .settings import ServiceSettings, Token
+
+bearer = HTTPBearer(auto_error=False, description="A write token (LANEMAP_API_TOKENS)")
+
+
+@dataclass
+class Context:
+    """What every route needs: the store, the settings and the job runner."""
+
+    store: Store
+    settings: ServiceSettings
+    data_dir: Path
+    tokens: list[Token]
+    jobs: Any = None  # service.jobs.JobRunner
+    indexes: dict[str, tuple[int, Any]] = field(default_factory=dict)
+    index_lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def get_ctx(request: Request) -> Context:
+    return request.app.state.ctx
+
+
+def _who(ctx: Context, cred: HTTPAuthorizationCredentials | None) -> str | None:
+    if cred is None or not cred.credentials:
+        return None
+    given = cred.credentials.encode()
+    match = None
+    for t in ctx.tokens:
+        # Compare against every token so timing does not tell which one matched.
+        if hmac.compare_digest(given, t.secret.encode()) and match is None:
+            match = t.who
+    return match
+
+
+def _unauthorized(detail: str) -> Problem:
+    return Problem(401, detail, "unauthorized", headers={"WWW-Authenticate": 'Bearer realm="lanemap"'})
+
+
+def require_write(
+    ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(bearer)
+) -> str:
+    """Check the bearer token of a write; returns who is writing (for the edit log)."""
+    if cred is None:
+        raise _unauthorized("this request changes data: send Authorization: Bearer <token>")
+    who = _who(ctx, cred)
+    if who is None:
+        raise _unauthorized("the bearer token is not valid")
+    return who
+
+
+def require_read(
+    ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(bearer)
+) -> None:
+    """Reads are open unless ``LANEMAP_READ_TOKEN_REQUIRED=1``."""
+    if not ctx.settings.read_token_required:
+        return
+    if cred is None:
+        raise _unauthorized("reads need a token on this server: send Authorization: Bearer <token>")
+    if _who(ctx, cred) is None:
+        raise _unauthorized("the bearer token is not valid")

@@ -1,0 +1,250 @@
+"""Build jobs in worker processes.
+
+A build never runs in a request thread: the API records a job (status
+``accepted``) and hands it to the :class:`JobRunner`, which starts one spawned
+process per job (at most ``workers`` at a time). The process runs
+:func:`mapbuilder.build.build_map`, which writes progress and the final status
+to the job row, so job state lives in the database. Cancelling marks the job
+``dismissed`` and ends its process. When a server starts,
+:func:`recover_jobs` resumes the builds a previous server left unfinished
+(a build resumes tile by tile).
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import multiprocessing as mp
+import os
+import threading
+from pathlib import Path
+from typing import Any
+
+from mapbuilder.store import Store, UnknownJobError
+
+log = logging.getLogger(__name__)
+
+ACTIVE = ("accepted", "running")
+
+
+def _file_stamp(path: str) -> dict[str, Any]:
+    st = os.stat(path)
+    return {"path": path, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def build_job_params(images: list[str], params: Any, crs: str) -> dict[str, Any]:
+    """The job parameters :func:`mapbuilder.build.build_map` records for a build.
+
+    A job created with exactly these is the one ``build_map`` resumes, so the
+    job the API answers with is the job that runs.
+    """
+    return {"images": [_file_stamp(str(Path(p).resolve())) for p in images], "params": params.to_dict(), "crs": crs}
+
+
+def params_from_job(job_params: dict[str, Any]):
+    from mapbuilder.build import BuildParams
+    from mapbuilder.cluster import ClusterParams
+
+    p = dict(job_params.get("params") or {})
+    cluster = ClusterParams(**(p.pop("cluster", None) or {}))
+    return BuildParams(tile_px=p.get("tile_px", 1024), halo_m=p.get("halo_m", 4.0),
+                       model=p.get("model"), cluster=cluster)  # fmt: skip
+
+
+class _Cancelled(Exception):
+    pass
+
+
+def run_build_job(db_url: str, job_id: int) -> None:
+    """Body of a worker process: run the build of job ``job_id`` to its end."""
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s build job %(process)d: %(message)s")
+    from mapbuilder.build import build_map
+
+    store = Store(db_url)
+    job = store.get_job(job_id)
+    if job.status not in ACTIVE:
+        return
+    images = [i["path"] for i in job.params.get("images", [])]
+
+    def on_tile(_result) -> None:
+        if store.get_job(job_id).status == "dismissed":
+            raise _Cancelled()
+
+    kwargs: dict[str, Any] = {}
+    if "job_id" in inspect.signature(build_map).parameters:
+        kwargs["job_id"] = job_id
+    try:
+        params = params_from_job(job.params)
+        result = build_map(store, job.map_id, images, params, workers=1, progress=False, resume=True,
+                           on_tile=on_tile, **kwargs)  # fmt: skip
+    except _Cancelled:
+        store.update_job(job_id, status="dismissed", error="cancelled")
+        return
+    except Exception as exc:  # the job row carries the error to the client
+        log.warning("build job %d failed: %s", job_id, exc)
+        if store.get_job(job_id).status in ACTIVE:
+            store.update_job(job_id, status="failed", error=str(exc) or exc.__class__.__name__)
+        return
+    finally:
+        store.close()
+    if result.job_id != job_id:
+        # build_map recorded the run under another job (parameters differed):
+        # report its outcome on the job the client is watching.
+        log.warning("build of job %d ran as job %d", job_id, result.job_id)
+        store = Store(db_url)
+        store.update_job(job_id, status="successful", progress=100.0)
+        store.close()
+
+
+class JobRunner:
+    """Runs build jobs in spawned processes, at most ``workers`` at a time."""
+
+    def __init__(self, store: Store, data_dir: Path, workers: int = 1):
+        self.store = store
+        self.data_dir = Path(data_dir)
+        self._slots = threading.Semaphore(max(1, int(workers)))
+        self._procs: dict[int, Any] = {}
+        self._lock = threading.Lock()
+        self._stopping = False
+        self._threads: list[threading.Thread] = []
+        self._submitted: set[int] = set()
+        self._stop_event = threading.Event()
+        self._lock_fh = None
+        self.owner = False
+        self.poll_s = 1.0
+
+    def start(self) -> None:
+        """Become the job runner of this data folder, if no other server process is.
+
+        One process per data folder runs builds (a file lock decides); it also
+        picks up jobs other processes accepted, and resumes interrupted ones.
+        """
+        self._stopping = False
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self._lock_fh = open(self.data_dir / "job-runner.lock", "a+")
+        try:
+            import fcntl
+
+            fcntl.flock(self._lock_fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._lock_fh.close()
+            self._lock_fh = None
+            log.info("another server process runs the build jobs of %s", self.data_dir)
+            return
+        self.owner = True
+        resume, failed = recover_jobs(self.store, self.data_dir)
+        for job_id in resume:
+            log.info("resuming build job %d", job_id)
+            self.submit(job_id)
+        self._poller = threading.Thread(target=self._poll, name="build-job-poller", daemon=True)
+        self._poller.start()
+
+    def _poll(self) -> None:
+        root = (self.data_dir / "imagery").resolve()
+        while not self._stop_event.wait(self.poll_s):
+            try:
+                for job in self.store.find_jobs(kind="build", status="accepted"):
+                    if job.id in self._submitted:
+                        continue
+                    paths = [Path(i.get("path", "")) for i in job.params.get("images", [])]
+                    if paths and all(p.resolve().is_relative_to(root) for p in paths):
+                        self.submit(job.id)
+            except Exception:  # a busy or briefly unavailable database: try again later
+                log.debug("job poll failed", exc_info=True)
+
+    def submit(self, job_id: int) -> None:
+        """Run a job (in this process's runner; elsewhere the owning runner picks it up)."""
+        if not self.owner:
+            return
+        with self._lock:
+            if job_id in self._submitted:
+                return
+            self._submitted.add(job_id)
+        t = threading.Thread(target=self._run, args=(job_id,), name=f"build-job-{job_id}", daemon=True)
+        self._threads.append(t)
+        t.start()
+
+    def _run(self, job_id: int) -> None:
+        with self._slots:
+            if self._stopping:
+                return
+            try:
+                if self.store.get_job(job_id).status not in ACTIVE:
+                    return
+            except UnknownJobError:
+                return
+            proc = mp.get_context("spawn").Process(
+                target=run_build_job, args=(self.store.url, job_id), name=f"lanemap-build-{job_id}"
+            )
+            with self._lock:
+                proc.start()
+                self._procs[job_id] = proc
+            proc.join()
+            with self._lock:
+                self._procs.pop(job_id, None)
+            if self._stopping:
+                return
+            try:
+                job = self.store.get_job(job_id)
+                if job.status in ACTIVE:
+                    self.store.update_job(job_id, status="failed",
+                                          error=f"the build process ended unexpectedly (exit code {proc.exitcode})")
+            except Exception:  # the map (and its jobs) may have been deleted meanwhile
+                log.info("job %d is gone after its process ended", job_id)
+
+    def cancel(self, job_id: int) -> None:
+        """Dismiss a job: it will not start, or its process is ended."""
+        job = self.store.get_job(job_id)
+        if job.status in ACTIVE:
+            self.store.update_job(job_id, status="dismissed", error="cancelled")
+        with self._lock:
+            proc = self._procs.get(job_id)
+        if proc is not None and proc.is_alive():
+            proc.terminate()
+
+    def running(self) -> list[int]:
+        with self._lock:
+            return [j for j, p in self._procs.items() if p.is_alive()]
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End running builds; their jobs stay ``running`` and resume at the next start."""
+        self._stopping = True
+        self._stop_event.set()
+        with self._lock:
+            procs = list(self._procs.values())
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join(timeout)
+        if self._lock_fh is not None:
+            self._lock_fh.close()
+            self._lock_fh = None
+
+
+def recover_jobs(store: Store, data_dir: Path) -> tuple[list[int], list[int]]:
+    """Find the builds a stopped server left unfinished.
+
+    Jobs of imagery the server stored (under ``<data_dir>/imagery``) are
+    returned to be resumed (``build_map`` continues a job tile by tile); other
+    unfinished jobs — builds started elsewhere, e.g. by the CLI, are left alone.
+
+    Returns
+    -------
+    resume : list of int
+        Job ids to hand to :meth:`JobRunner.submit`.
+    failed : list of int
+        Jobs marked failed because their imagery is gone.
+    """
+    root = (Path(data_dir) / "imagery").resolve()
+    resume, failed = [], []
+    for job in store.find_jobs(kind="build", status=ACTIVE):
+        paths = [Path(i.get("path", "")) for i in job.params.get("images", [])]
+        if not paths or not all(p.resolve().is_relative_to(root) for p in paths):
+            continue
+        if all(p.is_file() for p in paths):
+            resume.append(job.id)
+        else:
+            store.update_job(job.id, status="failed", error="interrupted by a server restart; its imagery is gone")
+            failed.append(job.id)
+    return resume, failed

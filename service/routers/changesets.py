@@ -1,0 +1,278 @@
+"""Atomic changesets of many features, the edit history, and reverts."""
+
+from __future__ import annotations
+
+from datetime import timezone
+from typing import Any, Literal
+
+from fastapi import APIRouter, Body, Depends, Path as PathParam, Query, Request
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy import select
+
+from mapbuilder.model import Marking
+from mapbuilder.schema import changesets, edits
+from mapbuilder.store import (
+    Change, ChangesetInfo, ChangesetResult, Conflict, ConflictError, EditInfo, StoreError,
+    UnknownMarkingError,
+)  # fmt: skip
+
+from ..deps import Context, get_ctx, require_read, require_write
+from ..problems import Problem
+from ._common import JSON, base_url, link, marking_from_feature, parse_id, parse_version, patched_marking, update_fields
+
+router = APIRouter(tags=["Changesets"], dependencies=[Depends(require_read)])
+
+MapId = PathParam(..., description="The map's id", max_length=64)
+MAX_CHANGES = 10_000
+
+
+class ChangeIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    op: Literal["create", "update", "delete"]
+    id: str | int | None = Field(None, description="The feature id (update, delete)")
+    version: str | int | None = Field(
+        None, description="Expected version: the feature's ETag value (update, delete); optional"
+    )
+    feature: dict[str, Any] | None = Field(None, description="A GeoJSON Feature (create)")
+    patch: dict[str, Any] | None = Field(None, description="A JSON merge patch of the feature (update)")
+
+
+class ChangesetIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    comment: str = Field("", max_length=2000)
+    changes: list[ChangeIn] = Field(..., min_length=1, max_length=MAX_CHANGES)
+
+
+class RevertIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    comment: str = Field("", max_length=2000)
+
+
+def _result_body(res: ChangesetResult, map_id: str, request: Request) -> dict[str, Any]:
+    url = f"{base_url(request)}/collections/{map_id}/changesets/{res.changeset_id}"
+    return {
+        "changeset": str(res.changeset_id),
+        "results": [
+            {"op": r["op"], "id": str(r["id"]), "version": None if r["version"] is None else str(r["version"])}
+            for r in res.results
+        ],
+        "links": [link(url, "self", JSON)],
+    }
+
+
+def _created(res: ChangesetResult, map_id: str, request: Request) -> JSONResponse:
+    body = _result_body(res, map_id, request)
+    return JSONResponse(body, status_code=201, headers={"Location": body["links"][0]["href"]})
+
+
+@router.post("/collections/{mapId}/changesets", summary="Apply many edits atomically", status_code=201)
+def post_changeset(
+    body: ChangesetIn,
+    request: Request,
+    mapId: str = MapId,
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    info = ctx.store.get_map(mapId)
+    crs = info.crs
+    changes: list[Change] = []
+    conflicts: list[Conflict] = []
+    for i, c in enumerate(body.changes):
+        where = f"changes[{i}]"
+        if c.op == "create":
+            if c.feature is None:
+                raise Problem(422, f"{where}.feature: a create needs a GeoJSON Feature", "invalid-change")
+            changes.append(Change("create", marking=marking_from_feature(c.feature, crs, where=f"{where}.feature")))
+            continue
+        if c.id is None:
+            raise Problem(422, f"{where}.id: an {c.op} needs the feature id", "invalid-change")
+        mid = parse_id(c.id, f"{where}.id")
+        version = parse_version(c.version, f"{where}.version")
+        if c.op == "delete":
+            changes.append(Change("delete", id=mid, version=version))
+            continue
+        if c.patch is None:
+            raise Problem(422, f"{where}.patch: an update needs a merge patch of the feature", "invalid-change")
+        if crs is None:
+            raise Problem(409, f"{where}: map {mapId!r} has no markings to update", "conflict")
+        try:
+            current = ctx.store.get_marking(mapId, mid)
+        except UnknownMarkingError:
+            conflicts.append(Conflict(id=mid, reason="missing", expected_version=version))
+            continue
+        if version is not None and version != current.version:
+            conflicts.append(Conflict(mid, "version", expected_version=version, actual_version=current.version))
+            continue
+        new = patched_marking(current, c.patch, crs, where=f"{where}.patch")
+        fields = update_fields(current, new)
+        # The patch was merged onto this version: apply it only to that version.
+        changes.append(Change("update", id=mid, version=current.version, fields=fields))
+    if conflicts:
+        raise ConflictError(conflicts)
+    res = ctx.store.apply_changeset(mapId, changes, who, body.comment)
+    return _created(res, mapId, request)
+
+
+def _changeset_json(c: ChangesetInfo, request: Request) -> dict[str, Any]:
+    return {
+        "id": str(c.id),
+        "who": c.who,
+        "at": c.at.isoformat(),
+        "comment": c.comment,
+        "created": c.n_create,
+        "updated": c.n_update,
+        "deleted": c.n_delete,
+        "reverts": None if c.reverts is None else str(c.reverts),
+        "links": [link(f"{base_url(request)}/collections/{c.map_id}/changesets/{c.id}", "self", JSON)],
+    }
+
+
+def _edit_json(e: EditInfo) -> dict[str, Any]:
+    return {
+        "id": str(e.id),
+        "changeset": str(e.changeset_id),
+        "feature_id": None if e.marking_id is None else str(e.marking_id),
+        "op": e.op,
+        "who": e.who,
+        "at": e.at.isoformat(),
+        "before": e.before,
+        "after": e.after,
+        "comment": e.comment,
+    }
+
+
+def _page_links(request: Request, offset: int, limit: int, returned: int, matched: int) -> list[dict]:
+    url = request.url
+    links = [link(str(url), "self", JSON)]
+    if offset + returned < matched:
+        links.append(link(str(url.include_query_params(offset=offset + limit, limit=limit)), "next", JSON))
+    if offset > 0:
+        links.append(link(str(url.include_query_params(offset=max(0, offset - limit), limit=limit)), "prev", JSON))
+    return links
+
+
+@router.get("/collections/{mapId}/changesets", summary="Changesets, newest first")
+def list_changesets(
+    request: Request,
+    mapId: str = MapId,
+    limit: int = Query(50, ge=1, le=1000),
+    offset: int = Query(0, ge=0, le=10**12),
+    ctx: Context = Depends(get_ctx),
+) -> dict:
+    rows, total = ctx.store.changesets(mapId, limit=limit, offset=offset)
+    return {
+        "changesets": [_changeset_json(c, request) for c in rows],
+        "numberMatched": total,
+        "numberReturned": len(rows),
+        "links": _page_links(request, offset, limit, len(rows), total),
+    }
+
+
+@router.get("/collections/{mapId}/changesets/{changesetId}", summary="One changeset with its edits")
+def get_changeset(
+    request: Request,
+    mapId: str = MapId,
+    changesetId: str = PathParam(..., max_length=40),
+    ctx: Context = Depends(get_ctx),
+) -> dict:
+    cid = parse_id(changesetId, "changesetId")
+    rows, total = ctx.store.history(mapId, limit=10_000, changeset_id=cid)
+    if not rows:
+        from mapbuilder.store import UnknownChangesetError
+
+        raise UnknownChangesetError(mapId, cid)
+    info = _find_changeset(ctx, mapId, cid)
+    out = _changeset_json(info, request) if info else {"id": str(cid)}
+    out["edits"] = [_edit_json(e) for e in rows]
+    out["numberOfEdits"] = total
+    return out
+
+
+def _find_changeset(ctx: Context, map_id: str, cid: int) -> ChangesetInfo | None:
+    with ctx.store.engine.connect() as conn:
+        r = conn.execute(
+            select(changesets).where(changesets.c.id == cid, changesets.c.map_id == map_id)
+        ).first()
+    if r is None:
+        return None
+    at = r.at if r.at.tzinfo else r.at.replace(tzinfo=timezone.utc)
+    return ChangesetInfo(r.id, r.map_id, r.who, at, r.comment, r.n_create, r.n_update, r.n_delete, r.reverts)
+
+
+@router.get("/collections/{mapId}/history", summary="The edit log, newest first")
+def history(
+    request: Request,
+    mapId: str = MapId,
+    limit: int = Query(50, ge=1, le=1000),
+    offset: int = Query(0, ge=0, le=10**12),
+    changeset: str | None = Query(None, max_length=40, description="Only the edits of this changeset"),
+    feature: str | None = Query(None, max_length=40, description="Only the edits of this feature"),
+    ctx: Context = Depends(get_ctx),
+) -> dict:
+    cid = parse_id(changeset, "changeset") if changeset is not None else None
+    fid = parse_id(feature, "feature") if feature is not None else None
+    rows, total = ctx.store.history(mapId, limit=limit, offset=offset, changeset_id=cid, marking_id=fid)
+    return {
+        "edits": [_edit_json(e) for e in rows],
+        "numberMatched": total,
+        "numberReturned": len(rows),
+        "links": _page_links(request, offset, limit, len(rows), total),
+    }
+
+
+@router.post("/collections/{mapId}/changesets/{changesetId}/revert", summary="Revert a changeset",
+             status_code=201)  # fmt: skip
+def revert_changeset(
+    request: Request,
+    mapId: str = MapId,
+    changesetId: str = PathParam(..., max_length=40),
+    body: RevertIn | None = Body(None),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    cid = parse_id(changesetId, "changesetId")
+    res = ctx.store.revert_changeset(mapId, cid, who, body.comment if body else "")
+    return _created(res, mapId, request)
+
+
+_EDIT_FIELDS = (
+    "x", "y", "length_m", "width_m", "bearing_deg", "weight", "score", "kind", "source", "status",
+    "x0", "y0", "x1", "y1", "tile_key", "extra",
+)  # fmt: skip
+
+
+def _get_edit(ctx: Context, map_id: str, edit_id: int) -> dict[str, Any]:
+    ctx.store.get_map(map_id)
+    with ctx.store.engine.connect() as conn:
+        row = conn.execute(select(edits).where(edits.c.id == edit_id, edits.c.map_id == map_id)).first()
+    if row is None:
+        raise Problem(404, f"map {map_id!r} has no edit {edit_id}", "unknown-edit")
+    return row._asdict()
+
+
+@router.post("/collections/{mapId}/history/{editId}/revert", summary="Revert one edit", status_code=201)
+def revert_edit(
+    request: Request,
+    mapId: str = MapId,
+    editId: str = PathParam(..., max_length=40),
+    body: RevertIn | None = Body(None),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    eid = parse_id(editId, "editId")
+    e = _get_edit(ctx, mapId, eid)
+    op, before, after, mid = e["op"], e["before"], e["after"], e["marking_id"]
+    if op == "create":
+        change = Change("delete", id=mid, version=after["version"])
+    elif op == "delete":
+        keep = {k: before[k] for k in _EDIT_FIELDS if k in before}
+        change = Change("create", id=mid, marking=Marking(**keep, version=before["version"]))
+    elif op == "update":
+        change = Change("update", id=mid, version=after["version"],
+                        fields={k: before[k] for k in _EDIT_FIELDS if k in before})  # fmt: skip
+    else:
+        raise StoreError(f"edit {eid} is an {op}; it cannot be reverted on its own")
+    comment = (body.comment if body else "") or f"revert edit {eid}"
+    res = ctx.store.apply_changeset(mapId, [change], who, comment)
+    return _created(res, mapId, request)

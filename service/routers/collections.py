@@ -1,0 +1,450 @@
+"""Maps as OGC API Features collections: read (Part 1), edit (Part 4), admin and import."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Body, Depends, Header, Path as PathParam, Query, Request, Response
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapbuilder.crs import from_wgs84
+from mapbuilder.geojson import GeoJSONError, read_feature_collection
+from mapbuilder.model import STATUSES
+from mapbuilder.store import Change, ConflictError, MapInfo, Marking, UnknownMarkingError
+
+from ..deps import Context, get_ctx, require_read, require_write
+from ..problems import Problem
+from ._common import (
+    CRS84, GEOJSON, JSON, base_url, crs_uri, etag, feature_of, if_match_versions, link,
+    marking_from_feature, parse_id, patched_marking, update_fields,
+)  # fmt: skip
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(dependencies=[Depends(require_read)])
+
+MapId = PathParam(..., description="The map's id", max_length=64)
+FeatureId = PathParam(..., description="A marking id (an integer as a string)", max_length=40)
+
+COLLECTION_ALLOW = "GET, POST, OPTIONS"
+ITEM_ALLOW = "GET, PUT, PATCH, DELETE, OPTIONS"
+
+FEATURE_SCHEMA = {
+    "type": "object",
+    "required": ["type", "geometry"],
+    "properties": {
+        "type": {"type": "string", "enum": ["Feature"]},
+        "geometry": {
+            "type": "object",
+            "required": ["type", "coordinates"],
+            "properties": {
+                "type": {"type": "string", "enum": ["Point"]},
+                "coordinates": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 3},
+            },
+        },
+        "properties": {
+            "type": "object",
+            "properties": {
+                "weight": {"type": "number", "exclusiveMinimum": 0},
+                "length_m": {"type": "number", "minimum": 0},
+                "width_m": {"type": "number", "minimum": 0},
+                "bearing_deg": {"type": "number"},
+                "score": {"type": ["number", "null"]},
+                "kind": {"type": ["string", "null"]},
+                "source": {"type": "string", "enum": ["detected", "manual", "imported"]},
+                "status": {"type": "string", "enum": list(STATUSES)},
+            },
+        },
+    },
+}
+FEATURE_EXAMPLE = {
+    "type": "Feature",
+    "geometry": {"type": "Point", "coordinates": [8.4280, 49.0071]},
+    "properties": {"weight": 140, "length_m": 3.0, "width_m": 0.15, "bearing_deg": 87.5,
+                   "kind": "dash", "status": "accepted"},
+}  # fmt: skip
+
+
+class CollectionIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(..., description="1-64 letters, digits, '.', '_' or '-'", max_length=64)
+    title: str = Field("", max_length=500)
+    crs: str | None = Field(
+        None, description="Metric storage CRS, e.g. EPSG:25832; default: the UTM zone of the first data",
+        max_length=100,
+    )
+
+
+# ---------------------------------------------------------------------------- collections
+def collection_of(info: MapInfo, request: Request) -> dict[str, Any]:
+    base = f"{base_url(request)}/collections/{info.id}"
+    out: dict[str, Any] = {
+        "id": info.id,
+        "title": info.title or info.id,
+        "description": f"Lane markings of map {info.id}"
+        + (f" ({info.count} markings)" if info.count is not None else ""),
+        "itemType": "feature",
+        "crs": [CRS84],
+        "storageCrs": crs_uri(info.crs),
+        "revision": info.revision,
+        "links": [
+            link(base, "self", JSON),
+            link(f"{base}/items", "items", GEOJSON, "Markings"),
+            link(f"{base}/changesets", "changesets", JSON, "Changesets"),
+            link(f"{base}/history", "history", JSON, "Edit history"),
+            link(f"{base}/imagery", "imagery", JSON, "Imagery"),
+            link(f"{base}/imagery/tiles/WebMercatorQuad/{{z}}/{{x}}/{{y}}.png", "tiles", "image/png",
+                 "Imagery tiles"),
+        ],  # fmt: skip
+    }
+    if info.count is not None:
+        out["numberOfFeatures"] = info.count
+    bounds = info.bounds_wgs84()
+    if bounds is not None and all(math.isfinite(v) for v in bounds):
+        out["extent"] = {"spatial": {"bbox": [list(bounds)], "crs": CRS84}}
+    return out
+
+
+@router.get("/collections", tags=["Maps"], summary="The maps")
+def list_collections(request: Request, ctx: Context = Depends(get_ctx)) -> dict:
+    maps = ctx.store.list_maps()
+    return {
+        "links": [link(f"{base_url(request)}/collections", "self", JSON)],
+        "collections": [collection_of(m, request) for m in maps],
+    }
+
+
+@router.post("/collections", tags=["Maps"], summary="Create a map", status_code=201)
+def create_collection(
+    body: CollectionIn, request: Request, ctx: Context = Depends(get_ctx), who: str = Depends(require_write)
+):
+    info = ctx.store.create_map(body.id, body.title, body.crs)
+    info.count = 0
+    url = f"{base_url(request)}/collections/{info.id}"
+    return JSONResponse(collection_of(info, request), status_code=201, headers={"Location": url})
+
+
+@router.get("/collections/{mapId}", tags=["Maps"], summary="One map")
+def get_collection(request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx)) -> dict:
+    return collection_of(ctx.store.get_map(mapId, with_count=True), request)
+
+
+@router.delete("/collections/{mapId}", tags=["Maps"], summary="Delete a map", status_code=204)
+def delete_collection(mapId: str = MapId, ctx: Context = Depends(get_ctx), who: str = Depends(require_write)):
+    files = [Path(i.path) for i in ctx.store.list_imagery(mapId)]
+    if ctx.jobs is not None:
+        for job in ctx.store.find_jobs(map_id=mapId, status=("accepted", "running")):
+            ctx.jobs.cancel(job.id)
+    ctx.store.delete_map(mapId)
+    with ctx.index_lock:
+        ctx.indexes.pop(mapId, None)
+    imagery_root = (ctx.data_dir / "imagery").resolve()
+    for f in files:
+        # Only files the server wrote itself are removed.
+        if f.resolve().is_relative_to(imagery_root):
+            f.unlink(missing_ok=True)
+    return Response(status_code=204)
+
+
+@router.post(
+    "/collections/{mapId}/import", tags=["Maps"], summary="Import a GeoJSON FeatureCollection",
+    status_code=201,
+    openapi_extra={"requestBody": {"required": True, "content": {GEOJSON: {"schema": {"type": "object"}},
+                                                                  JSON: {"schema": {"type": "object"}}}}},
+)  # fmt: skip
+def import_features(
+    request: Request,
+    mapId: str = MapId,
+    body: Any = Body(..., media_type=GEOJSON),
+    comment: str = Query("", max_length=2000, description="Comment of the import changeset"),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    ctx.store.get_map(mapId)
+    try:
+        items = read_feature_collection(body)
+    except GeoJSONError as exc:
+        raise Problem(422, f"body: {exc}", "invalid-geojson") from None
+    if not items:
+        raise Problem(422, "body: the FeatureCollection has no features", "invalid-geojson")
+    ids = ctx.store.add_markings(mapId, items, who=who, comment=comment or "import", lonlat=True)
+    return JSONResponse(
+        {"imported": len(ids), "first_id": str(min(ids)), "last_id": str(max(ids))},
+        status_code=201,
+        headers={"Location": f"{base_url(request)}/collections/{mapId}/items"},
+    )
+
+
+# ---------------------------------------------------------------------------- items (Part 1)
+def parse_bbox(text: str) -> tuple[float, float, float, float]:
+    parts = text.split(",")
+    if len(parts) not in (4, 6):
+        raise Problem(400, "bbox: give 4 numbers (minLon,minLat,maxLon,maxLat) or 6 with heights",
+                      "invalid-bbox")  # fmt: skip
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise Problem(400, f"bbox: {text[:80]!r} has a value that is not a number", "invalid-bbox") from None
+    if not all(math.isfinite(v) for v in vals):
+        raise Problem(400, "bbox: values must be finite numbers", "invalid-bbox")
+    if len(vals) == 6:
+        vals = [vals[0], vals[1], vals[3], vals[4]]
+    w, s, e, n = vals
+    if not (-180 <= w <= 180 and -180 <= e <= 180):
+        raise Problem(400, "bbox: longitudes must be within [-180, 180]", "invalid-bbox")
+    if not (-90 <= s <= 90 and -90 <= n <= 90):
+        raise Problem(400, "bbox: latitudes must be within [-90, 90]", "invalid-bbox")
+    if s > n:
+        raise Problem(400, "bbox: minLat is greater than maxLat", "invalid-bbox")
+    if w > e:
+        raise Problem(400, "bbox: minLon is greater than maxLon (boxes across the antimeridian are not supported)",
+                      "invalid-bbox")  # fmt: skip
+    return w, s, e, n
+
+
+def parse_statuses(text: str | None) -> list[str] | None:
+    if not text:
+        return None
+    out = [s.strip() for s in text.split(",") if s.strip()]
+    bad = [s for s in out if s not in STATUSES]
+    if bad:
+        raise Problem(400, f"status: {bad[0][:40]!r} is not one of {', '.join(STATUSES)}", "invalid-parameter")
+    return out or None
+
+
+def _storage_box(info: MapInfo, bbox: tuple[float, float, float, float]):
+    """The query box in the storage CRS, or None when it misses the map."""
+    mb = info.bounds_wgs84()
+    if mb is None or info.crs is None:
+        return None
+    w, s, e, n = max(bbox[0], mb[0]), max(bbox[1], mb[1]), min(bbox[2], mb[2]), min(bbox[3], mb[3])
+    if w > e or s > n:
+        return None
+    box = from_wgs84(info.crs).transform_bounds(w, s, e, n, densify_pts=21)
+    if not all(math.isfinite(v) for v in box):
+        return None
+    return box
+
+
+@router.get(
+    "/collections/{mapId}/items", tags=["Features"], summary="Markings of a map (GeoJSON)",
+    responses={200: {"content": {GEOJSON: {}}}},
+)  # fmt: skip
+def get_items(
+    request: Request,
+    mapId: str = MapId,
+    bbox: str | None = Query(None, description="minLon,minLat,maxLon,maxLat (WGS84)", max_length=200),
+    limit: int | None = Query(None, ge=1, description="Page size (clamped to the server's maximum)"),
+    offset: int = Query(0, ge=0, le=10**12),
+    status: str | None = Query(None, description="Comma-separated statuses to keep", max_length=100),
+    ctx: Context = Depends(get_ctx),
+):
+    s = ctx.settings
+    lim = min(limit if limit is not None else s.items_default_limit, s.items_max_limit)
+    statuses = parse_statuses(status)
+    if bbox is not None:
+        box = parse_bbox(bbox)
+        info = ctx.store.get_map(mapId)
+        sbox = _storage_box(info, box)
+        if sbox is None:
+            items, matched = [], 0
+        else:
+            matched = ctx.store.count_bbox(mapId, *sbox, statuses=statuses)
+            items = ctx.store.query_bbox(mapId, *sbox, statuses=statuses, limit=lim, offset=offset)
+    else:
+        items, matched = ctx.store.list_markings(mapId, limit=lim, offset=offset, statuses=statuses)
+    url = request.url
+    links = [link(str(url), "self", GEOJSON), link(f"{base_url(request)}/collections/{mapId}", "collection", JSON)]
+    if offset + len(items) < matched:
+        links.append(link(str(url.include_query_params(offset=offset + lim, limit=lim)), "next", GEOJSON))
+    if offset > 0:
+        links.append(link(str(url.include_query_params(offset=max(0, offset - lim), limit=lim)), "prev", GEOJSON))
+    from datetime import datetime, timezone
+
+    body = {
+        "type": "FeatureCollection",
+        "features": [feature_of(m) for m in items],
+        "numberMatched": matched,
+        "numberReturned": len(items),
+        "timeStamp": datetime.now(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "links": links,
+    }
+    return JSONResponse(body, media_type=GEOJSON)
+
+
+def _feature_response(m: Marking, request: Request, map_id: str, status_code: int = 200,
+                      location: bool = False) -> JSONResponse:  # fmt: skip
+    headers = {"ETag": etag(m.version)}
+    if location:
+        headers["Location"] = f"{base_url(request)}/collections/{map_id}/items/{m.id}"
+    return JSONResponse(feature_of(m, request, map_id), status_code=status_code, headers=headers,
+                        media_type=GEOJSON)  # fmt: skip
+
+
+@router.get(
+    "/collections/{mapId}/items/{featureId}", tags=["Features"], summary="One marking",
+    responses={200: {"content": {GEOJSON: {}}, "headers": {"ETag": {"schema": {"type": "string"}}}}},
+)  # fmt: skip
+def get_item(request: Request, mapId: str = MapId, featureId: str = FeatureId, ctx: Context = Depends(get_ctx)):
+    m = ctx.store.get_marking(mapId, parse_id(featureId))
+    return _feature_response(m, request, mapId)
+
+
+@router.options("/collections/{mapId}/items", tags=["Features"], summary="Methods allowed on the items")
+def options_items(mapId: str = MapId, ctx: Context = Depends(get_ctx)):
+    ctx.store.get_map(mapId)
+    return Response(status_code=204, headers={"Allow": COLLECTION_ALLOW})
+
+
+@router.options("/collections/{mapId}/items/{featureId}", tags=["Features"], summary="Methods allowed on a marking")
+def options_item(mapId: str = MapId, featureId: str = FeatureId, ctx: Context = Depends(get_ctx)):
+    ctx.store.get_marking(mapId, parse_id(featureId))
+    return Response(status_code=204, headers={"Allow": ITEM_ALLOW})
+
+
+# ---------------------------------------------------------------------------- editing (Part 4)
+_FEATURE_BODY = {"requestBody": {"required": True, "content": {
+    GEOJSON: {"schema": FEATURE_SCHEMA, "example": FEATURE_EXAMPLE},
+    JSON: {"schema": FEATURE_SCHEMA, "example": FEATURE_EXAMPLE},
+}}}  # fmt: skip
+_PATCH_BODY = {"requestBody": {"required": True, "content": {
+    "application/merge-patch+json": {"schema": {"type": "object"},
+                                     "example": {"properties": {"status": "accepted"}}},
+    JSON: {"schema": {"type": "object"}},
+}}}  # fmt: skip
+
+
+def _single(ctx: Context, map_id: str, change: Change, who: str, if_match: bool):
+    try:
+        return ctx.store.apply_changeset(map_id, [change], who, "")
+    except ConflictError as exc:
+        c = exc.conflicts[0]
+        if c.reason == "missing":
+            raise UnknownMarkingError(map_id, c.id) from None
+        if if_match:
+            raise Problem(412, f"If-Match: feature {c.id} is at version {c.actual_version}, "
+                          f"not {c.expected_version}", "precondition-failed",
+                          current_version=str(c.actual_version)) from None  # fmt: skip
+        raise
+
+
+def _expected_version(ctx: Context, map_id: str, marking_id: int, header: str | None) -> int | None:
+    versions = if_match_versions(header)
+    if versions is None:
+        if header is not None:  # "*": the feature must exist
+            ctx.store.get_marking(map_id, marking_id)
+        return None
+    if len(versions) == 1:
+        return versions[0]
+    current = ctx.store.get_marking(map_id, marking_id)
+    if current.version not in versions:
+        raise Problem(412, f"If-Match: feature {marking_id} is at version {current.version}",
+                      "precondition-failed", current_version=str(current.version))  # fmt: skip
+    return current.version
+
+
+@router.post(
+    "/collections/{mapId}/items", tags=["Features"], summary="Add a marking", status_code=201,
+    openapi_extra=_FEATURE_BODY,
+)  # fmt: skip
+def create_item(
+    request: Request,
+    mapId: str = MapId,
+    feature: Any = Body(..., media_type=GEOJSON),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    info = ctx.store.get_map(mapId)
+    m = marking_from_feature(feature, info.crs, default_source="manual")
+    res = _single(ctx, mapId, Change("create", marking=m), who, False)
+    created = ctx.store.get_marking(mapId, res.results[0]["id"])
+    return _feature_response(created, request, mapId, 201, location=True)
+
+
+@router.put(
+    "/collections/{mapId}/items/{featureId}", tags=["Features"], summary="Replace a marking",
+    openapi_extra=_FEATURE_BODY,
+)  # fmt: skip
+def replace_item(
+    request: Request,
+    mapId: str = MapId,
+    featureId: str = FeatureId,
+    feature: Any = Body(..., media_type=GEOJSON),
+    if_match: str | None = Header(None, alias="If-Match"),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    marking_id = parse_id(featureId)
+    expected = _expected_version(ctx, mapId, marking_id, if_match)
+    current = ctx.store.get_marking(mapId, marking_id)
+    info = ctx.store.get_map(mapId)
+    new = marking_from_feature(feature, info.crs, default_source=current.source)
+    fields = update_fields(current, new)
+    if not fields:
+        if expected is not None and expected != current.version:
+            raise Problem(412, f"If-Match: feature {marking_id} is at version {current.version}",
+                          "precondition-failed", current_version=str(current.version))  # fmt: skip
+        return _feature_response(current, request, mapId)
+    version = expected if expected is not None else current.version
+    try:
+        _single(ctx, mapId, Change("update", id=marking_id, version=version, fields=fields), who,
+                expected is not None)  # fmt: skip
+    except ConflictError:
+        raise Problem(409, f"feature {marking_id} changed while it was being replaced; retry",
+                      "conflict", conflicting_ids=[str(marking_id)]) from None  # fmt: skip
+    return _feature_response(ctx.store.get_marking(mapId, marking_id), request, mapId)
+
+
+@router.patch(
+    "/collections/{mapId}/items/{featureId}", tags=["Features"],
+    summary="Change a marking with a JSON merge patch (RFC 7396) of its feature",
+    openapi_extra=_PATCH_BODY,
+)  # fmt: skip
+def patch_item(
+    request: Request,
+    mapId: str = MapId,
+    featureId: str = FeatureId,
+    patch: Any = Body(..., media_type="application/merge-patch+json"),
+    if_match: str | None = Header(None, alias="If-Match"),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    marking_id = parse_id(featureId)
+    expected = _expected_version(ctx, mapId, marking_id, if_match)
+    info = ctx.store.get_map(mapId)
+    for _attempt in range(3):
+        current = ctx.store.get_marking(mapId, marking_id)
+        if expected is not None and expected != current.version:
+            raise Problem(412, f"If-Match: feature {marking_id} is at version {current.version}, not {expected}",
+                          "precondition-failed", current_version=str(current.version))  # fmt: skip
+        new = patched_marking(current, patch, info.crs, where="body")
+        fields = update_fields(current, new)
+        if not fields:
+            return _feature_response(current, request, mapId)
+        try:
+            _single(ctx, mapId, Change("update", id=marking_id, version=current.version, fields=fields),
+                    who, expected is not None)  # fmt: skip
+        except ConflictError:
+            continue  # changed between our read and write: merge again on the new version
+        return _feature_response(ctx.store.get_marking(mapId, marking_id), request, mapId)
+    raise Problem(409, f"feature {marking_id} keeps changing; retry", "conflict",
+                  conflicting_ids=[str(marking_id)])  # fmt: skip
+
+
+@router.delete("/collections/{mapId}/items/{featureId}", tags=["Features"], summary="Delete a marking",
+               status_code=204)  # fmt: skip
+def delete_item(
+    mapId: str = MapId,
+    featureId: str = FeatureId,
+    if_match: str | None = Header(None, alias="If-Match"),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    marking_id = parse_id(featureId)
+    expected = _expected_version(ctx, mapId, marking_id, if_match)
+    _single(ctx, mapId, Change("delete", id=marking_id, version=expected), who, expected is not None)
+    return Response(status_code=204)

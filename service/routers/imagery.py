@@ -1,0 +1,185 @@
+"""Imagery: streamed GeoTIFF upload (stored as a COG), listing, and WebMercatorQuad PNG tiles."""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Depends, Path as PathParam, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
+from starlette.requests import ClientDisconnect
+
+from mapbuilder.store import ImageryInfo
+
+from ..deps import Context, get_ctx, require_read, require_write
+from ..problems import Problem
+from ._common import JSON, base_url, link, parse_id
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(tags=["Imagery"], dependencies=[Depends(require_read)])
+
+UPLOAD_TYPES = ("image/tiff", "image/geotiff", "image/tiff; application=geotiff", "application/octet-stream")
+MapId = PathParam(..., max_length=64)
+
+
+def imagery_json(i: ImageryInfo, request: Request) -> dict[str, Any]:
+    url = f"{base_url(request)}/collections/{i.map_id}/imagery/{i.id}"
+    return {
+        "id": str(i.id),
+        "mapId": i.map_id,
+        "crs": i.crs,
+        "bounds": list(i.bounds),
+        "resolution_m": i.resolution_m,
+        "created": i.created_at.isoformat() if i.created_at else None,
+        "links": [link(url, "self", JSON)],
+    }
+
+
+def convert_to_cog(src: Path, dst: Path, map_crs: str | None) -> Any:
+    """Check a GeoTIFF's georeferencing and write it as a Cloud Optimized GeoTIFF with overviews."""
+    import rasterio
+    from rasterio.shutil import copy as rio_copy
+
+    from mapbuilder.raster import ImageryError, inspect_imagery
+
+    try:
+        info = inspect_imagery(src, map_crs)
+    except ImageryError as exc:
+        raise ImageryError(str(exc).replace(str(src.resolve()), "upload").replace(str(src), "upload")) from None
+    try:
+        rio_copy(str(src), str(dst), driver="COG", COMPRESS="DEFLATE", PREDICTOR="2", BLOCKSIZE="512",
+                 OVERVIEWS="AUTO", BIGTIFF="IF_SAFER")  # fmt: skip
+        with rasterio.open(dst) as ds:
+            ds.read(1, window=((0, min(16, ds.height)), (0, min(16, ds.width))))
+    except Exception as exc:  # GDAL cannot read all of it: a truncated or damaged file
+        dst.unlink(missing_ok=True)
+        raise ImageryError(f"upload: the GeoTIFF cannot be read in full ({exc})") from None
+    return info
+
+
+@router.post(
+    "/collections/{mapId}/imagery", summary="Upload a GeoTIFF (raw request body)", status_code=201,
+    openapi_extra={"requestBody": {"required": True, "content": {
+        "image/tiff": {"schema": {"type": "string", "format": "binary"}},
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+    }}},
+)  # fmt: skip
+async def upload_imagery(
+    request: Request,
+    mapId: str = MapId,
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    limit = ctx.settings.max_upload_bytes
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in {t.split(";")[0] for t in UPLOAD_TYPES}:
+        raise Problem(415, f"Content-Type {ctype or '(none)'} is not accepted: send the GeoTIFF as image/tiff",
+                      "unsupported-media-type")  # fmt: skip
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        try:
+            if int(declared) > limit:
+                raise Problem(413, f"upload of {declared} bytes exceeds the limit of {limit} bytes", "too-large")
+        except ValueError:
+            raise Problem(400, "Content-Length is not a number") from None
+    info = await run_in_threadpool(ctx.store.get_map, mapId)
+    folder = ctx.data_dir / "imagery" / mapId
+    tmp_dir = ctx.data_dir / "imagery" / ".incoming"
+    await run_in_threadpool(tmp_dir.mkdir, parents=True, exist_ok=True)
+    token = uuid.uuid4().hex
+    tmp = tmp_dir / f"{token}.tif"
+    size = 0
+    try:
+        with open(tmp, "wb") as fh:
+            try:
+                async for chunk in request.stream():
+                    size += len(chunk)
+                    if size > limit:
+                        raise Problem(413, f"upload exceeds the limit of {limit} bytes", "too-large")
+                    fh.write(chunk)
+            except ClientDisconnect:
+                log.info("upload to %s aborted by the client after %d bytes", mapId, size)
+                raise Problem(400, "the upload was interrupted", "truncated-upload") from None
+        if declared is not None and size != int(declared):
+            raise Problem(400, f"upload is truncated: {size} of {declared} bytes arrived", "truncated-upload")
+        if size == 0:
+            raise Problem(422, "body: the upload is empty; send a GeoTIFF", "invalid-imagery")
+        await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
+        dst = folder / f"{token}.cog.tif"
+        raster = await run_in_threadpool(convert_to_cog, tmp, dst, info.crs)
+    finally:
+        tmp.unlink(missing_ok=True)
+    grid = raster.grid
+    try:
+        imagery_id = await run_in_threadpool(
+            ctx.store.add_imagery, mapId, str(dst.resolve()), grid.crs, grid.bounds, grid.resolution_m
+        )
+    except Exception:
+        dst.unlink(missing_ok=True)
+        raise
+    img = await run_in_threadpool(ctx.store.get_imagery, imagery_id)
+    body = imagery_json(img, request)
+    return JSONResponse(body, status_code=201, headers={"Location": body["links"][0]["href"]})
+
+
+@router.get("/collections/{mapId}/imagery", summary="The map's imagery")
+def list_imagery(request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx)) -> dict:
+    return {"imagery": [imagery_json(i, request) for i in ctx.store.list_imagery(mapId)],
+            "links": [link(f"{base_url(request)}/collections/{mapId}/imagery", "self", JSON)]}  # fmt: skip
+
+
+@router.get("/collections/{mapId}/imagery/{imageryId}", summary="One image")
+def get_imagery(request: Request, mapId: str = MapId, imageryId: str = PathParam(..., max_length=40),
+                ctx: Context = Depends(get_ctx)) -> dict:  # fmt: skip
+    img = ctx.store.get_imagery(parse_id(imageryId, "imageryId"))
+    if img.map_id != mapId:
+        raise Problem(404, f"map {mapId!r} has no imagery {imageryId}", "unknown-imagery")
+    return imagery_json(img, request)
+
+
+# ---------------------------------------------------------------------------- tiles
+_EMPTY_PNG: bytes | None = None
+
+
+def render_tile(paths: list[str], z: int, x: int, y: int) -> bytes | None:
+    """A 256 px WebMercatorQuad PNG of the first image covering the tile; None if none does."""
+    from rio_tiler.errors import TileOutsideBounds
+    from rio_tiler.io import Reader
+
+    for path in paths:
+        try:
+            with Reader(path) as src:
+                if not src.tile_exists(x, y, z):
+                    continue
+                img = src.tile(x, y, z, tilesize=256)
+        except TileOutsideBounds:
+            continue
+        return img.render(img_format="PNG", add_mask=True)
+    return None
+
+
+@router.get(
+    "/collections/{mapId}/imagery/tiles/WebMercatorQuad/{z}/{x}/{y}.png",
+    summary="A basemap tile of the map's imagery",
+    responses={200: {"content": {"image/png": {}}}, 404: {"description": "No imagery there"}},
+)  # fmt: skip
+def tile(
+    mapId: str = MapId,
+    z: int = PathParam(..., ge=0, le=24),
+    x: int = PathParam(..., ge=0),
+    y: int = PathParam(..., ge=0),
+    ctx: Context = Depends(get_ctx),
+):
+    n = 1 << z
+    if x >= n or y >= n:
+        raise Problem(400, f"tile {z}/{x}/{y}: x and y must be below {n} at zoom {z}", "invalid-tile")
+    images = [i for i in ctx.store.list_imagery(mapId) if os.path.isfile(i.path)]
+    data = render_tile([i.path for i in reversed(images)], z, x, y)
+    if data is None:
+        raise Problem(404, f"map {mapId!r} has no imagery in tile {z}/{x}/{y}", "no-imagery")
+    return Response(data, media_type="image/png", headers={"Cache-Control": "public, max-age=300"})

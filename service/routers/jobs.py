@@ -1,0 +1,142 @@
+"""Map builds as jobs with OGC API Processes status words."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends, Path as PathParam, Query, Request
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapbuilder.store import JobInfo, UnknownJobError
+
+from ..deps import Context, get_ctx, require_read, require_write
+from ..jobs import build_job_params
+from ..problems import Problem
+from ._common import JSON, base_url, link, parse_id
+
+router = APIRouter(tags=["Jobs"], dependencies=[Depends(require_read)])
+
+
+class BuildIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    imagery: str | int = Field(..., description="Id of imagery uploaded to this map")
+    tile_px: int = Field(1024, ge=64, le=8192, description="Core size of a tile, pixels")
+    halo_m: float = Field(4.0, gt=0, le=100, description="Halo read around each tile, metres")
+    threshold: float = Field(0.5, gt=0, lt=1, description="Marking probability threshold")
+
+
+def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
+    images = [i.get("path") for i in job.params.get("images", [])] if isinstance(job.params, dict) else []
+    imagery_ids = []
+    if job.map_id is not None and images:
+        try:
+            by_path = {i.path: i.id for i in request.app.state.ctx.store.list_imagery(job.map_id)}
+            imagery_ids = [str(by_path[p]) for p in images if p in by_path]
+        except Exception:
+            imagery_ids = []
+    out = {
+        "jobID": str(job.id),
+        "type": "process",
+        "processID": job.kind,
+        "status": job.status,
+        "progress": int(round(job.progress)),
+        "message": job.error or "",
+        "created": job.created_at.isoformat() if job.created_at else None,
+        "started": job.started_at.isoformat() if job.started_at else None,
+        "finished": job.finished_at.isoformat() if job.finished_at else None,
+        "updated": job.updated_at.isoformat() if job.updated_at else None,
+        "mapId": job.map_id,
+        "imagery": imagery_ids,
+        "links": [link(f"{base_url(request)}/jobs/{job.id}", "self", JSON)],
+    }
+    if job.status == "failed":
+        out["error"] = job.error or "failed"
+    if job.map_id is not None:
+        out["links"].append(link(f"{base_url(request)}/collections/{job.map_id}", "collection", JSON))
+    return out
+
+
+@router.post("/collections/{mapId}/builds", summary="Build the map's markings from uploaded imagery",
+             status_code=202)  # fmt: skip
+def post_build(
+    body: BuildIn,
+    request: Request,
+    mapId: str = PathParam(..., max_length=64),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    from mapbuilder.build import BuildParams
+    from mapbuilder.cluster import ClusterParams
+
+    info = ctx.store.get_map(mapId)
+    imagery_id = parse_id(body.imagery, "imagery")
+    try:
+        img = ctx.store.get_imagery(imagery_id)
+    except Exception:
+        raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery") from None
+    if img.map_id != mapId:
+        raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery")
+    if info.crs is None:
+        raise Problem(409, f"map {mapId!r} has no storage CRS: create it with one (e.g. \"crs\": \"EPSG:25832\")",
+                      "no-crs")  # fmt: skip
+    try:
+        params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m, cluster=ClusterParams(threshold=body.threshold))
+    except ValueError as exc:
+        raise Problem(422, f"body: {exc}", "invalid-build") from None
+    try:
+        job_params = build_job_params([img.path], params, info.crs)
+    except OSError:
+        raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing") from None
+    active = ctx.store.find_jobs(kind="build", map_id=mapId, status=("accepted", "running"))
+    if active:
+        raise Problem(409, f"map {mapId!r} already has a build running (job {active[0].id}); "
+                      "wait for it or DELETE it first", "build-running", jobID=str(active[0].id))  # fmt: skip
+    job_id = ctx.store.create_job("build", mapId, job_params)
+    if ctx.jobs is not None:
+        ctx.jobs.submit(job_id)
+    job = ctx.store.get_job(job_id)
+    url = f"{base_url(request)}/jobs/{job_id}"
+    return JSONResponse(job_json(job, request), status_code=202, headers={"Location": url})
+
+
+@router.get("/jobs", summary="Jobs, newest first")
+def list_jobs(
+    request: Request,
+    map: str | None = Query(None, max_length=64, description="Only the jobs of this map"),
+    status: str | None = Query(None, max_length=20, description="Only jobs in this status"),
+    limit: int = Query(100, ge=1, le=1000),
+    ctx: Context = Depends(get_ctx),
+) -> dict:
+    from mapbuilder.store import JOB_STATUSES
+
+    if status is not None and status not in JOB_STATUSES:
+        raise Problem(400, f"status: {status[:40]!r} is not one of {', '.join(JOB_STATUSES)}", "invalid-parameter")
+    jobs = ctx.store.find_jobs(map_id=map, status=status)[::-1][:limit]
+    return {"jobs": [job_json(j, request) for j in jobs],
+            "links": [link(f"{base_url(request)}/jobs", "self", JSON)]}  # fmt: skip
+
+
+@router.get("/jobs/{jobId}", summary="A job's status")
+def get_job(request: Request, jobId: str = PathParam(..., max_length=40), ctx: Context = Depends(get_ctx)):
+    return job_json(ctx.store.get_job(parse_id(jobId, "jobId")), request)
+
+
+@router.delete("/jobs/{jobId}", summary="Cancel (dismiss) a job")
+def delete_job(
+    request: Request,
+    jobId: str = PathParam(..., max_length=40),
+    ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    job_id = parse_id(jobId, "jobId")
+    job = ctx.store.get_job(job_id)
+    if job.status in ("accepted", "running"):
+        if ctx.jobs is not None:
+            ctx.jobs.cancel(job_id)
+        else:
+            ctx.store.update_job(job_id, status="dismissed", error="cancelled")
+    return job_json(ctx.store.get_job(job_id), request)
+
+
+__all__ = ["router", "UnknownJobError"]

@@ -1,0 +1,114 @@
+"""``POST /collections/{mapId}/localize``: a vehicle's pose from the markings its camera sees."""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, Path as PathParam
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapbuilder.crs import meridian_convergence_deg, to_wgs84
+
+from ..deps import Context, get_ctx, require_read
+from ..problems import Problem
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(tags=["Localization"], dependencies=[Depends(require_read)])
+
+#: Largest |x|, |y| of an observation, metres (a camera sees tens of metres).
+MAX_RANGE_M = 1000.0
+
+
+class GpsIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    lat: float = Field(..., ge=-90, le=90, description="WGS84 latitude, degrees")
+    lon: float = Field(..., ge=-180, le=180, description="WGS84 longitude, degrees")
+    heading_deg: float = Field(..., ge=-360, le=720, description="Degrees clockwise from true north")
+    position_sigma_m: float | None = Field(None, gt=0, le=1000, description="Per-axis position sigma, metres")
+    heading_sigma_deg: float | None = Field(None, gt=0, le=180, description="Heading sigma, degrees")
+
+
+class ObservationIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    x: float = Field(..., ge=-MAX_RANGE_M, le=MAX_RANGE_M, description="Forward, metres")
+    y: float = Field(..., ge=-MAX_RANGE_M, le=MAX_RANGE_M, description="Left, metres")
+    weight: float = Field(1.0, gt=0, le=1e9, description="Pixel count of the marking's cluster")
+
+
+class LocalizeIn(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "example": {
+                "gps": {"lat": 49.0071, "lon": 8.4280, "heading_deg": 87.5, "position_sigma_m": 5.0,
+                        "heading_sigma_deg": 10.0},
+                "observations": [{"x": 12.3, "y": -1.6, "weight": 140}],
+                "method": "default",
+            }
+        },
+    )  # fmt: skip
+    gps: GpsIn
+    observations: list[ObservationIn] = Field(..., max_length=10_000)
+    method: Literal["default", "pink2008"] = "default"
+
+
+def map_index(ctx: Context, map_id: str):
+    """The map's spatial index, rebuilt when the map's revision moved on."""
+    from localizer import MapIndex
+
+    revision = ctx.store.map_revision(map_id)
+    with ctx.index_lock:
+        cached = ctx.indexes.get(map_id)
+        if cached is not None and cached[0] == revision:
+            return cached[1]
+        info = ctx.store.get_map(map_id)
+        if info.crs is None:
+            raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
+        arrays = ctx.store.marking_arrays(map_id)
+        kind = getattr(arrays, "kind", None)
+        extra = {}
+        if kind is not None and len(arrays):
+            # The store keeps bearings from true north; the index wants grid bearings.
+            cx, cy = float(np.mean(arrays.x)), float(np.mean(arrays.y))
+            lon, lat = to_wgs84(info.crs).transform(cx, cy)
+            conv = float(meridian_convergence_deg(info.crs, lon, lat))
+            extra = dict(kind=kind, bearing_deg=np.asarray(arrays.bearing_deg) - conv, length_m=arrays.length_m)
+        index = MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, info.crs, **extra)
+        ctx.indexes[map_id] = (revision, index)
+        log.info("map %s: spatial index of %d markings at revision %d", map_id, len(index), revision)
+        return index
+
+
+@router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map")
+def localize_vehicle(
+    body: LocalizeIn,
+    mapId: str = PathParam(..., max_length=64),
+    ctx: Context = Depends(get_ctx),
+):
+    from localizer import Prior, localize
+
+    limit = ctx.settings.max_observations
+    if len(body.observations) > limit:
+        raise Problem(422, f"observations: {len(body.observations)} given, at most {limit} accepted",
+                      "too-many-observations")  # fmt: skip
+    index = map_index(ctx, mapId)
+    g = body.gps
+    prior_kw = {"lat": g.lat, "lon": g.lon, "heading_deg": g.heading_deg % 360.0}
+    if g.position_sigma_m is not None:
+        prior_kw["position_sigma_m"] = g.position_sigma_m
+    if g.heading_sigma_deg is not None:
+        prior_kw["heading_sigma_deg"] = g.heading_sigma_deg
+    obs = np.array([[o.x, o.y, o.weight] for o in body.observations], dtype=float).reshape(-1, 3)
+    pose = localize(index, obs, Prior(**prior_kw), method=body.method)
+    out = pose.to_dict()
+    if out.get("reason") is None:
+        out.pop("reason", None)
+    for k, v in out.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            out[k] = None
+    return JSONResponse(out)
