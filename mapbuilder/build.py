@@ -457,6 +457,7 @@ def build_map(
     resume: bool = True,
     title: str = "",
     on_tile: Callable[[TileResult], None] | None = None,
+    job_id: int | None = None,
 ) -> BuildResult:
     """Build (or rebuild, or resume) a map's detected markings from imagery.
 
@@ -480,7 +481,11 @@ def build_map(
     resume : bool
         Continue an unfinished job with the same map, images and parameters.
     on_tile : callable, optional
-        Called with every tile's result after it is stored.
+        Called with every tile's result after it is stored; an exception it
+        raises stops the build (the job is marked failed).
+    job_id : int, optional
+        Run as this existing job (one a server created for the build),
+        skipping the tiles it has done, instead of finding or creating one.
 
     Raises
     ------
@@ -511,11 +516,17 @@ def build_map(
         "params": params.to_dict(),
         "crs": crs,
     }
-    job = _find_resumable(store, map_id, job_params) if resume else None
+    if job_id is not None:
+        job = store.get_job(job_id)
+        if job.map_id != map_id or job.kind != JOB_KIND:
+            raise BuildError(f"job {job_id} is not a build of map {map_id!r}")
+    else:
+        job = _find_resumable(store, map_id, job_params) if resume else None
     if job is not None:
         job_id = job.id
         done = store.done_tiles(job_id)
-        log.info("resuming build job %d: %d tiles already done", job_id, len(done))
+        if done:
+            log.info("resuming build job %d: %d tiles already done", job_id, len(done))
     else:
         job_id = store.create_job(JOB_KIND, map_id, job_params)
         done = set()
@@ -580,7 +591,7 @@ def build_map(
         markings=n_markings,
         megapixels=mpx,
         seconds=time.perf_counter() - t0,
-        resumed=job is not None,
+        resumed=skipped > 0,
     )
     log.info("%s", result.summary())
     return result

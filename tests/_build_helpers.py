@@ -55,5 +55,5 @@ def match(detected_xy: np.ndarray, truth_xy: np.ndarray, radius: float = 0.3):
 
 
 def pipeline_model():
-    """The classifier the pipeline tests run with."""
-    return BrightnessModel()
+    """The classifier the pipeline tests run with: the default model."""
+    return None

@@ -108,6 +108,7 @@ def test_build_summary_and_job(border_scene, sqlite_url):
     assert result.megapixels == pytest.approx(h * w / 1e6)
     assert result.mpx_per_s > 0
     assert "markings" in result.summary() and "Mpx/s" in result.summary()
+    assert not result.resumed and result.tiles_skipped == 0
     job = store.get_job(result.job_id)
     assert job.status == "successful" and job.progress == 100.0
     assert len(store.done_tiles(result.job_id)) == result.tiles_total
@@ -155,6 +156,23 @@ def test_rebuild_keeps_manual_edits(border_scene, store):
     assert d.min() > 0.5
 
 
+def test_build_runs_as_a_given_job(border_scene, sqlite_url):
+    """A server creates the job first and hands its id to the build."""
+    store = Store(sqlite_url)
+    store.create_map("m", crs=CRS)
+    job_id = store.create_job("build", "m", {"requested_by": "api"})
+    result = build_map(store, "m", [border_scene.path], BuildParams(model=pipeline_model()),
+                       workers=1, progress=False, job_id=job_id)
+    assert result.job_id == job_id
+    assert store.get_job(job_id).status == "successful"
+    assert [j.id for j in store.find_jobs(kind="build")] == [job_id]
+    other = store.create_job("localize", "m", {})
+    with pytest.raises(BuildError, match="not a build"):
+        build_map(store, "m", [border_scene.path], BuildParams(model=pipeline_model()),
+                  progress=False, job_id=other)
+    store.close()
+
+
 def test_changing_the_tile_size_replaces_the_old_tiles(border_scene, sqlite_url):
     store = Store(sqlite_url)
     model = pipeline_model()
@@ -194,8 +212,11 @@ def test_geographic_image_is_built_in_its_utm_zone(tmp_path, sqlite_url):
 
     tx, ty = from_wgs84("EPSG:32632").transform([m.x for m in r.markings],
                                                  [m.y for m in r.markings])
-    pairs, d = match(_xy(found), np.column_stack([tx, ty]), 0.3)
-    assert len(pairs) == len(marks) == len(found)
+    seen = np.array([m.extra["visible"] >= 0.95 for m in r.markings])
+    assert seen.sum() >= 4
+    pairs, d = match(_xy(found), np.column_stack([tx, ty])[seen], 0.3)
+    assert len(pairs) == seen.sum()
+    assert len(found) <= len(marks) + 1
     assert np.sqrt(np.mean(d**2)) < 0.06
     store.close()
 
@@ -219,3 +240,165 @@ def test_bad_imagery_fails_before_any_job(tmp_path, sqlite_url):
         BuildParams(halo_m=2.0)
     assert store.find_jobs(kind="build") == []
     store.close()
+
+
+def _lanemap(*args, env, **kw):
+    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+@pytest.fixture(scope="module")
+def big_scene(tmp_path_factory):
+    scene = synth.procedural_scene(size_m=(96.0, 96.0), origin=(X0, Y0), seed=21)
+    return synth.render(scene, tmp_path_factory.mktemp("big") / "big.tif", 0.1, seed=21)
+
+
+def test_killed_build_resumes_without_duplicates(big_scene, tmp_path):
+    url = f"sqlite:///{tmp_path / 'kill.sqlite'}"
+    env = {**os.environ, "LANEMAP_DATABASE_URL": url}
+    args = ["build", str(big_scene.path), "--map", "m", "--tile-size", "96", "-j", "2",
+            "--no-progress"]
+    proc = _lanemap(*args, env=env, start_new_session=True)
+    store = Store(url)
+    deadline = time.monotonic() + 120
+    done = 0
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            jobs = store.find_jobs(kind="build", map_id="m") if _has_map(store, "m") else []
+            done = len(store.done_tiles(jobs[0].id)) if jobs else 0
+            if done >= 15:
+                break
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    job = store.find_jobs(kind="build", map_id="m")[0]
+    assert job.status == "running"
+    done = len(store.done_tiles(job.id))
+    n_total = math.ceil(big_scene.shape[0] / 96) * math.ceil(big_scene.shape[1] / 96)
+    assert 15 <= done < n_total, "the build must be killed midway"
+    partial = len(_detected(store, "m"))
+
+    proc = _lanemap(*args, env=env)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert f"{done} resumed" in out
+    jobs = store.find_jobs(kind="build", map_id="m")
+    assert [j.id for j in jobs] == [job.id] and jobs[0].status == "successful"
+    assert len(store.done_tiles(job.id)) == n_total
+
+    ref = build_map(store, "ref", [big_scene.path], BuildParams(tile_px=96), workers=1,
+                    progress=False)
+    resumed = sorted((round(m.x, 6), round(m.y, 6), m.weight, m.tile_key)
+                     for m in _detected(store, "m"))
+    uninterrupted = sorted((round(m.x, 6), round(m.y, 6), m.weight, m.tile_key)
+                           for m in _detected(store, "ref"))
+    assert ref.markings == len(uninterrupted) > partial > 0
+    assert resumed == uninterrupted
+    store.close()
+
+
+def _has_map(store, map_id):
+    from mapbuilder.store import UnknownMapError
+
+    try:
+        store.get_map(map_id)
+        return True
+    except UnknownMapError:
+        return False
+
+
+def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    url = f"sqlite:///{tmp_path / 'cli.sqlite'}"
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", url)
+    bad = tmp_path / "junk.tif"
+    bad.write_bytes(b"junk")
+    runner = CliRunner()
+    for args, needle in [
+        (["build", str(tmp_path / "none.tif"), "--map", "m"], "image not found"),
+        (["build", str(USGS_BASE), "--map", "m", "--halo", "1"], "halo"),
+        (["build", str(USGS_BASE), "--map", "m", "--model", str(bad)], "model"),
+    ]:
+        res = runner.invoke(app, args)
+        assert res.exit_code == 1, (args, res.output)
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0]
+    # And from the real console script, end to end.
+    proc = _lanemap("build", str(bad), "--map", "m", env={**os.environ, "LANEMAP_DATABASE_URL": url})
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 1
+    assert err.strip().startswith("error: ") and "cannot open image" in err
+    assert len(err.strip().splitlines()) == 1
+    assert Store(url).find_jobs(kind="build") == []
+
+
+@pytest.fixture(scope="module")
+def usgs_builds(tmp_path_factory):
+    url = f"sqlite:///{tmp_path_factory.mktemp('usgs') / 'usgs.sqlite'}"
+    store = Store(url)
+    out = {}
+    for name, path in [("plain", USGS_BASE), ("alpha", USGS_ALPHA), ("nodata", USGS_NODATA)]:
+        build_map(store, name, [path], BuildParams(tile_px=128), workers=1, progress=False)
+        out[name] = _detected(store, name)
+    store.close()
+    return out
+
+
+#: Detections the default model may make elsewhere in the USGS crop (kerbs, cars, roofs).
+FALSE_POSITIVES_USGS = 25
+
+#: Stall lines of the USGS crop (EPSG:26913): x of each, and the y range they span.
+STALLS_X = np.array([519487.2, 519490.0, 519493.0, 519496.0])
+STALLS_Y = (4311652.5, 4311659.5)
+
+
+def _on_stalls(ms):
+    return [m for m in ms if np.abs(STALLS_X - m.x).min() < 0.4
+            and STALLS_Y[0] <= m.y <= STALLS_Y[1]]
+
+
+def _by_line(ms):
+    lines: dict[int, list] = {}
+    for m in _on_stalls(ms):
+        lines.setdefault(int(np.abs(STALLS_X - m.x).argmin()), []).append(m)
+    return lines
+
+
+def test_usgs_crop_finds_the_stall_lines(usgs_builds):
+    ms = usgs_builds["plain"]
+    lines = _by_line(ms)
+    assert sorted(lines) == [0, 1, 2, 3]
+    for pieces in lines.values():
+        longest = max(pieces, key=lambda m: m.length_m)
+        # Stall lines run north-south: bearing near 0/180 (true north, ~-0.4° convergence).
+        assert min(longest.bearing_deg, 180 - longest.bearing_deg) < 10
+        assert longest.length_m > 1.0
+        assert all(0.08 <= m.width_m <= 0.6 for m in pieces)
+    n_on = sum(len(p) for p in lines.values())
+    assert len(ms) - n_on <= FALSE_POSITIVES_USGS
+
+
+def test_usgs_masked_variants_give_the_same_stall_lines(usgs_builds):
+    ref = {k: sum(m.weight for m in v) for k, v in _by_line(usgs_builds["plain"]).items()}
+    for name in ("alpha", "nodata"):
+        got = {k: sum(m.weight for m in v) for k, v in _by_line(usgs_builds[name]).items()}
+        # A few pixels next to the cars are masked in these variants, so the
+        # painted area found may differ slightly, never the lines.
+        assert sorted(got) == sorted(ref), name
+        for k in ref:
+            assert got[k] == pytest.approx(ref[k], rel=0.5), (name, k)
+    # Nothing is detected in the masked-out areas.
+    import rasterio
+
+    for name, path in (("alpha", USGS_ALPHA), ("nodata", USGS_NODATA)):
+        with rasterio.open(path) as ds:
+            mask = ds.dataset_mask()
+            inv = ~ds.transform
+            for m in usgs_builds[name]:
+                c, r = inv @ (m.x, m.y)
+                assert mask[int(r), int(c)] > 0
