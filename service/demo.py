@@ -91,6 +91,7 @@ def render_imagery(store: Store, lmap, items, data_dir: Path, *, progress: bool 
     try:
         info = convert_to_cog(raw, cog, DEMO_CRS)
     finally:
-        raw.unlink(missing_ok=True)
+        for f in folder.glob("demo-render*"):  # the raw render and its truth file
+            f.unlink(missing_ok=True)
     grid = inspect_imagery(cog, DEMO_CRS).grid if info is None else info.grid
     return store.add_imagery(DEMO_MAP, str(cog.resolve()), grid.crs, grid.bounds, grid.resolution_m)

@@ -11,13 +11,13 @@ from fastapi import APIRouter, Body, Depends, Header, Path as PathParam, Query, 
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapbuilder.crs import from_wgs84
 from mapbuilder.geojson import GeoJSONError, read_feature_collection
 from mapbuilder.model import STATUSES
 from mapbuilder.store import Change, ConflictError, MapInfo, Marking, UnknownMarkingError
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
+from ..queries import markings_in_lonlat_box
 from ._common import (
     CRS84, GEOJSON, JSON, base_url, crs_uri, etag, feature_of, if_match_versions, link,
     marking_from_feature, parse_id, patched_marking, update_fields,
@@ -216,20 +216,6 @@ def parse_statuses(text: str | None) -> list[str] | None:
     return out or None
 
 
-def _storage_box(info: MapInfo, bbox: tuple[float, float, float, float]):
-    """The query box in the storage CRS, or None when it misses the map."""
-    mb = info.bounds_wgs84()
-    if mb is None or info.crs is None:
-        return None
-    w, s, e, n = max(bbox[0], mb[0]), max(bbox[1], mb[1]), min(bbox[2], mb[2]), min(bbox[3], mb[3])
-    if w > e or s > n:
-        return None
-    box = from_wgs84(info.crs).transform_bounds(w, s, e, n, densify_pts=21)
-    if not all(math.isfinite(v) for v in box):
-        return None
-    return box
-
-
 @router.get(
     "/collections/{mapId}/items", tags=["Features"], summary="Markings of a map (GeoJSON)",
     responses={200: {"content": {GEOJSON: {}}}},
@@ -247,14 +233,8 @@ def get_items(
     lim = min(limit if limit is not None else s.items_default_limit, s.items_max_limit)
     statuses = parse_statuses(status)
     if bbox is not None:
-        box = parse_bbox(bbox)
         info = ctx.store.get_map(mapId)
-        sbox = _storage_box(info, box)
-        if sbox is None:
-            items, matched = [], 0
-        else:
-            matched = ctx.store.count_bbox(mapId, *sbox, statuses=statuses)
-            items = ctx.store.query_bbox(mapId, *sbox, statuses=statuses, limit=lim, offset=offset)
+        items, matched = markings_in_lonlat_box(ctx.store, info, parse_bbox(bbox), statuses, lim, offset)
     else:
         items, matched = ctx.store.list_markings(mapId, limit=lim, offset=offset, statuses=statuses)
     url = request.url

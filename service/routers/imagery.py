@@ -50,7 +50,9 @@ def convert_to_cog(src: Path, dst: Path, map_crs: str | None) -> Any:
     try:
         info = inspect_imagery(src, map_crs)
     except ImageryError as exc:
-        raise ImageryError(str(exc).replace(str(src.resolve()), "upload").replace(str(src), "upload")) from None
+        # Server paths are no business of the client.
+        msg = str(exc).replace(str(src.resolve()), "upload").replace(str(src), "upload").replace(src.name, "file")
+        raise ImageryError(msg) from None
     try:
         rio_copy(str(src), str(dst), driver="COG", COMPRESS="DEFLATE", PREDICTOR="2", BLOCKSIZE="512",
                  OVERVIEWS="AUTO", BIGTIFF="IF_SAFER")  # fmt: skip

@@ -1,0 +1,246 @@
+"""OGC API Features (Part 1 read, Part 4 edit) against a real uvicorn server, on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import math
+
+import httpx
+import pytest
+
+from mapbuilder.crs import to_wgs84
+from mapbuilder.geojson import markings_to_feature_collection
+from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+from tests._api_helpers import SHARED_DATA, feature, shared_server
+
+KARLSRUHE_OSM = SHARED_DATA / "karlsruhe-lanelet2" / "mapping_example.osm"
+PROBLEM = "application/problem+json"
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def api(request):
+    return shared_server(request.param)
+
+
+@pytest.fixture(scope="module")
+def karlsruhe_fc():
+    items = layout_markings(read_lanelet2(KARLSRUHE_OSM, crs="EPSG:25832"))
+    tr = to_wgs84("EPSG:25832")
+    for m in items:
+        m.lon, m.lat = tr.transform(m.x, m.y)
+    return markings_to_feature_collection(items)
+
+
+@pytest.fixture(scope="module")
+def imported(api, karlsruhe_fc):
+    map_id = api.new_map(prefix="ka")
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=api.auth, timeout=60)
+    assert r.status_code == 201, r.text
+    return map_id, r.json()
+
+
+def assert_problem(r: httpx.Response, status: int, *words: str) -> dict:
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith(PROBLEM)
+    body = r.json()
+    assert body["status"] == status and body["type"] and body["title"] and body["detail"]
+    for w in words:
+        assert w in body["detail"], body
+    return body
+
+
+def test_landing_conformance_and_openapi(api):
+    with api.client() as c:
+        landing = c.get("/").json()
+        rels = {link["rel"] for link in landing["links"]}
+        assert {"self", "service-desc", "conformance", "data"} <= rels
+        conf = c.get("/conformance").json()["conformsTo"]
+        assert "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/core" in conf
+        assert "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/geojson" in conf
+        assert "http://www.opengis.net/spec/ogcapi-features-4/1.0/conf/create-replace-delete" in conf
+        spec = c.get("/openapi.json").json()
+        assert "/collections/{mapId}/items/{featureId}" in spec["paths"]
+        assert {"get", "put", "patch", "delete"} <= set(spec["paths"]["/collections/{mapId}/items/{featureId}"])
+
+
+def test_create_list_and_delete_collections(api):
+    map_id = api.new_map()
+    with api.client() as c:
+        ids = [col["id"] for col in c.get("/collections").json()["collections"]]
+        assert map_id in ids
+        col = c.get(f"/collections/{map_id}").json()
+        assert col["storageCrs"] == "http://www.opengis.net/def/crs/EPSG/0/25832"
+        assert any(link["rel"] == "items" for link in col["links"])
+        assert_problem(c.post("/collections", json={"id": map_id}, headers=api.auth), 409, map_id)
+        assert_problem(c.post("/collections", json={"id": "bad id!"}, headers=api.auth), 400, "map id")
+        assert_problem(c.post("/collections", json={"id": 5}, headers=api.auth), 422, "body id")
+        assert c.delete(f"/collections/{map_id}", headers=api.auth).status_code == 204
+        assert_problem(c.get(f"/collections/{map_id}"), 404, map_id)
+        assert_problem(c.delete(f"/collections/{map_id}", headers=api.auth), 404)
+
+
+def test_import_then_page_through_all_items(api, imported, karlsruhe_fc):
+    map_id, result = imported
+    n = len(karlsruhe_fc["features"])
+    assert result["imported"] == n
+    with api.client() as c:
+        col = c.get(f"/collections/{map_id}").json()
+        w, s, e, nn = col["extent"]["spatial"]["bbox"][0]
+        assert 8.3 < w < e < 8.5 and 48.9 < s < nn < 49.1  # Karlsruhe
+        seen = []
+        url = f"/collections/{map_id}/items?limit=300"
+        pages = 0
+        while url:
+            r = c.get(url)
+            assert r.status_code == 200 and r.headers["content-type"].startswith("application/geo+json")
+            page = r.json()
+            assert page["numberMatched"] == n
+            assert page["numberReturned"] == len(page["features"]) <= 300
+            seen += [f["id"] for f in page["features"]]
+            nxt = [link["href"] for link in page["links"] if link["rel"] == "next"]
+            url = nxt[0] if nxt else None
+            pages += 1
+        assert pages == math.ceil(n / 300)
+        assert len(seen) == len(set(seen)) == n
+        last = c.get(f"/collections/{map_id}/items?limit=300&offset=300").json()
+        assert any(link["rel"] == "prev" for link in last["links"])
+
+
+def test_bbox_returns_exactly_the_features_inside(api, imported):
+    map_id, _ = imported
+    with api.client() as c:
+        everything = c.get(f"/collections/{map_id}/items?limit=10000").json()["features"]
+        lons = sorted(f["geometry"]["coordinates"][0] for f in everything)
+        lats = sorted(f["geometry"]["coordinates"][1] for f in everything)
+        box = (lons[len(lons) // 4], lats[len(lats) // 4], lons[len(lons) // 2], lats[3 * len(lats) // 4])
+        r = c.get(f"/collections/{map_id}/items", params={"bbox": ",".join(map(str, box)), "limit": 10000})
+        got = {f["id"] for f in r.json()["features"]}
+        eps = 1e-7  # ~1 cm: the box is converted to the storage CRS
+        inside = {f["id"] for f in everything
+                  if box[0] + eps <= f["geometry"]["coordinates"][0] <= box[2] - eps
+                  and box[1] + eps <= f["geometry"]["coordinates"][1] <= box[3] - eps}  # fmt: skip
+        near = {f["id"] for f in everything
+                if box[0] - eps <= f["geometry"]["coordinates"][0] <= box[2] + eps
+                and box[1] - eps <= f["geometry"]["coordinates"][1] <= box[3] + eps}  # fmt: skip
+        assert inside and inside <= got <= near
+        assert r.json()["numberMatched"] == len(got)
+        far = c.get(f"/collections/{map_id}/items", params={"bbox": "-10,-10,-9,-9"}).json()
+        assert far["numberMatched"] == 0 and far["features"] == []
+        world = c.get(f"/collections/{map_id}/items", params={"bbox": "-180,-90,180,90", "limit": 1}).json()
+        assert world["numberMatched"] == len(everything)
+
+
+@pytest.mark.parametrize("bbox", ["1,2,3", "a,b,c,d", "0,0,nan,1", "0,0,inf,1", "0,10,1,5", "10,0,5,1",
+                                  "-200,0,0,1", "0,-95,1,0", "1e999,0,1,1"])  # fmt: skip
+def test_bad_bbox_is_400(api, imported, bbox):
+    map_id, _ = imported
+    r = httpx.get(f"{api.base_url}/collections/{map_id}/items", params={"bbox": bbox})
+    assert_problem(r, 400, "bbox")
+
+
+def test_limits_and_offsets(api, imported):
+    map_id, _ = imported
+    with api.client() as c:
+        assert_problem(c.get(f"/collections/{map_id}/items?limit=0"), 422, "limit")
+        assert_problem(c.get(f"/collections/{map_id}/items?offset=-1"), 422, "offset")
+        assert_problem(c.get(f"/collections/{map_id}/items?limit=abc"), 422, "limit")
+        big = c.get(f"/collections/{map_id}/items?limit=99999999999").json()
+        assert big["numberReturned"] == big["numberMatched"]
+        default = c.get(f"/collections/{map_id}/items").json()
+        assert default["numberReturned"] == 100
+        beyond = c.get(f"/collections/{map_id}/items?offset=100000").json()
+        assert beyond["numberReturned"] == 0 and beyond["numberMatched"] > 0
+        assert_problem(c.get(f"/collections/{map_id}/items?status=maybe"), 400, "status")
+
+
+def test_create_read_replace_patch_delete_with_etags(api):
+    map_id = api.new_map()
+    base = f"/collections/{map_id}/items"
+    with api.client(headers=api.auth) as c:
+        r = c.post(base, json=feature(8.428, 49.0071, weight=140, kind="dash", score=0.9))
+        assert r.status_code == 201, r.text
+        fid = r.json()["id"]
+        assert r.headers["location"].endswith(f"{base}/{fid}")
+        assert r.headers["etag"] == '"1"'
+        assert r.json()["properties"]["source"] == "manual"
+        g = c.get(f"{base}/{fid}")
+        assert g.headers["etag"] == '"1"'
+        assert g.json()["geometry"]["coordinates"] == pytest.approx([8.428, 49.0071], abs=1e-9)
+        # PUT replaces, If-Match honoured
+        put = c.put(f"{base}/{fid}", json=feature(8.4281, 49.0072, weight=50, status="accepted"),
+                    headers={"If-Match": '"1"'})  # fmt: skip
+        assert put.status_code == 200, put.text
+        assert put.headers["etag"] == '"2"'
+        assert put.json()["properties"]["weight"] == 50 and put.json()["properties"]["status"] == "accepted"
+        assert put.json()["geometry"]["coordinates"] == pytest.approx([8.4281, 49.0072], abs=1e-9)
+        stale = c.put(f"{base}/{fid}", json=feature(8.0, 49.0), headers={"If-Match": '"1"'})
+        assert_problem(stale, 412, "version 2")
+        assert c.get(f"{base}/{fid}").json()["properties"]["weight"] == 50
+        # PATCH without If-Match (as QGIS does), merge-patch null removes the score
+        p = c.patch(f"{base}/{fid}", content=b'{"properties": {"score": null, "status": "rejected"}}',
+                    headers={"Content-Type": "application/merge-patch+json"})  # fmt: skip
+        assert p.status_code == 200, p.text
+        props = p.json()["properties"]
+        assert props["score"] is None and props["status"] == "rejected" and props["weight"] == 50
+        assert p.headers["etag"] == '"3"'
+        # a patch that changes nothing keeps the version, and the position does not drift
+        same = c.patch(f"{base}/{fid}", json={"properties": {"status": "rejected"}})
+        assert same.headers["etag"] == '"3"'
+        assert same.json()["geometry"]["coordinates"] == put.json()["geometry"]["coordinates"]
+        assert_problem(c.patch(f"{base}/{fid}", json={"properties": {"weight": -1}}), 422, "weight")
+        assert_problem(c.patch(f"{base}/{fid}", json={"geometry": None}), 422, "geometry")
+        assert_problem(c.delete(f"{base}/{fid}", headers={"If-Match": '"2"'}), 412)
+        assert c.delete(f"{base}/{fid}", headers={"If-Match": '"3"'}).status_code == 204
+        assert_problem(c.get(f"{base}/{fid}"), 404, fid)
+        assert_problem(c.patch(f"{base}/{fid}", json={"properties": {"status": "accepted"}}), 404)
+        assert_problem(c.delete(f"{base}/{fid}"), 404)
+
+
+def test_options_answers_allow(api):
+    map_id = api.new_map()
+    with api.client(headers=api.auth) as c:
+        fid = c.post(f"/collections/{map_id}/items", json=feature(8.428, 49.0071)).json()["id"]
+        r = c.options(f"/collections/{map_id}/items")
+        assert {"GET", "POST"} <= {m.strip() for m in r.headers["allow"].split(",")}
+        r = c.options(f"/collections/{map_id}/items/{fid}")
+        assert {"GET", "PUT", "PATCH", "DELETE"} <= {m.strip() for m in r.headers["allow"].split(",")}
+
+
+@pytest.mark.parametrize("body", [
+    {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}, "properties": {}},
+    {"type": "Feature", "geometry": {"type": "Point", "coordinates": [200, 0]}, "properties": {}},
+    {"type": "Feature", "geometry": {"type": "Point", "coordinates": ["a", 0]}, "properties": {}},
+    {"type": "Feature", "geometry": {"type": "Point", "coordinates": [8.4, 49.0]}, "properties": {"status": "x"}},
+    {"type": "Feature", "geometry": {"type": "Point", "coordinates": [8.4, 49.0]}, "properties": {"weight": "1"}},
+    {"type": "Feature", "properties": {}},
+    [1, 2, 3],
+    "Feature",
+])  # fmt: skip
+def test_invalid_features_are_422_and_write_nothing(api, body):
+    map_id = api.new_map()
+    with api.client(headers=api.auth) as c:
+        r = c.post(f"/collections/{map_id}/items", json=body)
+        assert_problem(r, 422)
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 0
+
+
+def test_writes_need_a_valid_token(api):
+    map_id = api.new_map()
+    with api.client() as c:
+        r = c.post(f"/collections/{map_id}/items", json=feature(8.428, 49.0071))
+        assert_problem(r, 401, "Bearer")
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        r = c.post(f"/collections/{map_id}/items", json=feature(8.428, 49.0071),
+                   headers={"Authorization": "Bearer wrong"})  # fmt: skip
+        assert_problem(r, 401, "not valid")
+        assert_problem(c.delete(f"/collections/{map_id}"), 401)
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 0
+        assert c.get(f"/collections/{map_id}").status_code == 200
+
+
+def test_import_errors_name_the_feature(api):
+    map_id = api.new_map()
+    fc = {"type": "FeatureCollection", "features": [feature(8.4, 49.0), feature(8.4, 95.0)]}
+    with api.client(headers=api.auth) as c:
+        assert_problem(c.post(f"/collections/{map_id}/import", json=fc), 422, "feature 1")
+        assert_problem(c.post(f"/collections/{map_id}/import", json={"type": "Nope"}), 422, "FeatureCollection")
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 0
