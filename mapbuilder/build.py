@@ -379,7 +379,7 @@ def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iter
     except (OSError, TimeoutError) as exc:
         raise BuildError(f"cannot reach Dask scheduler at {address}: {exc}") from exc
     try:
-        n_workers = max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values()))
+        n_workers = max(1, sum(client.nthreads().values()))
         in_flight_max = 2 * n_workers
         it = iter(tasks)
         first = [client.submit(process_tile, t, pure=False) for _, t in zip(range(in_flight_max), it)]
@@ -503,6 +503,7 @@ def build_map(
         if not p.is_file():
             raise ImageryError(f"image not found: {p}")
         paths.append(str(p.resolve()))
+    paths = list(dict.fromkeys(paths))  # the same file twice would repeat its tiles
     t0 = time.perf_counter()
     # Load the model here too, so that a bad model file fails before any job starts.
     _model(params.model)
