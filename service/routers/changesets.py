@@ -109,6 +109,18 @@ def post_changeset(
         # The patch was merged onto this version: apply it only to that version.
         changes.append(Change("update", id=mid, version=current.version, fields=fields))
     if conflicts:
+        # Report the deletes that would conflict too, so the client sees every one at once.
+        for ch in changes:
+            if ch.op != "delete":
+                continue
+            try:
+                current = ctx.store.get_marking(mapId, ch.id)
+            except UnknownMarkingError:
+                conflicts.append(Conflict(id=ch.id, reason="missing", expected_version=ch.version))
+                continue
+            if ch.version is not None and ch.version != current.version:
+                conflicts.append(Conflict(ch.id, "version", expected_version=ch.version,
+                                          actual_version=current.version))  # fmt: skip
         raise ConflictError(conflicts)
     res = ctx.store.apply_changeset(mapId, changes, who, body.comment)
     return _created(res, mapId, request)

@@ -1,0 +1,193 @@
+"""Atomic changesets, history and revert, and concurrent edits, over HTTP on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import threading
+
+import httpx
+import pytest
+
+from tests._api_helpers import feature, shared_server
+from tests.test_api_features import assert_problem
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def api(request):
+    return shared_server(request.param)
+
+
+def _seed(api, n=3):
+    map_id = api.new_map()
+    with api.client(headers=api.auth) as c:
+        ids = []
+        for i in range(n):
+            r = c.post(f"/collections/{map_id}/items", json=feature(8.428 + i * 1e-4, 49.0071, weight=10 + i))
+            assert r.status_code == 201
+            ids.append(r.json()["id"])
+    return map_id, ids
+
+
+def _state(c, map_id):
+    fc = c.get(f"/collections/{map_id}/items?limit=10000").json()
+    return {f["id"]: (f["properties"]["weight"], f["properties"]["status"], f["properties"]["version"])
+            for f in fc["features"]}  # fmt: skip
+
+
+def test_changeset_applies_all_changes_and_logs_them(api):
+    map_id, (a, b, c_) = _seed(api)
+    body = {
+        "comment": "review of block 7",
+        "changes": [
+            {"op": "create", "feature": feature(8.4285, 49.0072, weight=77, kind="dash")},
+            {"op": "update", "id": a, "version": '"1"', "patch": {"properties": {"status": "accepted"}}},
+            {"op": "update", "id": b, "patch": {"properties": {"weight": 99}}},
+            {"op": "delete", "id": c_, "version": "1"},
+        ],
+    }
+    with api.client(headers=api.auth) as c:
+        r = c.post(f"/collections/{map_id}/changesets", json=body)
+        assert r.status_code == 201, r.text
+        res = r.json()
+        ops = [x["op"] for x in res["results"]]
+        assert ops == ["create", "update", "update", "delete"]
+        new_id = res["results"][0]["id"]
+        assert res["results"][1] == {"op": "update", "id": a, "version": "2"}
+        # the returned versions are the features' ETags
+        assert c.get(f"/collections/{map_id}/items/{a}").headers["etag"] == '"2"'
+        state = _state(c, map_id)
+        assert state[new_id][0] == 77 and state[a][1] == "accepted" and state[b][0] == 99 and c_ not in state
+        hist = c.get(f"/collections/{map_id}/history", params={"changeset": res["changeset"]}).json()
+        assert hist["numberMatched"] == 4
+        by_op = {}
+        for e in hist["edits"]:
+            by_op.setdefault(e["op"], []).append(e)
+            assert e["comment"] == "review of block 7" and e["who"] == "api" and e["at"]
+        assert by_op["delete"][0]["before"]["weight"] == 12 and by_op["delete"][0]["after"] is None
+        upd = {e["feature_id"]: e for e in by_op["update"]}
+        assert upd[b]["before"]["weight"] == 11 and upd[b]["after"]["weight"] == 99
+        cs = c.get(f"/collections/{map_id}/changesets/{res['changeset']}").json()
+        assert (cs["created"], cs["updated"], cs["deleted"]) == (1, 2, 1) and len(cs["edits"]) == 4
+        listed = c.get(f"/collections/{map_id}/changesets").json()
+        assert listed["changesets"][0]["id"] == res["changeset"]
+
+
+def test_changeset_with_a_stale_version_changes_nothing(api):
+    map_id, (a, b, c_) = _seed(api)
+    with api.client(headers=api.auth) as c:
+        assert c.patch(f"/collections/{map_id}/items/{b}", json={"properties": {"weight": 5}}).status_code == 200
+        before = _state(c, map_id)
+        body = {"changes": [
+            {"op": "create", "feature": feature(8.4285, 49.0072)},
+            {"op": "update", "id": a, "version": "1", "patch": {"properties": {"weight": 1}}},
+            {"op": "update", "id": b, "version": "1", "patch": {"properties": {"weight": 2}}},
+            {"op": "delete", "id": c_, "version": "1"},
+            {"op": "delete", "id": "999999", "version": "1"},
+        ]}  # fmt: skip
+        r = c.post(f"/collections/{map_id}/changesets", json=body)
+        problem = assert_problem(r, 409)
+        assert set(problem["conflicting_ids"]) == {b, "999999"}
+        reasons = {x["id"]: x["reason"] for x in problem["conflicts"]}
+        assert reasons == {b: "version", "999999": "missing"}
+        assert _state(c, map_id) == before
+        hist = c.get(f"/collections/{map_id}/history").json()
+        assert hist["numberMatched"] == 4  # three creates and the one patch
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"op": "move", "id": "1"}, "changes.0.op"),
+    ({"op": "update", "patch": {}}, "changes[0].id"),
+    ({"op": "update", "id": "1"}, "changes[0].patch"),
+    ({"op": "create"}, "changes[0].feature"),
+    ({"op": "delete", "id": "x1"}, "changes[0].id"),
+    ({"op": "delete", "id": "1", "version": "v1"}, "changes[0].version"),
+    ({"op": "create", "feature": {"type": "Feature", "geometry": None}}, "changes[0].feature"),
+])  # fmt: skip
+def test_malformed_changes_name_the_change(api, change, words):
+    map_id, _ = _seed(api, 1)
+    with api.client(headers=api.auth) as c:
+        r = c.post(f"/collections/{map_id}/changesets", json={"changes": [change]})
+        assert_problem(r, 422, words)
+        assert c.get(f"/collections/{map_id}/history").json()["numberMatched"] == 1
+        assert_problem(c.post(f"/collections/{map_id}/changesets", json={"changes": []}), 422, "changes")
+
+
+def test_revert_changeset_restores_the_map(api):
+    map_id, (a, b, c_) = _seed(api)
+    with api.client(headers=api.auth) as c:
+        before = {k: v[:2] for k, v in _state(c, map_id).items()}
+        body = {"changes": [
+            {"op": "create", "feature": feature(8.4285, 49.0072)},
+            {"op": "update", "id": a, "patch": {"properties": {"weight": 1, "status": "rejected"}}},
+            {"op": "delete", "id": c_},
+        ]}  # fmt: skip
+        cs = c.post(f"/collections/{map_id}/changesets", json=body).json()["changeset"]
+        r = c.post(f"/collections/{map_id}/changesets/{cs}/revert", json={"comment": "undo"})
+        assert r.status_code == 201, r.text
+        after = {k: v[:2] for k, v in _state(c, map_id).items()}
+        assert after == before  # same ids (the deleted one is back under its id), same values
+        revert = c.get(f"/collections/{map_id}/changesets/{r.json()['changeset']}").json()
+        assert revert["reverts"] == cs and revert["comment"] == "undo"
+        # reverting again meets the restored markings: a conflict, not a server error
+        again = c.post(f"/collections/{map_id}/changesets/{cs}/revert")
+        assert_problem(again, 409)
+        assert {k: v[:2] for k, v in _state(c, map_id).items()} == before
+        assert_problem(c.post(f"/collections/{map_id}/changesets/424242/revert"), 404, "424242")
+
+
+def test_revert_one_edit(api):
+    map_id, (a, b, _) = _seed(api)
+    with api.client(headers=api.auth) as c:
+        c.patch(f"/collections/{map_id}/items/{a}", json={"properties": {"weight": 500}})
+        c.patch(f"/collections/{map_id}/items/{b}", json={"properties": {"weight": 600}})
+        edits = c.get(f"/collections/{map_id}/history", params={"feature": a}).json()["edits"]
+        edit = next(e for e in edits if e["op"] == "update")
+        r = c.post(f"/collections/{map_id}/history/{edit['id']}/revert")
+        assert r.status_code == 201, r.text
+        state = _state(c, map_id)
+        assert state[a][0] == 10 and state[b][0] == 600
+        assert_problem(c.post(f"/collections/{map_id}/history/{edit['id']}/revert"), 409)
+        assert_problem(c.post(f"/collections/{map_id}/history/987654/revert"), 404)
+
+
+def test_concurrent_if_match_edits_one_wins(api):
+    map_id, (a, *_rest) = _seed(api, 1)
+    results = []
+    barrier = threading.Barrier(4)
+
+    def edit(i):
+        with httpx.Client(base_url=api.base_url, headers=api.auth, timeout=60) as c:
+            barrier.wait()
+            r = c.patch(f"/collections/{map_id}/items/{a}", json={"properties": {"weight": 100 + i}},
+                        headers={"If-Match": '"1"'})  # fmt: skip
+            results.append((i, r.status_code))
+
+    threads = [threading.Thread(target=edit, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    codes = sorted(code for _, code in results)
+    assert codes == [200, 412, 412, 412], results
+    winner = next(i for i, code in results if code == 200)
+    with api.client() as c:
+        f = c.get(f"/collections/{map_id}/items/{a}")
+        assert f.headers["etag"] == '"2"' and f.json()["properties"]["weight"] == 100 + winner
+
+
+def test_concurrent_patches_without_if_match_lose_nothing(api):
+    map_id, (a, *_rest) = _seed(api, 1)
+    barrier = threading.Barrier(2)
+    codes = []
+
+    def edit(prop, value):
+        with httpx.Client(base_url=api.base_url, headers=api.auth, timeout=60) as c:
+            barrier.wait()
+            codes.append(c.patch(f"/collections/{map_id}/items/{a}", json={"properties": {prop: value}}).status_code)
+
+    t1 = threading.Thread(target=edit, args=("status", "accepted"))
+    t2 = threading.Thread(target=edit, args=("kind", "stop_line"))
+    t1.start(), t2.start(), t1.join(), t2.join()
+    assert codes == [200, 200]
+    with api.client() as c:
+        props = c.get(f"/collections/{map_id}/items/{a}").json()["properties"]
+    assert props["status"] == "accepted" and props["kind"] == "stop_line" and props["version"] == 3
