@@ -14,7 +14,7 @@ from .frames import wrap_angle
 from .geometry import LocalMap, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
-from .robust import data_score, data_weights, fit_statistics, log_prior, noise_sigma, robust_refine
+from .robust import data_score, data_weights, view_of, fit_statistics, log_prior, noise_sigma, robust_refine
 from .search import correlative_search
 from .types import Hypothesis, Options, Pose, Prior
 
@@ -180,9 +180,8 @@ def localize(
         pose, iterations, trace = res.pose, res.iterations, res.trace
         hyps: list[tuple[tuple[float, float, float], float]] = [(pose, 1.0)]
         status = "ok"
+        diagnostics = {}
     else:
-        w_ref = w_data / sig**2
-        w_ref = w_ref / w_ref.mean()
         top = np.argsort(-w_data, kind="stable")[: options.max_search_observations]
         cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, 1.5))
         cands = correlative_search(
@@ -190,28 +189,27 @@ def localize(
             min(options.search_sigmas * sigma_yaw, math.pi), sigma_p, sigma_yaw, cell,
             options.outlier_density, options.candidates, options.temperature,
         )
+        view = view_of(obs_xy, options)
         refined = []
         for k, cand in enumerate(cands):
             r = robust_refine(
-                local, obs_xy, w_ref, (cand.x, cand.y, cand.yaw), options,
+                local, obs_xy, w_data, sig, (cand.x, cand.y, cand.yaw), options,
                 record=options.record_trace and k == 0,
             )
-            score = data_score(local, obs_xy, w_data, sig, r.pose, options) / options.temperature
+            score = data_score(local, obs_xy, w_data, sig, r.pose, options, view) / options.temperature
             score += log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
             refined.append((score, r, cand))
         refined.sort(key=lambda t: -t[0])
-        kept: list[tuple[float, Any, Any]] = []
-        for item in refined:
-            pz = item[1].pose
-            if any(
-                math.hypot(pz[0] - o[1].pose[0], pz[1] - o[1].pose[1]) < 1.0
-                and abs(wrap_angle(pz[2] - o[1].pose[2])) < math.radians(2.0)
-                for o in kept
-            ):
-                continue
-            kept.append(item)
-        if not kept:
+        all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in cands]
+        if not refined:
             return Pose(status="failed", crs=crs, reason="the global search found no candidate")
+        # Refinements that end inside the best one's uncertainty are the same optimum
+        # (e.g. sliding along a solid line), not an alternative.
+        best_fit = fit_statistics(local, obs_xy, w_data, sig, refined[0][1].pose, options, prior_info)
+        kept: list[tuple[float, Any, Any]] = [refined[0]]
+        for item in refined[1:]:
+            if not any(_same_optimum(item[1].pose, o[1].pose, best_fit.covariance) for o in kept):
+                kept.append(item)
         scores = np.array([k[0] for k in kept])
         prob = np.exp(scores - scores.max())
         prob /= prob.sum()
@@ -221,6 +219,15 @@ def localize(
         if options.record_trace:
             trace = [prior_pose, (kept[0][2].x, kept[0][2].y, kept[0][2].yaw)] + best.trace[1:]
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
+        diagnostics = {
+            "search": all_search,
+            "candidates": [
+                {"pose": (k[1].pose[0] + px, k[1].pose[1] + py, k[1].pose[2]), "score": k[0],
+                 "prior": log_prior(k[1].pose, prior_pose, sigma_p, sigma_yaw),
+                 "search": (k[2].x + px, k[2].y + py, k[2].yaw, k[2].score)}
+                for k in kept
+            ]
+        }
         status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
 
     fit = fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
@@ -240,6 +247,7 @@ def localize(
     out.iterations = int(iterations)
     out.inliers = fit.inliers
     out.rms_m = fit.rms_m
+    out.diagnostics = diagnostics
     if options.record_trace:
         out.trace = [(t[0] + local.origin[0], t[1] + local.origin[1], t[2]) for t in trace]
     if status == "ambiguous":
@@ -251,6 +259,20 @@ def localize(
                 Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p)
             )
     return out
+
+
+def _same_optimum(a, b, cov) -> bool:
+    d = np.array([a[0] - b[0], a[1] - b[1], wrap_angle(a[2] - b[2])])
+    if abs(d[2]) > math.radians(2.0):
+        return False
+    if math.hypot(d[0], d[1]) < 0.75:
+        return True
+    if cov is None:
+        return False
+    try:
+        return float(d @ np.linalg.solve(cov, d)) < 9.0
+    except np.linalg.LinAlgError:
+        return False
 
 
 def _make_pose(frame, origin, pose, status, crs) -> Pose:

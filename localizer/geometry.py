@@ -104,7 +104,7 @@ class LocalMap:
         i = np.where(np.isfinite(d), i, -1)
         return d, i
 
-    def closest(self, p: np.ndarray, max_dist: float):
+    def closest(self, p: np.ndarray, max_dist: float, return_index: bool = False):
         """Closest map point of each of ``p`` (segments for line-like markings).
 
         Returns
@@ -115,17 +115,20 @@ class LocalMap:
             The closest point on the matched marking.
         normal : (N, 2) ndarray
             Unit normal of a matched segment, zeros for point matches.
+        index : (N,) ndarray
+            Local index of the matched marking, -1 where unmatched (if ``return_index``).
         """
         n = len(p)
         target = np.zeros((n, 2))
         normal = np.zeros((n, 2))
         if self.tree is None or n == 0:
-            return np.full(n, np.inf), target, normal
+            out = (np.full(n, np.inf), target, normal)
+            return out + (np.full(n, -1),) if return_index else out
         if self.max_half == 0.0:
             d, i = self.tree.query(p, distance_upper_bound=max_dist)
             ok = np.isfinite(d)
             target[ok] = self.xy[i[ok]]
-            return d, target, normal
+            return (d, target, normal, np.where(ok, i, -1)) if return_index else (d, target, normal)
         k = min(3, len(self))
         d0, ii = self.tree.query(p, k=k, distance_upper_bound=max_dist + self.max_half)
         if k == 1:
@@ -146,4 +149,6 @@ class LocalMap:
         target = cand[rows, best]
         ub = u[rows, best]
         normal = np.column_stack([-ub[:, 1], ub[:, 0]])
+        if return_index:
+            return d, target, normal, np.where(np.isfinite(d), ii[rows, best], -1)
         return d, target, normal

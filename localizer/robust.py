@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .geometry import LocalMap, apply, compose, rotation, weighted_rigid_fit
 from .types import Options
@@ -34,6 +35,7 @@ def robust_refine(
     local_map: LocalMap,
     obs_xy: np.ndarray,
     w_obs: np.ndarray,
+    sigma_obs: np.ndarray,
     init,
     options: Options,
     iterations_per_scale: int = 8,
@@ -41,22 +43,28 @@ def robust_refine(
 ) -> RefineResult:
     """IRLS with a Geman-McClure kernel whose scale is annealed coarse to fine.
 
-    Pairs are point-to-point for point-like markings and point-to-segment for
-    line-like ones; a pair's weight is ``w_obs * c**4 / (c**2 + d**2)**2`` at
-    scale ``c`` (pairs beyond ``3 c`` are dropped).
+    At annealing scale ``c`` an observation's scale is ``s_j = sqrt(c² + σ_j²)``
+    (σ_j its noise), its normalised residual ``u = d / s_j`` and its weight
+    ``w_j / s_j² / (1 + u²)²``; pairs beyond ``3 s_j`` are dropped. Coarse scales
+    weigh all observations alike (no near-range observation can drag the pose
+    far), the finest weighs them by their noise. Pairs are point-to-point for
+    point-like markings and point-to-segment for line-like ones.
     """
     pose = tuple(float(v) for v in init)
     trace = [pose] if record else []
     total = 0
+    var = sigma_obs**2
     for c in options.anneal_m:
+        s2 = c * c + var
+        gate = 3.0 * np.sqrt(s2)
         for _ in range(iterations_per_scale):
             p = apply(pose, obs_xy)
-            d, tgt, _ = local_map.closest(p, 3.0 * c)
-            m = np.isfinite(d)
+            d, tgt, _ = local_map.closest(p, float(gate.max()))
+            m = np.isfinite(d) & (d <= gate)
             if m.sum() < 2:
                 break
-            c2 = c * c
-            w = w_obs[m] * (c2 / (c2 + d[m] ** 2)) ** 2
+            u2 = d[m] ** 2 / s2[m]
+            w = w_obs[m] / s2[m] / (1.0 + u2) ** 2
             dtheta, dt = weighted_rigid_fit(p[m], tgt[m], w)
             new = compose(dtheta, dt, pose)
             step = math.hypot(new[0] - pose[0], new[1] - pose[1])
@@ -76,13 +84,63 @@ def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:
     return -0.5 * ((dx * dx + dy * dy) / sigma_p**2 + (dyaw / sigma_yaw) ** 2)
 
 
-def data_score(local_map: LocalMap, obs_xy, w_obs, sigma_obs, pose, options: Options) -> float:
-    """Weighted log-likelihood ratio (matched vs outlier) of the observations at ``pose``."""
+def view_of(obs_xy: np.ndarray, options: Options) -> tuple[float, float, float]:
+    """The camera's ground view ``(min range, max range, half angle rad)``.
+
+    From the options when set, else the extent of the observations (shrunk a
+    little, so the view is never larger than what the camera demonstrably sees).
+    """
+    r = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
+    b = np.abs(np.arctan2(obs_xy[:, 1], obs_xy[:, 0]))
+    rmin = options.view_min_range_m if options.view_min_range_m is not None else float(r.min()) + 0.5
+    rmax = options.view_max_range_m if options.view_max_range_m is not None else float(r.max()) - 0.5
+    half = (
+        math.radians(options.view_half_fov_deg)
+        if options.view_half_fov_deg is not None
+        else float(b.max()) - math.radians(2.0)
+    )
+    return rmin, rmax, half
+
+
+def data_score(
+    local_map: LocalMap, obs_xy, w_obs, sigma_obs, pose, options: Options, view=None
+) -> float:
+    """Log-likelihood ratio of the observations at ``pose``, with negative evidence.
+
+    Each observation adds ``w log(1 + N(d; s) / π)`` (matched marking versus
+    clutter; a match on a segment counts less, its density being spread along it). Each point-like map marking that the camera should see at
+    ``pose`` (inside ``view``) but that no observation explains subtracts
+    ``log(1 / p_miss)``: a wrong pose on a repeating pattern usually predicts
+    a marking where none was seen, or sees one where the map has none.
+    """
     p = apply(pose, obs_xy)
     s = np.sqrt(0.15**2 + sigma_obs**2)
-    d, _, _ = local_map.closest(p, 4.0 * float(s.max()))
-    k = np.where(np.isfinite(d), np.exp(-0.5 * (np.where(np.isfinite(d), d, 0.0) / s) ** 2), 0.0)
-    return float(np.sum(w_obs * np.log1p(k / options.outlier_density)))
+    d, _, _, which = local_map.closest(p, 4.0 * float(s.max()), return_index=True)
+    fin = np.isfinite(d)
+    k = np.where(fin, np.exp(-0.5 * (np.where(fin, d, 0.0) / s) ** 2), 0.0)
+    # A solid-line piece explains an observation anywhere along its length: its
+    # density is spread over the length, so a match on it is weaker evidence.
+    half = np.where(which >= 0, local_map.half[np.maximum(which, 0)], 0.0)
+    seg = half > 0
+    k[seg] *= np.minimum(1.0, math.sqrt(2 * math.pi) * s[seg] / (2 * half[seg]))
+    score = float(np.sum(w_obs * np.log1p(k / options.outlier_density)))
+    if view is None or options.miss_probability >= 1.0 or len(local_map) == 0:
+        return score
+    rmin, rmax, half = view
+    pts = local_map.xy[local_map.half == 0]
+    c, sn = math.cos(pose[2]), math.sin(pose[2])
+    dx = pts[:, 0] - pose[0]
+    dy = pts[:, 1] - pose[1]
+    vx = c * dx + sn * dy
+    vy = -sn * dx + c * dy
+    r = np.hypot(vx, vy)
+    seen = (r >= rmin) & (r <= rmax) & (np.abs(np.arctan2(vy, vx)) <= half)
+    if not seen.any():
+        return score
+    pred = pts[seen]
+    dd, _ = cKDTree(p).query(pred, distance_upper_bound=options.explain_distance_m)
+    missing = int(np.sum(~np.isfinite(dd)))
+    return score - missing * math.log(1.0 / options.miss_probability)
 
 
 @dataclass
@@ -108,13 +166,15 @@ def fit_statistics(
 
     The covariance is the average of the model-based ``s² H⁻¹`` (``s²`` the
     weighted residual variance) and the sandwich estimate ``H⁻¹ B H⁻¹``, which
-    follows anisotropic residuals; segment pairs contribute only across their
+    follows anisotropic residuals, plus the propagated effect of a camera
+    pitch error (``pitch_sigma_deg``: all ranges stretch together); segment pairs contribute only across their
     line, so a view of a single solid line leaves the along-line direction to
     the prior information ``prior_info`` (3x3, added to the data information).
     """
     p = apply(pose, obs_xy)
-    d, tgt, normal = local_map.closest(p, options.inlier_distance_m)
-    m = np.isfinite(d)
+    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
+    d, tgt, normal = local_map.closest(p, float(gate.max()))
+    m = np.isfinite(d) & (d <= gate)
     n = int(m.sum())
     if n == 0:
         return Fit(0, None, None, m)
@@ -126,6 +186,10 @@ def fit_statistics(
     w = w_obs[m] / sigma_obs[m] ** 2
     H = np.zeros((3, 3))
     B = np.zeros((3, 3))
+    G = np.zeros(3)  # effect of a camera pitch error on the normal equations
+    rng_j = np.hypot(obs_xy[m, 0], obs_xy[m, 1])
+    drdp = (rng_j**2 + options.camera_height_m**2) / options.camera_height_m
+    radial = q / np.maximum(rng_j, 1e-9)[:, None]
     chi2 = 0.0
     dof = 0.0
     for j in range(n):
@@ -137,6 +201,8 @@ def fit_statistics(
         else:
             rr = r[j]
         H += w[j] * J.T @ J
+        shift = radial[j] * drdp[j]
+        G += w[j] * J.T @ (nv @ shift if nv.any() else shift).reshape(-1)
         g = J.T @ rr * w[j]
         B += np.outer(g, g)
         chi2 += w[j] * float(rr @ rr)
@@ -151,6 +217,10 @@ def fit_statistics(
         Hinv = np.linalg.pinv(Hr)
     model = s2 * Hinv
     sandwich = Hinv @ B @ Hinv * (dof / max(dof - 3.0, 1.0))
-    cov = 0.5 * (model + sandwich)
+    # A pitch error stretches all ranges together (flat-ground camera), a
+    # correlated error that the residuals do not reveal; propagate it explicitly.
+    gp = Hinv @ G
+    pitch = np.outer(gp, gp) * math.radians(options.pitch_sigma_deg) ** 2
+    cov = 0.5 * (model + sandwich) + pitch
     cov = options.covariance_inflation * 0.5 * (cov + cov.T)
     return Fit(n, rms, cov, m)

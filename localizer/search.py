@@ -34,41 +34,50 @@ class Candidate:
     score: float
 
 
-def _sample_markings(local_map: LocalMap, step: float) -> np.ndarray:
-    pts = [local_map.xy[local_map.half == 0]]
-    for i in np.flatnonzero(local_map.half > 0):
+def _sample_markings(local_map: LocalMap, step: float, sigma: float):
+    """Points standing for the markings and their kernel amplitudes.
+
+    Line-like markings are sampled along their length with an amplitude
+    ``sqrt(2 pi) sigma / length`` (their density is spread along the line; the
+    same discount as in :func:`localizer.robust.data_score`).
+    """
+    point = local_map.half == 0
+    pts = [local_map.xy[point]]
+    amp = [np.ones(int(point.sum()))]
+    for i in np.flatnonzero(~point):
         h = local_map.half[i]
         n = max(2, int(math.ceil(2 * h / step)) + 1)
         a = np.linspace(-h, h, n)
         pts.append(local_map.xy[i] + a[:, None] * local_map.axis[i])
-    return np.concatenate(pts) if pts else np.zeros((0, 2))
+        amp.append(np.full(n, min(1.0, math.sqrt(2 * math.pi) * sigma / (2 * h))))
+    return np.concatenate(pts), np.concatenate(amp)
 
 
 def likelihood_raster(
     points: np.ndarray, x0: float, y0: float, shape: tuple[int, int], cell: float,
-    sigma: float, outlier_density: float,
+    sigma: float, outlier_density: float, amplitude: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Log-likelihood-ratio raster of markings at ``points``.
+    """Log-likelihood-ratio raster ``log(1 + max_i a_i exp(-d_i²/2σ²) / π)``.
 
     Cell ``(i, j)`` has its centre at ``(x0 + j*cell, y0 + i*cell)``.
     """
     ny, nx = shape
-    radius = 3.0 * sigma
-    r = int(math.ceil(radius / cell))
+    r = int(math.ceil(3.0 * sigma / cell))
     off = np.arange(-r, r + 1)
     oy, ox = np.meshgrid(off, off, indexing="ij")
-    d2 = np.full(ny * nx, np.inf)
+    k = np.zeros(ny * nx)
     if len(points):
+        amp = np.ones(len(points)) if amplitude is None else amplitude
         ci = np.rint((points[:, 1] - y0) / cell).astype(np.int64)
         cj = np.rint((points[:, 0] - x0) / cell).astype(np.int64)
         ii = ci[:, None, None] + oy[None]
         jj = cj[:, None, None] + ox[None]
         dy = y0 + ii * cell - points[:, 1, None, None]
         dx = x0 + jj * cell - points[:, 0, None, None]
+        val = amp[:, None, None] * np.exp(-0.5 * (dx * dx + dy * dy) / sigma**2)
         ok = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
-        np.minimum.at(d2, (ii * nx + jj)[ok], (dx * dx + dy * dy)[ok])
-    lik = np.log1p(np.exp(-0.5 * d2 / sigma**2) / outlier_density)
-    return lik.reshape(ny, nx).astype(np.float32)
+        np.maximum.at(k, (ii * nx + jj)[ok], val[ok])
+    return np.log1p(k / outlier_density).reshape(ny, nx).astype(np.float32)
 
 
 def correlative_search(
@@ -112,9 +121,8 @@ def correlative_search(
     x0 = px - half * cell - margin
     y0 = py - half * cell - margin
     m = int(math.ceil(2 * margin / cell)) + n + 1
-    raster = likelihood_raster(
-        _sample_markings(local_map, cell / 2), x0, y0, (m, m), cell, kernel, outlier_density
-    )
+    pts, amp = _sample_markings(local_map, cell / 2, kernel)
+    raster = likelihood_raster(pts, x0, y0, (m, m), cell, kernel, outlier_density, amp)
     step = min(max(cell / max(rho, 1.0), math.radians(0.25)), math.radians(3.0))
     k = int(math.ceil(yaw_half_range / step))
     yaws = pyaw + step * np.arange(-k, k + 1)
@@ -135,7 +143,7 @@ def correlative_search(
         volume[a] = acc + prior_t - 0.5 * dyaw * dyaw
     # Inside the disc of the search radius only.
     volume[:, (tx[None, :] ** 2 + tx[:, None] ** 2) > radius**2] = -np.inf
-    peaks = volume == maximum_filter(volume, size=(3, 5, 5), mode="nearest")
+    peaks = volume == maximum_filter(volume, size=(5, 5, 5), mode="nearest")
     peaks &= np.isfinite(volume)
     a, i, j = np.nonzero(peaks)
     order = np.argsort(-volume[a, i, j])
@@ -143,7 +151,7 @@ def correlative_search(
     for o in order:
         cand = Candidate(px + tx[j[o]], py + tx[i[o]], float(yaws[a[o]]), float(volume[a[o], i[o], j[o]]))
         if any(
-            math.hypot(cand.x - c.x, cand.y - c.y) < 1.5 and abs(cand.yaw - c.yaw) < math.radians(3)
+            math.hypot(cand.x - c.x, cand.y - c.y) < 2.0 and abs(cand.yaw - c.yaw) < math.radians(5)
             for c in out
         ):
             continue

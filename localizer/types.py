@@ -96,6 +96,8 @@ class Pose:
         Homogeneous 2D transform taking vehicle coordinates to map CRS coordinates.
     trace : list of (easting, northing, yaw_grid_rad)
         Pose after each iteration (only when the options ask for it).
+    diagnostics : dict
+        Method internals (the scored candidates of the default method); not part of the API.
     """
 
     status: Status
@@ -115,6 +117,7 @@ class Pose:
     reason: str | None = None
     transformation: np.ndarray | None = None
     trace: list[tuple[float, float, float]] = field(default_factory=list)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary for the API (no NaN, plain floats and lists)."""
@@ -180,6 +183,14 @@ class Options:
         (flat-ground camera: range error grows with range²).
     outlier_density : float
         Relative density of outliers in the per-observation likelihood.
+    miss_probability : float
+        Probability that the camera misses a marking in its view; each map marking
+        predicted in view but not explained by an observation within
+        ``explain_distance_m`` costs ``log(1 / miss_probability)``.
+    explain_distance_m : float
+        See ``miss_probability``, metres.
+    view_min_range_m, view_max_range_m, view_half_fov_deg : float or None
+        The camera's ground view; None: taken from the extent of the observations.
     temperature : float
         Scores are divided by this before turning them into probabilities;
         > 1 accounts for correlated observation errors.
@@ -188,7 +199,12 @@ class Options:
     min_inliers : int
         Fewer matched observations → ``failed``.
     inlier_distance_m : float
-        An observation within this distance of the map (at the final pose) is an inlier.
+        An observation within this distance of the map, or three noise sigmas if that
+        is more, is an inlier at the final pose.
+    camera_height_m, pitch_sigma_deg : float
+        Camera height over the ground and the uncertainty of its pitch (ground-plane
+        estimate); a pitch error scales all ranges together, a correlated error
+        the covariance includes explicitly.
     covariance_inflation : float
         Scale of the estimated covariance (calibrated on the benchmark).
     max_observations : int
@@ -208,15 +224,22 @@ class Options:
     min_search_radius_m: float = 3.0
     search_cell_m: float | None = None
     max_search_observations: int = 120
-    candidates: int = 8
-    anneal_m: tuple[float, ...] = (1.5, 0.8, 0.4, 0.2)
+    candidates: int = 20
+    anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2)
     noise_m: float = 0.05
     noise_range_coeff: float = 5e-4
     outlier_density: float = 0.05
-    temperature: float = 3.0
+    miss_probability: float = 0.3
+    explain_distance_m: float = 1.5
+    view_min_range_m: float | None = None
+    view_max_range_m: float | None = None
+    view_half_fov_deg: float | None = None
+    temperature: float = 2.0
     ambiguity_probability: float = 0.95
-    min_inliers: int = 4
+    min_inliers: int = 3
     inlier_distance_m: float = 0.75
+    camera_height_m: float = 1.3
+    pitch_sigma_deg: float = 0.05
     covariance_inflation: float = 1.0
     max_observations: int = 500
     record_trace: bool = False
