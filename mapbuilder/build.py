@@ -183,12 +183,14 @@ class BuildResult:
 
 # --------------------------------------------------------------------------- the tile function
 
-_READERS: "OrderedDict[tuple[str, PixelGrid], GridReader]" = OrderedDict()
+_READERS: "OrderedDict[tuple, GridReader]" = OrderedDict()
 _MODELS: dict[Any, Any] = {}
 
 
 def _reader(path: str, grid: PixelGrid) -> GridReader:
-    key = (path, grid)
+    """An open reader, kept per process; a file rewritten since is opened afresh."""
+    st = os.stat(path)
+    key = (path, st.st_mtime_ns, st.st_size, grid)
     reader = _READERS.get(key)
     if reader is None:
         reader = make_reader(path, grid)
