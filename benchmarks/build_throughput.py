@@ -154,6 +154,10 @@ def main() -> None:
         "build_mpx_per_s": round(result.mpx_per_s, 2),
         "build_to_read_time_ratio": round(result.seconds / read_s, 1),
         "markings": result.markings,
+        "tile_cpu_share": {k: round(v / max(sum(result.timings.values()), 1e-9), 3)
+                           for k, v in result.timings.items()},
+        "classify_mpx_per_s_per_process": round(
+            mpx / max(result.timings.get("classify", 0.0), 1e-9), 2),
         "peak_rss_tree_mb": round(rss.peak / 2**20),
         "load_avg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
         "cpus": os.cpu_count(),

@@ -131,6 +131,8 @@ class TileResult:
     markings: list[Marking]
     megapixels: float
     seconds: float
+    #: Seconds spent reading, classifying, and clustering + measuring.
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -155,6 +157,8 @@ class BuildResult:
     seconds : float
         Wall time of this run, including starting workers.
     resumed : bool
+    timings : dict
+        Seconds summed over this run's tiles: ``read``, ``classify``, ``cluster``.
     """
 
     map_id: str
@@ -167,6 +171,7 @@ class BuildResult:
     megapixels: float
     seconds: float
     resumed: bool
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def mpx_per_s(self) -> float:
@@ -278,16 +283,24 @@ def process_tile(task: TileTask) -> TileResult:
     reader = _reader(task.path, task.grid)
     window = Window(*task.read)
     rgb, valid = reader.read(window)
+    t1 = time.perf_counter()
+    if valid.any():
+        prob = np.asarray(
+            _model(task.model).predict(rgb, valid, task.grid.resolution_m), dtype=np.float32
+        )
+    else:
+        prob = np.zeros(valid.shape, np.float32)
+    t2 = time.perf_counter()
     transform = window_transform(window, task.grid.affine)
-    clusters, _ = detect_window(
-        rgb, valid, transform, task.grid.resolution_m, _model(task.model), task.cluster
-    )
+    clusters = detect_markings(prob, valid, transform, task.cluster)
     c0, r0, w, h = task.core
     col = clusters.col + task.read[0]
     row = clusters.row + task.read[1]
     own = (col >= c0) & (col < c0 + w) & (row >= r0) & (row < r0 + h)
     markings = clusters_to_markings(clusters.take(own), task.grid.crs, task.key)
-    return TileResult(task.key, markings, task.megapixels, time.perf_counter() - t0)
+    t3 = time.perf_counter()
+    timings = {"read": t1 - t0, "classify": t2 - t1, "cluster": t3 - t2}
+    return TileResult(task.key, markings, task.megapixels, t3 - t0, timings)
 
 
 # --------------------------------------------------------------------------- planning
@@ -548,6 +561,7 @@ def build_map(
         results = _run_pool(todo, min(workers, len(todo)))
 
     n_markings = 0
+    timings: dict[str, float] = {}
     mpx = 0.0
     n_run = 0
     last_update = time.monotonic()
@@ -565,6 +579,8 @@ def build_map(
             for result in results:
                 n_markings += store.replace_detected(map_id, result.key, result.markings, job_id)
                 mpx += result.megapixels
+                for k, v in result.timings.items():
+                    timings[k] = timings.get(k, 0.0) + v
                 n_run += 1
                 bar.update(1)
                 bar.set_postfix(markings=n_markings, refresh=False)
@@ -595,6 +611,7 @@ def build_map(
         megapixels=mpx,
         seconds=time.perf_counter() - t0,
         resumed=skipped > 0,
+        timings=timings,
     )
     log.info("%s", result.summary())
     return result
