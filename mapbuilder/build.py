@@ -220,6 +220,15 @@ def _model(spec):
     return model
 
 
+def _check_model(spec) -> None:
+    """Load a model file once and let it go: the workers load their own."""
+    if spec is not None and not isinstance(spec, (str, os.PathLike)):
+        return
+    from .classify import MarkingModel, default_model_path
+
+    MarkingModel(spec if spec is not None else default_model_path())
+
+
 def clusters_to_markings(clusters: Clusters, crs: str, key: str | None = None) -> list[Marking]:
     """Turn measured clusters into detected markings with true-north bearings."""
     if len(clusters) == 0:
@@ -520,8 +529,14 @@ def build_map(
         paths.append(str(p.resolve()))
     paths = list(dict.fromkeys(paths))  # the same file twice would repeat its tiles
     t0 = time.perf_counter()
-    # Load the model here too, so that a bad model file fails before any job starts.
-    _model(params.model)
+    if workers is None:
+        workers = os.cpu_count() or 1
+    inline = not dask_address and workers <= 1
+    # A bad model file fails here, before any job starts.
+    if inline:
+        _model(params.model)
+    else:
+        _check_model(params.model)
     crs = _ensure_map(store, map_id, paths[0], title)
     plans = [plan_image(p, crs, params) for p in paths]
     for plan in plans:
@@ -551,11 +566,9 @@ def build_map(
     all_tasks = [t for plan in plans for t in plan.tasks]
     todo = [t for t in all_tasks if t.key not in done]
     skipped = len(all_tasks) - len(todo)
-    if workers is None:
-        workers = os.cpu_count() or 1
     if dask_address:
         results = _run_dask(todo, dask_address, dask_timeout_s)
-    elif workers <= 1 or len(todo) <= 1:
+    elif inline or len(todo) <= 1:
         results = _run_inline(todo)
     else:
         results = _run_pool(todo, min(workers, len(todo)))
