@@ -24,6 +24,22 @@ def _column(name: str, values, n: int | None = None) -> np.ndarray:
     return arr
 
 
+def _continuous_pieces(xy: np.ndarray, u: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """Markings whose end touches the end of another marking of similar direction."""
+    n = len(xy)
+    out = np.zeros(n, bool)
+    if n < 2:
+        return out
+    ends = np.concatenate([xy + 0.5 * length[:, None] * u, xy - 0.5 * length[:, None] * u])
+    owner = np.concatenate([np.arange(n), np.arange(n)])
+    tree = cKDTree(ends)
+    for a, b in tree.query_pairs(0.6, output_type="ndarray"):
+        i, j = owner[a], owner[b]
+        if i != j and abs(float(u[i] @ u[j])) > math.cos(math.radians(20.0)):
+            out[i] = out[j] = True
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class MapIndex:
     """Marking centroids of one map with a KD-tree over them.
@@ -88,11 +104,16 @@ class MapIndex:
             Pixel counts γ of the markings (default 1).
         crs : str
             The map's projected, metric CRS.
-        kind, bearing_deg, length_m : array_like, shape (M,), optional
-            When all three are given, markings of kind ``"solid"`` become segments
-            (bearing clockwise from grid north, full length in metres): a camera
-            clusters a solid line at its own phase, so only the distance across the
-            line is informative. The paper's method always uses centroids.
+        bearing_deg, length_m : array_like, shape (M,), optional
+            Direction of each marking's major axis (degrees clockwise from north)
+            and its length (metres). With them, pieces of continuous (solid) lines
+            become segments: a camera clusters a solid line at its own phase, so
+            only the distance across the line is informative. The paper's method
+            always uses centroids.
+        kind : array_like of str, shape (M,), optional
+            ``"solid"`` marks the pieces of solid lines. Without it, a piece is
+            taken as part of a continuous line when one of its ends meets the end
+            of another marking of about the same direction (within 0.6 m, 20°).
 
         Raises
         ------
@@ -108,14 +129,19 @@ class MapIndex:
         xy = np.column_stack([xs, ys])
         axis = np.zeros_like(xy)
         half = np.zeros(xs.size)
-        if kind is not None and bearing_deg is not None and length_m is not None:
-            kinds = np.asarray(kind, dtype=object).reshape(-1)
-            if kinds.size != xs.size:
-                raise LocalizationInputError(f"kind: {kinds.size} values, expected {xs.size}")
+        if bearing_deg is not None and length_m is not None:
             b = np.radians(_column("bearing_deg", bearing_deg, xs.size))
             length = _column("length_m", length_m, xs.size)
-            solid = np.array([k == "solid" for k in kinds], bool) & (length > 0.5)
-            axis[solid] = np.column_stack([np.sin(b[solid]), np.cos(b[solid])])
+            u = np.column_stack([np.sin(b), np.cos(b)])
+            if kind is not None:
+                kinds = np.asarray(kind, dtype=object).reshape(-1)
+                if kinds.size != xs.size:
+                    raise LocalizationInputError(f"kind: {kinds.size} values, expected {xs.size}")
+                solid = np.array([k == "solid" for k in kinds], bool)
+            else:
+                solid = _continuous_pieces(xy, u, length)
+            solid &= length > 0.5
+            axis[solid] = u[solid]
             half[solid] = 0.5 * length[solid]
         for arr in (xy, w, axis, half):
             arr.setflags(write=False)

@@ -149,12 +149,15 @@ def visible_markings(scene_map: SceneMap, pose, cam: Camera = Camera()) -> int:
     return int(_in_view(_to_vehicle(pose, scene_map.marking_xy), cam).sum())
 
 
+def _distance_to_polyline(line: np.ndarray, p) -> float:
+    a = line[:-1]
+    d = line[1:] - a
+    t = np.clip(np.einsum("nd,nd->n", np.asarray(p) - a, d) / np.maximum(np.einsum("nd,nd->n", d, d), 1e-12), 0, 1)
+    return float(np.min(np.hypot(*(a + t[:, None] * d - np.asarray(p)).T)))
+
+
 def _local_lines(lines, pose, reach: float):
-    out = []
-    for ln in lines:
-        if np.min(np.hypot(ln[:, 0] - pose[0], ln[:, 1] - pose[1])) <= reach:
-            out.append(ln)
-    return out
+    return [ln for ln in lines if len(ln) >= 2 and _distance_to_polyline(ln, pose[:2]) <= reach]
 
 
 def simulate_scene(

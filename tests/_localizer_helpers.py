@@ -19,7 +19,11 @@ KARLSRUHE_OSM = (
 
 @lru_cache(maxsize=2)
 def karlsruhe(path: str = str(KARLSRUHE_OSM)) -> tuple[MapIndex, SceneMap]:
-    """The Karlsruhe Lanelet2 map as a MapIndex and as simulator geometry."""
+    """The Karlsruhe Lanelet2 map as a MapIndex and as simulator geometry.
+
+    The index is built like the service builds it from the store (centroids,
+    weights, bearings and lengths; solid-line pieces inferred, no kinds).
+    """
     from mapbuilder.lanelet2 import layout_markings, read_lanelet2
 
     lmap = read_lanelet2(path, crs=CRS)
@@ -28,7 +32,6 @@ def karlsruhe(path: str = str(KARLSRUHE_OSM)) -> tuple[MapIndex, SceneMap]:
     y = np.array([m.y for m in marks])
     index = MapIndex.from_arrays(
         x, y, np.array([m.weight for m in marks]), CRS,
-        kind=[m.kind for m in marks],
         bearing_deg=[m.bearing_deg for m in marks],
         length_m=[m.length_m for m in marks],
     )

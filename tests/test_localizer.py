@@ -1,0 +1,378 @@
+"""Behaviour of localizer.localize: recovery, ambiguity, failure, covariance, inputs."""
+
+from __future__ import annotations
+
+import json
+import math
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
+from localizer.geometry import LocalMap, apply, weighted_rigid_fit
+from localizer.pink2008 import pink2008_icp
+from localizer.simulate import NONE, Camera, SceneMap, perturb, simulate_scene
+
+from ._localizer_helpers import karlsruhe
+
+CRS = "EPSG:25832"
+ORIGIN = np.array([458000.0, 5428000.0])  # Karlsruhe, UTM 32N
+EXACT = Camera(pitch_sigma_deg=0.0, range_noise_m=0.0, range_noise_coeff=0.0,
+               bearing_noise_rad=0.0, miss_probability=0.0)
+
+
+def random_map(rng, n=4000, half=120.0):
+    """Markings scattered without pattern around ORIGIN: one unambiguous optimum."""
+    xy = ORIGIN + rng.uniform(-half, half, (n, 2))
+    return xy, rng.uniform(20, 200, n)
+
+
+def prior_at(index, pose, sigma_m=5.0, sigma_deg=10.0) -> Prior:
+    lon, lat = index.frame.to_lonlat(pose[0], pose[1])
+    heading = float(index.frame.grid_yaw_to_heading(pose[2], lon, lat))
+    return Prior(lat=lat, lon=lon, heading_deg=heading, position_sigma_m=sigma_m,
+                 heading_sigma_deg=sigma_deg)
+
+
+def errors(result, pose):
+    e = math.hypot(result.easting - pose[0], result.northing - pose[1])
+    h = abs(math.degrees((result.yaw_grid_rad - pose[2] + math.pi) % (2 * math.pi) - math.pi))
+    return e, h
+
+
+def observe(xy, pose, cam=EXACT, rng=None, clutter=NONE):
+    smap = SceneMap(marking_xy=xy, marking_kind=np.full(len(xy), "dash", object))
+    return simulate_scene(smap, pose, rng or np.random.default_rng(0), cam, clutter)
+
+
+# ---------------------------------------------------------------- numerics
+
+
+def test_weighted_rigid_fit_recovers_transform_and_ignores_zero_weights():
+    rng = np.random.default_rng(1)
+    src = rng.normal(0, 10, (20, 2))
+    dst = apply((3.0, -2.0, 0.4), src)
+    dst[0] += 100.0  # an outlier with zero weight
+    w = np.ones(20)
+    w[0] = 0.0
+    theta, t = weighted_rigid_fit(src, dst, w)
+    assert theta == pytest.approx(0.4, abs=1e-12)
+    assert t == pytest.approx([3.0, -2.0], abs=1e-9)
+
+
+def test_pink2008_converges_exactly_on_noise_free_scene():
+    rng = np.random.default_rng(2)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0] + 3.0, ORIGIN[1] - 4.0, 0.8)
+    scene = observe(xy, pose)
+    assert len(scene.observations) >= 15
+    local = LocalMap(index, ORIGIN, 100.0)
+    init = (pose[0] - ORIGIN[0] + 0.8, pose[1] - ORIGIN[1] - 0.6, pose[2] + math.radians(4))
+    res = pink2008_icp(local, scene.observations[:, :2], scene.observations[:, 2], init)
+    assert res.converged
+    assert res.iterations <= 30
+    assert math.hypot(res.pose[0] + ORIGIN[0] - pose[0], res.pose[1] + ORIGIN[1] - pose[1]) < 1e-3
+    assert abs(res.pose[2] - pose[2]) < 1e-5
+    # The trace starts at the initial pose and its error falls overall.
+    err = [math.hypot(t[0] + ORIGIN[0] - pose[0], t[1] + ORIGIN[1] - pose[1]) for t in res.trace]
+    assert err[0] == pytest.approx(1.0) and err[-1] < 1e-3
+
+
+def test_pink2008_is_robust_to_a_gross_outlier_but_local():
+    rng = np.random.default_rng(3)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], -1.2)
+    scene = observe(xy, pose)
+    obs = np.vstack([scene.observations, [12.0, 1.0, 400.0]])  # heavy clutter off the map
+    r = localize(index, obs, prior_at(index, perturb(pose, 0.7, 3.0, rng)), method="pink2008")
+    assert r.status == "ok"
+    e, h = errors(r, pose)
+    assert e < 0.05 and h < 0.2
+
+
+@pytest.mark.parametrize("dist, turn, sigma_m, sigma_deg", [(1.5, 12.0, 2.0, 10.0), (9.0, -10.0, 6.0, 10.0),
+                                                           (20.0, 25.0, 12.0, 20.0)])
+def test_default_recovers_known_pose_on_synthetic_map(dist, turn, sigma_m, sigma_deg):
+    rng = np.random.default_rng(4)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0] - 10.0, ORIGIN[1] + 5.0, 2.0)
+    scene = observe(xy, pose, Camera(), rng)
+    prior = prior_at(index, perturb(pose, dist, turn, rng), sigma_m, sigma_deg)
+    r = localize(index, scene.observations, prior)
+    assert r.status == "ok", r.reason
+    e, h = errors(r, pose)
+    assert e < 0.2 and h < 0.5
+    assert r.inliers >= 0.8 * len(scene.observations)
+    assert r.rms_m < 0.5
+
+
+def test_default_recovers_karlsruhe_scenes():
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(11)
+    from localizer.simulate import Clutter, sample_poses
+
+    poses = sample_poses(smap, 10, rng, min_visible=6)
+    good = 0
+    for pose in poses:
+        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+        prior = prior_at(index, perturb(pose, rng.uniform(0.5, 2.0), rng.uniform(-15, 15), rng),
+                         1.0, 9.0)
+        r = localize(index, scene.observations, prior)
+        assert r.status != "ok" or errors(r, pose)[0] < 1.0  # never confidently wrong
+        if r.status == "ok":
+            e, h = errors(r, pose)
+            good += e < 0.3 and h < 1.0
+    assert good >= 8
+
+
+def test_pink2008_recovers_karlsruhe_scenes_from_small_errors():
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(12)
+    from localizer.simulate import sample_poses
+
+    poses = sample_poses(smap, 10, rng, min_visible=6)
+    good = 0
+    for pose in poses:
+        scene = simulate_scene(smap, pose, rng, Camera(), NONE)
+        prior = prior_at(index, perturb(pose, 0.5, 3.0, rng))
+        r = localize(index, scene.observations, prior, method="pink2008")
+        if r.status == "ok":
+            e, h = errors(r, pose)
+            good += e < 0.5 and h < 1.0
+    assert good >= 7
+
+
+# ---------------------------------------------------------------- ambiguity and failure
+
+
+def dash_rows(lateral=(0.0,), period=9.0, n=60):
+    xs = np.concatenate([np.arange(-n, n) * period for _ in lateral])
+    ys = np.concatenate([np.full(2 * n, y) for y in lateral])
+    return ORIGIN + np.column_stack([xs, ys])
+
+
+def test_periodic_dash_rows_are_ambiguous_with_hypotheses_a_period_apart():
+    xy = dash_rows(lateral=(0.0, 3.5))  # a lane between two dashed lines
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 1.0, ORIGIN[1] + 1.7, 0.0)  # driving along the lane
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    prior = prior_at(index, (pose[0] + 4.5, pose[1], 0.0))  # half a period off
+    r = localize(index, scene.observations, prior)
+    assert r.status == "ambiguous"
+    assert len(r.hypotheses) >= 2
+    assert sum(h.score for h in r.hypotheses) <= 1.0 + 1e-9
+    assert r.hypotheses[0].score < Options().ambiguity_probability
+    east = sorted(h.easting - pose[0] for h in r.hypotheses)
+    assert min(abs(e) for e in east) < 0.3  # the truth is one of them
+    gaps = np.diff(east)
+    assert np.all(np.abs(gaps / 9.0 - np.round(gaps / 9.0)) < 0.05)
+    # The paper's method just answers, wrong by a period or right by luck.
+    p = localize(index, scene.observations, prior, method="pink2008")
+    assert p.status in ("ok", "failed") and p.hypotheses == []
+
+
+def test_parallel_lanes_are_ambiguous():
+    xy = dash_rows(lateral=(-7.0, -3.5, 0.0, 3.5, 7.0), period=9.0)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0], ORIGIN[1] + 1.75, 0.0)
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(6))
+    prior = prior_at(index, (pose[0], pose[1] + 1.75, 0.0), 3.0, 5.0)
+    r = localize(index, scene.observations, prior)
+    assert r.status == "ambiguous"
+    north = [h.northing - pose[1] for h in r.hypotheses]
+    assert any(abs(n) < 0.3 for n in north)
+    assert any(abs(abs(n) - 3.5) < 0.3 for n in north)
+
+
+def test_a_distinct_marking_resolves_the_period():
+    xy = np.vstack([dash_rows(lateral=(0.0, 3.5)), ORIGIN + [[12.0, -1.0], [21.0, 2.2]]])
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 1.0, ORIGIN[1] + 1.7, 0.0)
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    r = localize(index, scene.observations, prior_at(index, (pose[0] + 3.0, pose[1], 0.0)))
+    assert r.status == "ok"
+    assert errors(r, pose)[0] < 0.2
+
+
+def test_failed_when_too_few_observations_match():
+    rng = np.random.default_rng(7)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], 0.3)
+    two = observe(xy, pose).observations[:2]
+    for method in ("default", "pink2008"):
+        r = localize(index, two, prior_at(index, pose), method=method)
+        assert r.status == "failed"
+        assert "match the map" in r.reason
+        assert r.lat is None and r.hypotheses == []
+
+
+def test_failed_when_the_prior_is_far_from_the_map():
+    rng = np.random.default_rng(8)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    obs = observe(xy, (ORIGIN[0], ORIGIN[1], 0.0)).observations
+    far = prior_at(index, (ORIGIN[0] + 20_000.0, ORIGIN[1], 0.0))
+    r = localize(index, obs, far)
+    assert r.status == "failed" and "no map markings" in r.reason
+    assert json.loads(json.dumps(r.to_dict(), allow_nan=False))["reason"] == r.reason
+
+
+def test_empty_observations_fail_with_a_reason():
+    index = MapIndex.from_arrays([ORIGIN[0]], [ORIGIN[1]], [1.0], CRS)
+    r = localize(index, [], prior_at(index, (ORIGIN[0], ORIGIN[1], 0.0)))
+    assert r.status == "failed" and r.reason == "no observations"
+
+
+# ---------------------------------------------------------------- covariance and result
+
+
+def test_covariance_is_honest_in_shape_and_degenerate_along_a_solid_line():
+    # One straight solid line in 3 m pieces (segments) plus nothing else.
+    s = np.arange(-200, 200, 3.0) + 1.5
+    xy = ORIGIN + np.column_stack([s, np.zeros_like(s)])
+    n = len(s)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS,
+                                 bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
+    assert np.all(index.half_length == 1.5)  # inferred continuous line
+    pose = (ORIGIN[0] + 2.0, ORIGIN[1] - 1.8, 0.0)
+    line = np.array([[ORIGIN[0] - 200, ORIGIN[1]], [ORIGIN[0] + 200, ORIGIN[1]]])
+    smap = SceneMap(marking_xy=np.zeros((0, 2)), marking_kind=np.zeros(0, object), solid_lines=[line])
+    scene = simulate_scene(smap, pose, np.random.default_rng(9), Camera(), NONE)
+    r = localize(index, scene.observations, prior_at(index, (pose[0] + 1.0, pose[1] + 0.5, 0.02)))
+    assert r.status in ("ok", "ambiguous")
+    c = r.covariance
+    assert c.shape == (3, 3) and np.allclose(c, c.T)
+    assert np.all(np.linalg.eigvalsh(c) > 0)
+    # Across the line (north) it is well determined, along it (east) only by the prior.
+    assert abs(r.northing - pose[1]) < 0.1
+    assert math.sqrt(c[1, 1]) < 0.1
+    assert math.sqrt(c[0, 0]) > 2.0
+    assert math.sqrt(c[0, 0]) > 20 * math.sqrt(c[1, 1])
+
+
+def test_result_dict_is_json_safe_with_the_api_keys():
+    rng = np.random.default_rng(10)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], 1.0)
+    scene = observe(xy, pose, Camera(), rng)
+    r = localize(index, scene.observations, prior_at(index, pose))
+    d = json.loads(json.dumps(r.to_dict(), allow_nan=False))
+    assert set(d) == {"status", "lat", "lon", "heading_deg", "easting", "northing", "crs",
+                      "yaw_enu_rad", "covariance", "iterations", "inliers", "rms_m",
+                      "hypotheses", "reason"}
+    assert d["status"] == "ok" and d["crs"] == CRS and d["reason"] is None
+    assert len(d["covariance"]) == 3 and all(len(row) == 3 for row in d["covariance"])
+    assert 0 <= d["heading_deg"] < 360
+    # ENU yaw and true heading agree; the transformation maps the vehicle origin.
+    assert math.radians(90 - d["heading_deg"]) % (2 * math.pi) == pytest.approx(
+        d["yaw_enu_rad"] % (2 * math.pi), abs=1e-9)
+    assert r.transformation @ [0, 0, 1] == pytest.approx([r.easting, r.northing, 1])
+    assert isinstance(d["iterations"], int) and d["inliers"] >= 3
+
+
+def test_true_heading_reported_differs_from_grid_by_convergence():
+    # Far from the central meridian (6.1°E, 60°N in UTM 32N) the convergence is ~-2.5°.
+    crs = "EPSG:32632"
+    from localizer import GeoFrame
+
+    frame = GeoFrame(crs)
+    cx, cy = frame.to_xy(6.1, 60.0)
+    rng = np.random.default_rng(13)
+    xy = np.array([cx, cy]) + rng.uniform(-100, 100, (500, 2))
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, crs)
+    pose = (cx, cy, math.pi / 2)  # facing grid north
+    scene = observe(xy, pose, Camera(), rng)
+    lon, lat = frame.to_lonlat(cx, cy)
+    prior = Prior(lat=lat, lon=lon, heading_deg=float(frame.convergence_deg(lon, lat)) + 3.0)
+    r = localize(index, scene.observations, prior)
+    assert r.status == "ok"
+    conv = frame.convergence_deg(lon, lat)
+    assert conv < -2.0
+    assert ((r.heading_deg - conv + 180) % 360 - 180) == pytest.approx(0.0, abs=0.3)
+
+
+def test_shared_index_is_thread_safe():
+    rng = np.random.default_rng(14)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    jobs = []
+    for k in range(8):
+        pose = (ORIGIN[0] + rng.uniform(-40, 40), ORIGIN[1] + rng.uniform(-40, 40), rng.uniform(-3, 3))
+        scene = observe(xy, pose, Camera(), rng)
+        jobs.append((scene.observations, prior_at(index, perturb(pose, 3.0, 5.0, rng))))
+    serial = [localize(index, o, p).to_dict() for o, p in jobs]
+    with ThreadPoolExecutor(4) as pool:
+        parallel = list(pool.map(lambda a: localize(index, *a).to_dict(), jobs * 2))
+    assert parallel == serial + serial
+
+
+# ---------------------------------------------------------------- bad input
+
+
+@pytest.fixture(scope="module")
+def small():
+    rng = np.random.default_rng(15)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], 0.5)
+    return index, observe(xy, pose).observations, prior_at(index, pose)
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda o: np.where(np.arange(o.size).reshape(o.shape) == 0, np.nan, o), "NaN"),
+        (lambda o: np.where(np.arange(o.size).reshape(o.shape) == 4, np.inf, o), "infinite"),
+        (lambda o: np.column_stack([o[:, :2], np.zeros(len(o))]), "positive"),
+        (lambda o: np.column_stack([o[:, :2], -o[:, 2]]), "positive"),
+        (lambda o: np.tile(o, (60, 1))[:501], "at most 500"),
+        (lambda o: o[:, :1], "shape"),
+        (lambda o: "garbage", "not an array"),
+        (lambda o: [{"x": 1.0}], "needs keys"),
+        (lambda o: [{"x": "a", "y": 1.0}], "numbers"),
+        (lambda o: {"x": 1}, "mapping"),
+    ],
+)
+def test_bad_observations_raise_a_clear_error(small, mutate, match):
+    index, obs, prior = small
+    with pytest.raises(LocalizationInputError, match=match):
+        localize(index, mutate(obs), prior)
+
+
+def test_observations_as_dicts_equal_array(small):
+    index, obs, prior = small
+    dicts = [{"x": x, "y": y, "weight": w} for x, y, w in obs]
+    assert localize(index, dicts, prior).to_dict() == localize(index, obs, prior).to_dict()
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"lat": 95.0}, "prior.lat"), ({"lon": float("nan")}, "prior.lon"),
+     ({"position_sigma_m": 0.0}, "position_sigma_m"), ({"heading_sigma_deg": -1.0}, "heading_sigma"),
+     ({"heading_deg": float("inf")}, "heading_deg")],
+)
+def test_bad_prior_raises(small, kwargs, match):
+    index, obs, prior = small
+    fields = {**prior.__dict__, **kwargs}
+    with pytest.raises(LocalizationInputError, match=match):
+        localize(index, obs, Prior(**fields))
+
+
+def test_bad_method_and_map_inputs_raise(small):
+    index, obs, prior = small
+    with pytest.raises(LocalizationInputError, match="method"):
+        localize(index, obs, prior, method="icp")
+    with pytest.raises(LocalizationInputError, match="x"):
+        MapIndex.from_arrays([1.0, np.nan], [2.0, 3.0], None, CRS)
+    with pytest.raises(LocalizationInputError, match="y: 1 values"):
+        MapIndex.from_arrays([1.0, 2.0], [2.0], None, CRS)
+    with pytest.raises(LocalizationInputError, match="weight"):
+        MapIndex.from_arrays([1.0], [2.0], [0.0], CRS)
+    with pytest.raises(LocalizationInputError, match="crs"):
+        MapIndex.from_arrays([1.0], [2.0], None, "EPSG:4326")

@@ -1,0 +1,107 @@
+"""``lanemap localize`` end to end: a stored Karlsruhe map, a simulated camera frame."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from localizer import GeoFrame
+from localizer.simulate import Camera, Clutter, sample_poses, simulate_scene
+from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+from mapbuilder.store import Store
+from service.cli import app
+
+from ._localizer_helpers import KARLSRUHE_OSM, karlsruhe
+
+
+@pytest.fixture(scope="module")
+def stored_map(tmp_path_factory):
+    url = f"sqlite:///{tmp_path_factory.mktemp('loc') / 'lanemap.sqlite'}"
+    store = Store(url)
+    store.create_map("ka", "Karlsruhe", "EPSG:25832")
+    store.add_markings("ka", layout_markings(read_lanelet2(KARLSRUHE_OSM, crs="EPSG:25832")))
+    store.close()
+    return url
+
+
+def frame_and_prior(seed: int):
+    _, smap = karlsruhe()
+    rng = np.random.default_rng(seed)
+    pose = sample_poses(smap, 1, rng, min_visible=6)[0]
+    scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+    frame = GeoFrame("EPSG:25832")
+    lon, lat = frame.to_lonlat(pose[0] + 0.8, pose[1] - 0.6)
+    heading = float(frame.grid_yaw_to_heading(pose[2] + math.radians(5), lon, lat))
+    return pose, scene, lat, lon, heading
+
+
+def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    pose, scene, lat, lon, heading = frame_and_prior(3)
+    path = tmp_path / "obs.json"
+    path.write_text(json.dumps(
+        {"observations": [{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]}))
+    res = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+        "--observations", str(path), "--position-sigma", "2", "--heading-sigma", "8",
+    ])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert out["status"] == "ok" and out["crs"] == "EPSG:25832"
+    assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
+    # A bare list works too, and the paper's method answers from the same prior.
+    path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
+    res = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+        "--observations", str(path), "--method", "pink2008",
+    ])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["status"] in ("ok", "failed")
+
+
+@pytest.mark.parametrize(
+    "content, extra, needle",
+    [
+        ("{not json", [], "not valid JSON"),
+        ('{"obs": []}', [], "'observations'"),
+        ('[{"x": 1, "y": "NaN", "weight": 1}]', [], "NaN"),
+        ('[{"x": 1, "y": 2, "weight": 0}]', [], "weights must be positive"),
+        ('[{"x": 1, "y": 2}]', ["--method", "nope"], "--method"),
+        ('[{"x": 1, "y": 2}]', ["--position-sigma", "0"], "position_sigma"),
+    ],
+)
+def test_cli_bad_input_is_one_line(stored_map, tmp_path, monkeypatch, content, extra, needle):
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    path = tmp_path / "obs.json"
+    path.write_text(content)
+    res = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", "49.0", "--lon", "8.43", "--heading", "90",
+        "--observations", str(path), *extra,
+    ])
+    assert res.exit_code == 1, res.output
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
+
+
+def test_cli_unknown_map_and_missing_file(stored_map, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    path = tmp_path / "obs.json"
+    path.write_text("[]")
+    from service.cli import main
+
+    for args, needle in [
+        (["localize", "nope", "--lat", "49", "--lon", "8.4", "--heading", "0",
+          "--observations", str(path)], "unknown map"),
+        (["localize", "ka", "--lat", "49", "--lon", "8.4", "--heading", "0",
+          "--observations", str(tmp_path / "missing.json")], "cannot read"),
+    ]:
+        monkeypatch.setattr("sys.argv", ["lanemap", *args])
+        with pytest.raises(SystemExit) as exc:
+            main()
+        assert exc.value.code == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and needle in err[0], err
