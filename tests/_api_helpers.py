@@ -104,7 +104,7 @@ def start_server(db_url: str, data_dir: Path, *, token: str | None = TOKEN, env:
         if proc.poll() is not None:
             raise RuntimeError(f"lanemap serve exited with {proc.returncode}:\n{server.log()}")
         try:
-            if httpx.get(f"{base}/conformance", timeout=2).status_code == 200:
+            if httpx.get(f"{base}/conformance", timeout=2).status_code in (200, 401):
                 return server
         except httpx.HTTPError:
             pass

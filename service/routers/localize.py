@@ -29,8 +29,8 @@ class GpsIn(BaseModel):
     lat: float = Field(..., ge=-90, le=90, description="WGS84 latitude, degrees")
     lon: float = Field(..., ge=-180, le=180, description="WGS84 longitude, degrees")
     heading_deg: float = Field(..., ge=-360, le=720, description="Degrees clockwise from true north")
-    position_sigma_m: float | None = Field(None, gt=0, le=1000, description="Per-axis position sigma, metres")
-    heading_sigma_deg: float | None = Field(None, gt=0, le=180, description="Heading sigma, degrees")
+    position_sigma_m: float | None = Field(None, ge=0.01, le=1000, description="Per-axis position sigma, metres")
+    heading_sigma_deg: float | None = Field(None, ge=0.01, le=180, description="Heading sigma, degrees")
 
 
 class ObservationIn(BaseModel):
@@ -104,7 +104,12 @@ def localize_vehicle(
     if g.heading_sigma_deg is not None:
         prior_kw["heading_sigma_deg"] = g.heading_sigma_deg
     obs = np.array([[o.x, o.y, o.weight] for o in body.observations], dtype=float).reshape(-1, 3)
-    pose = localize(index, obs, Prior(**prior_kw), method=body.method)
+    try:
+        pose = localize(index, obs, Prior(**prior_kw), method=body.method)
+    except (ArithmeticError, np.linalg.LinAlgError) as exc:
+        log.warning("localization on %s failed numerically: %r", mapId, exc)
+        return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
+                             "reason": f"numerical failure ({exc.__class__.__name__})"})  # fmt: skip
     out = pose.to_dict()
     if out.get("reason") is None:
         out.pop("reason", None)

@@ -1,0 +1,147 @@
+"""Bad input never gives a server error: problem details, limits, auth settings, and schemathesis."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+
+import httpx
+import pytest
+
+from tests._api_helpers import feature, shared_server, start_server
+from tests.test_api_features import assert_problem
+
+PROBLEM = "application/problem+json"
+
+
+@pytest.fixture(scope="module")
+def api():
+    return shared_server("sqlite")
+
+
+@pytest.fixture(scope="module")
+def strict(tmp_path_factory):
+    """A server with small limits, tokens required for reads, and CORS for one origin."""
+    tmp = tmp_path_factory.mktemp("strict")
+    server = start_server(
+        f"sqlite:///{tmp / 'db.sqlite'}", tmp / "data",
+        env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_MAX_BODY_BYTES": "20000",
+             "LANEMAP_MAX_UPLOAD_BYTES": "100000", "LANEMAP_CORS_ORIGINS": "http://editor.example",
+             "LANEMAP_MAX_OBSERVATIONS": "50"},
+    )  # fmt: skip
+    yield server
+    server.stop()
+
+
+def test_malformed_bodies_are_4xx_problems(api):
+    map_id = api.new_map()
+    url = f"{api.base_url}/collections/{map_id}/items"
+    h = {**api.auth, "Content-Type": "application/json"}
+    cases = [
+        (b'{"type": "Feature", ', 400, "not valid JSON"),
+        (b'{"type": "Feature", "geometry": {"type": "Point", "coordinates": [NaN, 49]}}', 400, "NaN"),
+        (b'{"type": "Feature", "geometry": {"type": "Point", "coordinates": [Infinity, 49]}}', 400, "Infinity"),
+        (b'{"type": "Feature", "geometry": {"type": "Point", "coordinates": [1e999, 49]}}', 400, "out of range"),
+        (b"[" * 100000 + b"]" * 100000, 400, "not valid JSON"),
+        (b"\xff\xfe\x00garbage", 400, "not valid JSON"),
+        (b'{"a": ' + b"1" * 5000 + b"}", 400, "not valid JSON"),
+    ]
+    for body, status, words in cases:
+        assert_problem(httpx.post(url, content=body, headers=h, timeout=30), status, words)
+    r = httpx.post(url, content=b"x=1", headers={**api.auth, "Content-Type": "application/x-www-form-urlencoded"})
+    assert_problem(r, 415, "Content-Type")
+    r = httpx.post(url, content=b'{"type": "Feature"}', headers={**api.auth, "Content-Type": "text/plain"})
+    assert_problem(r, 415)
+    assert_problem(httpx.post(url, headers=api.auth), 422, "body")
+    assert httpx.get(url).json()["numberMatched"] == 0
+
+
+@pytest.mark.parametrize("path, status", [
+    ("/collections/nope", 404),
+    ("/collections/nope/items", 404),
+    ("/collections/{m}/items/abc", 404),
+    ("/collections/{m}/items/99999999999999999999999", 404),
+    ("/collections/{m}/items/-1", 404),
+    ("/collections/{m}/items/123456", 404),
+    ("/collections/{m}/history?limit=0", 422),
+    ("/collections/{m}/changesets/xyz", 404),
+    ("/jobs/1234567", 404),
+    ("/jobs/x", 404),
+    ("/no/such/route", 404),
+    ("/collections/{m}/imagery/tiles/WebMercatorQuad/3/9/1.png", 400),
+    ("/collections/{m}/imagery/tiles/WebMercatorQuad/99/1/1.png", 422),
+    ("/collections/{m}/imagery/tiles/WebMercatorQuad/3/1/1.png", 404),
+])  # fmt: skip
+def test_unknown_and_invalid_ids_are_problems(api, path, status):
+    map_id = api.new_map()
+    assert_problem(httpx.get(api.base_url + path.replace("{m}", map_id)), status)
+
+
+def test_wrong_method_is_405_problem(api):
+    r = httpx.put(f"{api.base_url}/conformance", json={}, headers=api.auth)
+    assert_problem(r, 405, "PUT")
+
+
+def test_limits_read_tokens_and_cors(strict):
+    c = httpx.Client(base_url=strict.base_url, timeout=30)
+    assert_problem(c.get("/collections"), 401, "token")
+    assert_problem(c.get("/collections", headers={"Authorization": "Bearer nope"}), 401)
+    assert c.get("/collections", headers=strict.auth).status_code == 200
+    map_id = strict.new_map()
+    big = {"type": "FeatureCollection", "features": [feature(8.4, 49.0, note="x" * 100)] * 300}
+    r = c.post(f"/collections/{map_id}/import", json=big, headers=strict.auth)
+    assert_problem(r, 413, "limit")
+    # a body that lies about its size is cut off at the limit as well
+    with socket.create_connection(("127.0.0.1", int(strict.base_url.rsplit(":", 1)[1]))) as s:
+        s.sendall(b"POST /collections/%s/import HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\n"
+                  b"Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
+                  % (map_id.encode(), strict.token.encode()))  # fmt: skip
+        chunk = b"[" * 8000
+        for _ in range(4):
+            s.sendall(b"%x\r\n%s\r\n" % (len(chunk), chunk))
+        s.sendall(b"0\r\n\r\n")
+        reply = s.recv(4096)
+    assert reply.startswith(b"HTTP/1.1 413")
+    obs = [{"x": 10.0, "y": 0.0, "weight": 1}] * 51
+    r = c.post(f"/collections/{map_id}/localize", json={"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0},
+                                                         "observations": obs}, headers=strict.auth)  # fmt: skip
+    assert_problem(r, 422, "at most 50")
+    pre = c.options(f"/collections/{map_id}/items", headers={
+        "Origin": "http://editor.example", "Access-Control-Request-Method": "POST",
+        "Access-Control-Request-Headers": "authorization,content-type"})  # fmt: skip
+    assert pre.headers["access-control-allow-origin"] == "http://editor.example"
+    r = c.get(f"/collections/{map_id}/items", headers={**strict.auth, "Origin": "http://editor.example"})
+    assert r.headers["access-control-allow-origin"] == "http://editor.example"
+    assert "etag" in r.headers["access-control-expose-headers"].lower()
+    other = c.get(f"/collections/{map_id}", headers={**strict.auth, "Origin": "http://evil.example"})
+    assert "access-control-allow-origin" not in other.headers
+    assert c.get("/collections", headers=strict.auth).status_code == 200  # still serving
+
+
+def test_schemathesis_finds_no_server_error(api, tmp_path):
+    """Property-based requests from the OpenAPI document: no 5xx anywhere."""
+    map_id = api.new_map()
+    with api.client(headers=api.auth) as c:
+        fid = c.post(f"/collections/{map_id}/items", json=feature(8.428, 49.0071)).json()["id"]
+        c.post(f"/collections/{map_id}/items", json=feature(8.4281, 49.0071))
+    config = tmp_path / "schemathesis.toml"
+    config.write_text(
+        f'[parameters]\n"path.mapId" = "{map_id}"\n"path.featureId" = "{fid}"\n'
+        '"path.changesetId" = "1"\n"path.editId" = "1"\n"path.jobId" = "1"\n'
+        '\n[[operations]]\ninclude-path = "/collections/{mapId}"\ninclude-method = "DELETE"\n'
+        'parameters = { "path.mapId" = "not-this-one" }\n'
+    )
+    cmd = [
+        sys.executable, "-m", "schemathesis.cli", "--config-file", str(config), "run",
+        f"{api.base_url}/openapi.json", "--checks", "not_a_server_error", "--max-examples", "25",
+        "--seed", "20261122", "--workers", "2", "--no-color", "--request-timeout", "30",
+        "-H", f"Authorization: Bearer {api.token}",
+    ]  # fmt: skip
+    env = {**os.environ, "SCHEMATHESIS_HOOKS": ""}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=400, cwd=tmp_path, env=env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-6000:]
+    assert "passed" in out and "Server error" not in out
+    assert "Traceback" not in api.log()
