@@ -17,6 +17,8 @@ the machine load. Usage::
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
+import multiprocessing
 import json
 import os
 import sys
@@ -137,7 +139,10 @@ def main() -> None:
     params = BuildParams(tile_px=args.tile_size, model=args.model)
 
     load_before = os.getloadavg()
-    read_s, mpx = plain_read(image, params)
+    # In a child process, so that its memory does not count against the build.
+    ctx = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx) as pool:
+        read_s, mpx = pool.submit(plain_read, image, params).result()
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(f"sqlite:///{tmp}/bench.sqlite")
         with TreeRSS() as rss:

@@ -191,6 +191,23 @@ class BuildResult:
 _READERS: "OrderedDict[tuple, GridReader]" = OrderedDict()
 _MODELS: dict[Any, Any] = {}
 
+#: GDAL block cache per process while building, MB. GDAL's default (5 % of RAM)
+#: would let every worker cache most of a large image; tiles are read once.
+GDAL_CACHE_MB = 128
+_cache_limited = False
+
+
+def _limit_gdal_cache() -> None:
+    """Cap GDAL's block cache in this process, unless the user set GDAL_CACHEMAX."""
+    global _cache_limited
+    if _cache_limited:
+        return
+    _cache_limited = True
+    if "GDAL_CACHEMAX" not in os.environ:
+        from rasterio.env import set_gdal_config
+
+        set_gdal_config("GDAL_CACHEMAX", GDAL_CACHE_MB)
+
 
 def _reader(path: str, grid: PixelGrid) -> GridReader:
     """An open reader, kept per process; a file rewritten since is opened afresh."""
@@ -289,6 +306,7 @@ def process_tile(task: TileTask) -> TileResult:
     the core.
     """
     t0 = time.perf_counter()
+    _limit_gdal_cache()
     reader = _reader(task.path, task.grid)
     window = Window(*task.read)
     rgb, valid = reader.read(window)
@@ -356,7 +374,6 @@ def _init_worker() -> None:
     # Tiles parallelise across processes; one thread per process avoids oversubscription.
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    os.environ.setdefault("GDAL_CACHEMAX", "64")
     if sys.platform.startswith("linux"):
         # Die with the parent: a killed build leaves no orphaned workers.
         try:
