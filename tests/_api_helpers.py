@@ -66,9 +66,24 @@ class ApiServer:
         assert r.status_code == 201, r.text
         return map_id
 
+    def kill_hard(self) -> None:
+        """SIGKILL the server and its worker processes, as a crash would."""
+        import signal
+
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.proc.wait(10)
+
     def stop(self) -> None:
         if self.proc.poll() is None:
-            self.proc.terminate()
+            import signal
+
+            try:
+                os.killpg(self.proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
             try:
                 self.proc.wait(10)
             except subprocess.TimeoutExpired:
@@ -94,7 +109,7 @@ def start_server(db_url: str, data_dir: Path, *, token: str | None = TOKEN, env:
     fh = open(log_path, "wb")
     proc = subprocess.Popen(
         [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1", "--port", str(port), *args],
-        cwd=data_dir, env=full_env, stdout=fh, stderr=subprocess.STDOUT,
+        cwd=data_dir, env=full_env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True,
     )  # fmt: skip
     fh.close()
     base = f"http://127.0.0.1:{port}"

@@ -1,0 +1,154 @@
+"""Imagery upload (COG), tiles, builds as jobs in worker processes, cancel and restart."""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import rasterio
+from pyproj import Transformer
+
+from tests._api_helpers import USGS_DIR, shared_server, start_server
+from tests.test_api_features import assert_problem
+
+USGS = USGS_DIR / "201404_13SED190110_201404_0x1500m_CL_1.tif"
+USGS_ALPHA = USGS_DIR / "201404_13SED190110_201404_0x1500m_CL_1_alpha.tif"
+TIFF = {"Content-Type": "image/tiff"}
+
+
+@pytest.fixture(scope="module")
+def api():
+    return shared_server("sqlite")
+
+
+def upload(api, map_id: str, path: Path) -> httpx.Response:
+    return httpx.post(f"{api.base_url}/collections/{map_id}/imagery", content=path.read_bytes(),
+                      headers={**api.auth, **TIFF}, timeout=120)  # fmt: skip
+
+
+def tile_of(lon: float, lat: float, z: int) -> tuple[int, int]:
+    n = 2**z
+    x = int((lon + 180) / 360 * n)
+    y = int((1 - math.asinh(math.tan(math.radians(lat))) / math.pi) / 2 * n)
+    return x, y
+
+
+def wait_job(api, job_id: str, timeout: float = 180) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = httpx.get(f"{api.base_url}/jobs/{job_id}").json()
+        assert job["status"] in ("accepted", "running", "successful", "failed", "dismissed")
+        if job["status"] in ("successful", "failed", "dismissed"):
+            return job
+        time.sleep(0.3)
+    raise AssertionError(f"job {job_id} did not finish in {timeout} s: {job}")
+
+
+def test_upload_is_stored_as_cog_and_served_as_tiles(api):
+    map_id = api.new_map(crs="EPSG:26913")
+    r = upload(api, map_id, USGS_ALPHA)
+    assert r.status_code == 201, r.text
+    img = r.json()
+    assert r.headers["location"].endswith(f"/collections/{map_id}/imagery/{img['id']}")
+    assert img["crs"] == "EPSG:26913" and img["resolution_m"] == pytest.approx(0.15, abs=0.01)
+    stored = list((api.data_dir / "imagery" / map_id).glob("*.tif"))
+    assert len(stored) == 1
+    with rasterio.open(stored[0]) as ds:
+        assert ds.profile.get("tiled") and ds.overviews(1) or ds.width <= 512
+        assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+    listed = httpx.get(f"{api.base_url}/collections/{map_id}/imagery").json()["imagery"]
+    assert [i["id"] for i in listed] == [img["id"]]
+    w, s, e, n = img["bounds"]
+    lon, lat = Transformer.from_crs("EPSG:26913", "EPSG:4326", always_xy=True).transform((w + e) / 2, (s + n) / 2)
+    x, y = tile_of(lon, lat, 20)
+    t = httpx.get(f"{api.base_url}/collections/{map_id}/imagery/tiles/WebMercatorQuad/20/{x}/{y}.png")
+    assert t.status_code == 200 and t.headers["content-type"] == "image/png"
+    assert t.content[:8] == b"\x89PNG\r\n\x1a\n"
+    far = httpx.get(f"{api.base_url}/collections/{map_id}/imagery/tiles/WebMercatorQuad/20/{x + 1000}/{y}.png")
+    assert_problem(far, 404, "no imagery")
+
+
+def test_bad_uploads_leave_nothing_behind(api, tmp_path):
+    map_id = api.new_map(crs="EPSG:26913")
+    url = f"{api.base_url}/collections/{map_id}/imagery"
+    assert_problem(httpx.post(url, content=b"hello", headers={**api.auth, **TIFF}), 422, "upload")
+    assert_problem(httpx.post(url, content=USGS.read_bytes()[:5000], headers={**api.auth, **TIFF}), 422)
+    assert_problem(httpx.post(url, content=b"", headers={**api.auth, **TIFF}), 422, "empty")
+    assert_problem(httpx.post(url, content=USGS.read_bytes(), headers={**api.auth, "Content-Type": "text/plain"}),
+                   415)  # fmt: skip
+    assert_problem(httpx.post(url, content=USGS.read_bytes(), headers=TIFF), 401)
+    one_band = tmp_path / "gray.tif"
+    with rasterio.open(USGS) as src:
+        profile = src.profile | {"count": 1}
+        with rasterio.open(one_band, "w", **profile) as dst:
+            dst.write(src.read(1), 1)
+    assert_problem(upload(api, map_id, one_band), 422, "RGB")
+    # a connection that dies mid-upload
+    port = int(api.base_url.rsplit(":", 1)[1])
+    data = USGS.read_bytes()
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(b"POST /collections/%s/imagery HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\n"
+                  b"Content-Type: image/tiff\r\nContent-Length: %d\r\n\r\n"
+                  % (map_id.encode(), api.token.encode(), len(data)))  # fmt: skip
+        s.sendall(data[: len(data) // 2])
+    time.sleep(1.0)
+    assert httpx.get(f"{api.base_url}/collections/{map_id}/imagery").json()["imagery"] == []
+    assert not list((api.data_dir / "imagery" / ".incoming").glob("*"))
+    assert not list((api.data_dir / "imagery" / map_id).glob("*")) if (api.data_dir / "imagery" / map_id).exists() else True
+    assert_problem(httpx.get(f"{api.base_url}/collections/{map_id}/imagery/424242"), 404)
+
+
+def test_build_runs_as_a_job_and_writes_detections(api):
+    map_id = api.new_map(crs="EPSG:26913")
+    img = upload(api, map_id, USGS).json()
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"]}, headers=api.auth)
+    assert r.status_code == 202, r.text
+    job_url = r.headers["location"]
+    job_id = job_url.rsplit("/", 1)[1]
+    assert r.json()["status"] in ("accepted", "running") and r.json()["imagery"] == [img["id"]]
+    job = wait_job(api, job_id)
+    assert job["status"] == "successful", job
+    assert job["progress"] == 100 and job["finished"]
+    items = httpx.get(f"{api.base_url}/collections/{map_id}/items?limit=1000").json()
+    assert items["numberMatched"] > 0
+    assert {f["properties"]["source"] for f in items["features"]} == {"detected"}
+    jobs = httpx.get(f"{api.base_url}/jobs", params={"map": map_id}).json()["jobs"]
+    assert [j["jobID"] for j in jobs] == [job_id]
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": "999999"},
+                              headers=api.auth), 422, "imagery")  # fmt: skip
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
+                              "tile_px": 8}, headers=api.auth), 422, "tile_px")  # fmt: skip
+
+
+def test_cancel_a_waiting_job_and_restart_resumes_interrupted_ones(tmp_path):
+    db = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    server = start_server(db, tmp_path / "data", env={"LANEMAP_BUILD_WORKERS": "1"})
+    try:
+        maps = [server.new_map(crs="EPSG:26913") for _ in range(3)]
+        imgs = [upload(server, m, USGS).json()["id"] for m in maps]
+        jobs = []
+        for m, i in zip(maps, imgs):
+            r = httpx.post(f"{server.base_url}/collections/{m}/builds", json={"imagery": i}, headers=server.auth)
+            assert r.status_code == 202
+            jobs.append(r.json()["jobID"])
+        # one worker: the second job waits, and is cancelled before it starts
+        d = httpx.delete(f"{server.base_url}/jobs/{jobs[1]}", headers=server.auth)
+        assert d.status_code == 200 and d.json()["status"] == "dismissed"
+        assert_problem(httpx.delete(f"{server.base_url}/jobs/{jobs[1]}"), 401)
+        # a crash while jobs are unfinished
+        states = {j: httpx.get(f"{server.base_url}/jobs/{j}").json()["status"] for j in (jobs[0], jobs[2])}
+        server.kill_hard()
+        unfinished = [j for j, st in states.items() if st in ("accepted", "running")]
+        assert unfinished, states  # the last job waits for the only worker
+        server = start_server(db, tmp_path / "data", env={"LANEMAP_BUILD_WORKERS": "1"})
+        for j in (jobs[0], jobs[2]):
+            assert wait_job(server, j)["status"] == "successful"
+        assert wait_job(server, jobs[1])["status"] == "dismissed"
+        counts = [httpx.get(f"{server.base_url}/collections/{m}/items").json()["numberMatched"] for m in maps]
+        assert counts[0] > 0 and counts[2] > 0 and counts[1] == 0
+    finally:
+        server.stop()
