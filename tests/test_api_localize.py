@@ -1,0 +1,148 @@
+"""POST /collections/{mapId}/localize over HTTP: accuracy, conventions, cache refresh and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import httpx
+import numpy as np
+import pytest
+
+from mapbuilder.crs import meridian_convergence_deg, to_wgs84
+from tests._api_helpers import shared_server
+from tests.test_api_features import assert_problem, karlsruhe_fc  # noqa: F401 (fixture)
+
+CRS = "EPSG:25832"
+
+
+@pytest.fixture(scope="module")
+def api():
+    return shared_server("sqlite")
+
+
+@pytest.fixture(scope="module")
+def kmap(api, karlsruhe_fc):  # noqa: F811
+    map_id = api.new_map(prefix="loc")
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=api.auth, timeout=60)
+    assert r.status_code == 201
+    feats = httpx.get(f"{api.base_url}/collections/{map_id}/items?limit=10000").json()["features"]
+    return map_id, feats
+
+
+def along_lane(feats, index: int) -> float:
+    """Grid yaw (ENU radians) of a vehicle driving along the lane of marking ``index``."""
+    f = feats[index]
+    lon, lat = f["geometry"]["coordinates"]
+    grid_bearing = f["properties"]["bearing_deg"] - float(meridian_convergence_deg(CRS, lon, lat))
+    return math.radians(90.0 - grid_bearing)
+
+
+def scene(feats, index: int, yaw_grid: float | None = None, offset=(1.0, 0.5)):
+    """A true vehicle pose near marking ``index`` and what its camera sees (vehicle frame)."""
+    if yaw_grid is None:
+        yaw_grid = along_lane(feats, index)
+    tr = to_wgs84(CRS)
+    from mapbuilder.crs import from_wgs84
+
+    fw = from_wgs84(CRS)
+    xy = np.array([fw.transform(*f["geometry"]["coordinates"]) for f in feats])
+    w = np.array([f["properties"]["weight"] for f in feats])
+    p = xy[index] + np.array(offset)
+    c, s = math.cos(yaw_grid), math.sin(yaw_grid)
+    v = (xy - p) @ np.array([[c, -s], [s, c]])  # columns: forward, left
+    seen = (v[:, 0] > 3) & (v[:, 0] < 35) & (np.abs(v[:, 1]) < 10)
+    obs = [{"x": float(a), "y": float(b), "weight": float(g)} for (a, b), g in zip(v[seen], w[seen])]
+    lon, lat = tr.transform(*p)
+    conv = float(meridian_convergence_deg(CRS, lon, lat))
+    heading = (90.0 - math.degrees(yaw_grid) + conv) % 360.0  # clockwise from true north
+    return p, lon, lat, heading, obs
+
+
+def gps_near(p, heading, dx=2.5, dy=-2.0, dh=4.0):
+    lon, lat = to_wgs84(CRS).transform(p[0] + dx, p[1] + dy)
+    return {"lat": lat, "lon": lon, "heading_deg": heading + dh, "position_sigma_m": 5.0, "heading_sigma_deg": 10.0}
+
+
+@pytest.mark.parametrize("method", ["default", "pink2008"])
+def test_localize_recovers_the_pose(api, kmap, method):
+    map_id, feats = kmap
+    p, lon, lat, heading, obs = scene(feats, 400)
+    assert len(obs) >= 4
+    dh = 4.0 if method == "default" else 1.0
+    near = {"dx": 0.5, "dy": -0.3} if method == "pink2008" else {}
+    body = {"gps": gps_near(p, heading, dh=dh, **near), "observations": obs,
+            "method": method}  # fmt: skip
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize", json=body, timeout=60)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["status"] == "ok", out
+    assert out["crs"] == CRS
+    assert math.hypot(out["easting"] - p[0], out["northing"] - p[1]) < 0.2
+    assert abs((out["heading_deg"] - heading + 180) % 360 - 180) < 0.3
+    assert out["lon"] == pytest.approx(lon, abs=3e-6) and out["lat"] == pytest.approx(lat, abs=3e-6)
+    # REP-103 yaw: counter-clockwise from true east, heading clockwise from true north
+    assert out["yaw_enu_rad"] == pytest.approx(math.radians(90.0 - out["heading_deg"]), abs=1e-6)
+    cov = np.array(out["covariance"])
+    assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert out["inliers"] >= 3 and out["iterations"] >= 1 and out["rms_m"] < 0.1
+
+
+def test_index_follows_map_edits(api, kmap):
+    map_id, feats = kmap
+    p, lon, lat, heading, obs = scene(feats, 10)
+    body = {"gps": gps_near(p, heading), "observations": obs}
+    url = f"{api.base_url}/collections/{map_id}/localize"
+    assert httpx.post(url, json=body, timeout=60).json()["status"] == "ok"
+    # remove every marking within 60 m: the cached index must see it
+    lon0, lat0 = to_wgs84(CRS).transform(p[0] - 60, p[1] - 60)
+    lon1, lat1 = to_wgs84(CRS).transform(p[0] + 60, p[1] + 60)
+    near = httpx.get(f"{api.base_url}/collections/{map_id}/items",
+                     params={"bbox": f"{lon0},{lat0},{lon1},{lat1}", "limit": 10000}).json()["features"]  # fmt: skip
+    changes = [{"op": "delete", "id": f["id"]} for f in near]
+    cs = httpx.post(f"{api.base_url}/collections/{map_id}/changesets", json={"changes": changes},
+                    headers=api.auth, timeout=60)  # fmt: skip
+    assert cs.status_code == 201
+    gone = httpx.post(url, json=body, timeout=60).json()
+    assert gone["status"] == "failed" and gone["reason"]
+    # and the revert brings them back
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/changesets/{cs.json()['changeset']}/revert",
+                   headers=api.auth, timeout=60)  # fmt: skip
+    assert r.status_code == 201
+    assert httpx.post(url, json=body, timeout=60).json()["status"] == "ok"
+
+
+def test_no_observations_is_a_failed_status(api, kmap):
+    map_id, feats = kmap
+    p, *_ = scene(feats, 10)
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize", json={"gps": gps_near(p, 90.0), "observations": []})
+    assert r.status_code == 200 and r.json()["status"] == "failed" and r.json()["reason"]
+
+
+@pytest.mark.parametrize("patch, status, words", [
+    ({"gps": {"lat": 200, "lon": 8.4, "heading_deg": 0}}, 422, "gps.lat"),
+    ({"gps": {"lat": 49, "lon": 8.4}}, 422, "gps.heading_deg"),
+    ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0, "position_sigma_m": -1}}, 422, "position_sigma_m"),
+    ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0, "heading_sigma_deg": 5e-324}}, 422, "heading_sigma_deg"),
+    ({"observations": [{"x": 1e6, "y": 0}]}, 422, "observations.0.x"),
+    ({"observations": [{"x": 1, "y": 0, "weight": 0}]}, 422, "weight"),
+    ({"observations": [{"x": 1, "y": 0}] * 501}, 422, "at most 500"),
+    ({"observations": {"x": 1}}, 422, "observations"),
+    ({"method": "magic"}, 422, "method"),
+    ({"extra": 1}, 422, "extra"),
+])  # fmt: skip
+def test_bad_localize_input_is_named(api, kmap, patch, status, words):
+    map_id, _ = kmap
+    body = {"gps": {"lat": 49.0071, "lon": 8.428, "heading_deg": 87.5}, "observations": [{"x": 10, "y": 1}]}
+    body.update(patch)
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/localize", json=body), status, words)
+
+
+def test_localize_needs_a_map_with_markings(api):
+    body = {"gps": {"lat": 49.0071, "lon": 8.428, "heading_deg": 87.5}, "observations": [{"x": 10, "y": 1}]}
+    assert_problem(httpx.post(f"{api.base_url}/collections/nope/localize", json=body), 404, "nope")
+    empty = api.new_map(crs=None)
+    assert_problem(httpx.post(f"{api.base_url}/collections/{empty}/localize", json=body), 409, "no markings")
+    nan = b'{"gps": {"lat": NaN, "lon": 8.4, "heading_deg": 0}, "observations": []}'
+    r = httpx.post(f"{api.base_url}/collections/{empty}/localize", content=nan,
+                   headers={"Content-Type": "application/json"})  # fmt: skip
+    assert_problem(r, 400, "NaN")
