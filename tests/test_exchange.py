@@ -20,7 +20,38 @@ from .conftest import KARLSRUHE_OSM
 LANEMAP = [sys.executable, "-m", "service.cli"]
 
 
+class Result:
+    def __init__(self, returncode: int, stdout: str, stderr: str):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+@pytest.fixture
+def cli(monkeypatch, capsys):
+    """Run the real ``lanemap`` entry point in this process (faster than a subprocess)."""
+    from service.cli import main
+
+    def call(args, db_url, cwd, check=True):
+        monkeypatch.setenv("LANEMAP_DATABASE_URL", db_url)
+        monkeypatch.setenv("LANEMAP_DATA_DIR", str(cwd / "data"))
+        monkeypatch.delenv("LANEMAP_DEBUG", raising=False)
+        monkeypatch.chdir(cwd)
+        monkeypatch.setattr(sys, "argv", ["lanemap", *map(str, args)])
+        capsys.readouterr()
+        code = 0
+        try:
+            main()
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        out, err = capsys.readouterr()
+        if check and code != 0:
+            raise AssertionError(f"lanemap {args} failed: {err}")
+        return Result(code, out, err)
+
+    return call
+
+
 def run(args, db_url, cwd, check=True):
+    """Run ``lanemap`` as a separate process, as a user would."""
     env = dict(os.environ, LANEMAP_DATABASE_URL=db_url, LANEMAP_DATA_DIR=str(cwd / "data"))
     env.pop("LANEMAP_DEBUG", None)
     proc = subprocess.run(
@@ -53,12 +84,14 @@ def _same_features(a, b):
         assert x[9:] == pytest.approx(y[9:], abs=1e-9)  # lon/lat within 0.1 mm
 
 
-def test_karlsruhe_round_trip_through_the_cli(db_url, tmp_path):
-    run(["from-lanelet2", KARLSRUHE_OSM, "ka.geojson"], db_url, tmp_path)
+def test_karlsruhe_round_trip_through_the_cli(db_url, tmp_path, cli):
+    # The first steps run the console entry point in-process; the export and the
+    # failing import below go through a real subprocess.
+    cli(["from-lanelet2", KARLSRUHE_OSM, "ka.geojson"], db_url, tmp_path)
     source = json.loads((tmp_path / "ka.geojson").read_text())
     assert len(source["features"]) > 800
-    run(["maps", "create", "ka", "--title", "Karlsruhe", "--crs", "EPSG:25832"], db_url, tmp_path)
-    out = run(["import", "ka", "ka.geojson"], db_url, tmp_path).stdout
+    cli(["maps", "create", "ka", "--title", "Karlsruhe", "--crs", "EPSG:25832"], db_url, tmp_path)
+    out = cli(["import", "ka", "ka.geojson"], db_url, tmp_path).stdout
     assert f"imported {len(source['features'])} markings" in out
     run(["export", "ka", "out.geojson"], db_url, tmp_path)
     exported = json.loads((tmp_path / "out.geojson").read_text())
@@ -66,12 +99,12 @@ def test_karlsruhe_round_trip_through_the_cli(db_url, tmp_path):
     assert all(f["properties"]["version"] == 1 and f["id"] for f in exported["features"])
 
     # The export imports again into a new map unchanged (ids and versions are the store's).
-    run(["import", "ka2", "out.geojson", "--create"], db_url, tmp_path)
-    run(["export", "ka2", "again.geojson"], db_url, tmp_path)
+    cli(["import", "ka2", "out.geojson", "--create"], db_url, tmp_path)
+    cli(["export", "ka2", "again.geojson"], db_url, tmp_path)
     _same_features(json.loads((tmp_path / "again.geojson").read_text()), source)
 
     # GeoPackage: points in the storage CRS, readable by GDAL.
-    run(["export", "ka", "ka.gpkg"], db_url, tmp_path)
+    cli(["export", "ka", "ka.gpkg"], db_url, tmp_path)
     info = pyogrio.read_info(tmp_path / "ka.gpkg")
     assert info["crs"] == "EPSG:25832" and info["features"] == len(source["features"])
     assert info["geometry_type"] == "Point"
@@ -85,7 +118,7 @@ def test_karlsruhe_round_trip_through_the_cli(db_url, tmp_path):
     for i, p in zip(ids[:50], pts[:50]):
         assert (p.x, p.y) == pytest.approx((ours[int(i)].x, ours[int(i)].y), abs=1e-6)
 
-    listing = json.loads(run(["maps", "list", "--json"], db_url, tmp_path).stdout)
+    listing = json.loads(cli(["maps", "list", "--json"], db_url, tmp_path).stdout)
     assert {m["id"]: m["markings"] for m in listing} == {"ka": len(source["features"]), "ka2": len(source["features"])}
 
 
@@ -112,7 +145,8 @@ BAD_FILES = [
 ]
 
 
-def test_bad_input_is_one_clear_line_and_writes_nothing(db_url, tmp_path):
+def test_bad_input_is_one_clear_line_and_writes_nothing(db_url, tmp_path, cli):
+    run = cli
     good = tmp_path / "good.geojson"
     good.write_text(json.dumps(_fc(_pt(), _pt(8.431, 49.001))))
     run(["import", "m", good, "--create"], db_url, tmp_path)
@@ -124,10 +158,13 @@ def test_bad_input_is_one_clear_line_and_writes_nothing(db_url, tmp_path):
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], proc.stderr
         assert "Traceback" not in proc.stderr
-    # A file whose last feature is bad writes none of the good ones before it.
+    # A file whose last feature is bad writes none of the good ones before it
+    # (through a real process, as a user runs it).
     many = _fc(*[_pt(8.43 + i * 1e-4, 49.0) for i in range(500)], _pt(lon=200.0))
     (tmp_path / "many.geojson").write_text(json.dumps(many))
-    assert run(["import", "m", "many.geojson"], db_url, tmp_path, check=False).returncode == 1
+    proc = globals()["run"](["import", "m", "many.geojson"], db_url, tmp_path, check=False)
+    assert proc.returncode == 1 and proc.stderr.startswith("error: feature 500: coordinates")
+    assert "Traceback" not in proc.stderr
     assert Store(db_url).get_map("m", with_count=True).count == 2
 
 
@@ -143,7 +180,8 @@ CLI_ERRORS = [
 ]
 
 
-def test_cli_errors(sqlite_url, tmp_path):
+def test_cli_errors(sqlite_url, tmp_path, cli):
+    run = cli
     (tmp_path / "good.geojson").write_text(json.dumps(_fc(_pt())))
     run(["import", "m", "good.geojson", "--create"], sqlite_url, tmp_path)
     for args, message in CLI_ERRORS:
@@ -172,14 +210,16 @@ def test_non_wgs84_crs_member_is_refused():
         read_feature_collection(fc)
 
 
-def test_delete_map_cli(sqlite_url, tmp_path):
+def test_delete_map_cli(sqlite_url, tmp_path, cli):
+    run = cli
     (tmp_path / "g.geojson").write_text(json.dumps(_fc(_pt())))
     run(["import", "m", "g.geojson", "--create"], sqlite_url, tmp_path)
     assert "deleted map m" in run(["maps", "delete", "m", "--yes"], sqlite_url, tmp_path).stdout
     assert "no maps" in run(["maps", "list"], sqlite_url, tmp_path).stdout
 
 
-def test_db_upgrade_cli(sqlite_url, tmp_path):
+def test_db_upgrade_cli(sqlite_url, tmp_path, cli):
+    run = cli
     out = run(["db", "upgrade"], sqlite_url, tmp_path).stdout
     assert "(empty) -> 0001" in out
     assert "database: 0001" in run(["db", "current"], sqlite_url, tmp_path).stdout
