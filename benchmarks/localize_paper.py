@@ -53,7 +53,11 @@ class Scenario:
 
 # The prior's sigmas match the initial errors: per-axis RMS of a uniform 0.5-2 m
 # offset is ~1 m (8-10 m: ~6.4 m; 20 m: ~14 m), of a uniform ±15° heading ~8.7°.
+# The paper varies position (Fig. 8) and heading (Fig. 9) separately; the
+# other scenarios perturb both.
 SCENARIOS = [
+    Scenario("Fig.8 0.5-2m/0°", (0.5, 2.0), 0.0, 1.0, 2.0, Clutter()),
+    Scenario("Fig.9 0m/±15°", (0.0, 0.0), 15.0, 0.5, 9.0, Clutter()),
     Scenario("0.5-2m/±15°", (0.5, 2.0), 15.0, 1.0, 9.0, Clutter()),
     Scenario("8-10m/±15°", (8.0, 10.0), 15.0, 6.5, 9.0, Clutter()),
     Scenario("20m/±30°", (20.0, 20.0), 30.0, 14.0, 17.0, Clutter()),

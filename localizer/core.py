@@ -190,12 +190,12 @@ def localize(
             options.outlier_density, options.candidates, options.temperature,
         )
         view = view_of(obs_xy, options)
+        results = robust_refine(
+            local, obs_xy, w_data, sig, [(c.x, c.y, c.yaw) for c in cands], options,
+            record=options.record_trace,
+        ) if cands else []
         refined = []
-        for k, cand in enumerate(cands):
-            r = robust_refine(
-                local, obs_xy, w_data, sig, (cand.x, cand.y, cand.yaw), options,
-                record=options.record_trace and k == 0,
-            )
+        for r, cand in zip(results, cands):
             score = data_score(local, obs_xy, w_data, sig, r.pose, options, view) / options.temperature
             score += log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
             refined.append((score, r, cand))
@@ -262,7 +262,7 @@ def localize(
 
 
 def _same_optimum(a, b, cov) -> bool:
-    d = np.array([a[0] - b[0], a[1] - b[1], wrap_angle(a[2] - b[2])])
+    d = np.array([a[0] - b[0], a[1] - b[1], (a[2] - b[2] + math.pi) % (2 * math.pi) - math.pi])
     if abs(d[2]) > math.radians(2.0):
         return False
     if math.hypot(d[0], d[1]) < 0.75:

@@ -25,19 +25,22 @@ def _column(name: str, values, n: int | None = None) -> np.ndarray:
 
 
 def _continuous_pieces(xy: np.ndarray, u: np.ndarray, length: np.ndarray) -> np.ndarray:
-    """Markings whose end touches the end of another marking of similar direction."""
+    """Interior pieces of continuous lines: both ends meet another marking's end.
+
+    Ends must lie within 0.6 m with directions within 20°. A dash that merely
+    continues a solid line touches it at one end only and stays point-like.
+    """
     n = len(xy)
-    out = np.zeros(n, bool)
-    if n < 2:
-        return out
+    if n < 3:
+        return np.zeros(n, bool)
     ends = np.concatenate([xy + 0.5 * length[:, None] * u, xy - 0.5 * length[:, None] * u])
     owner = np.concatenate([np.arange(n), np.arange(n)])
-    tree = cKDTree(ends)
-    for a, b in tree.query_pairs(0.6, output_type="ndarray"):
+    touched = np.zeros(2 * n, bool)
+    for a, b in cKDTree(ends).query_pairs(0.6, output_type="ndarray"):
         i, j = owner[a], owner[b]
         if i != j and abs(float(u[i] @ u[j])) > math.cos(math.radians(20.0)):
-            out[i] = out[j] = True
-    return out
+            touched[a] = touched[b] = True
+    return touched[:n] & touched[n:]
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,8 +115,8 @@ class MapIndex:
             always uses centroids.
         kind : array_like of str, shape (M,), optional
             ``"solid"`` marks the pieces of solid lines. Without it, a piece is
-            taken as part of a continuous line when one of its ends meets the end
-            of another marking of about the same direction (within 0.6 m, 20°).
+            taken as part of a continuous line when both its ends meet the ends
+            of other markings of about the same direction (within 0.6 m, 20°).
 
         Raises
         ------

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .geometry import LocalMap, apply, compose, rotation, weighted_rigid_fit
+from .geometry import LocalMap, apply, rotation
 from .types import Options
 
 
@@ -36,11 +36,11 @@ def robust_refine(
     obs_xy: np.ndarray,
     w_obs: np.ndarray,
     sigma_obs: np.ndarray,
-    init,
+    inits,
     options: Options,
-    iterations_per_scale: int = 8,
+    iterations_per_scale: int = 6,
     record: bool = False,
-) -> RefineResult:
+) -> list[RefineResult]:
     """IRLS with a Geman-McClure kernel whose scale is annealed coarse to fine.
 
     At annealing scale ``c`` an observation's scale is ``s_j = sqrt(c² + σ_j²)``
@@ -49,32 +49,66 @@ def robust_refine(
     weigh all observations alike (no near-range observation can drag the pose
     far), the finest weighs them by their noise. Pairs are point-to-point for
     point-like markings and point-to-segment for line-like ones.
+
+    All initial poses ``inits`` (K, 3) are refined together (one KD-tree query
+    per iteration for all of them). ``record`` keeps the trace of the first.
     """
-    pose = tuple(float(v) for v in init)
-    trace = [pose] if record else []
-    total = 0
+    poses = np.array(inits, float).reshape(-1, 3)
+    K, N = len(poses), len(obs_xy)
+    iters = np.zeros(K, int)
+    trace = [tuple(poses[0])] if record else []
     var = sigma_obs**2
     for c in options.anneal_m:
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
+        tol = options.tolerance_m if c == options.anneal_m[-1] else max(options.tolerance_m, 0.01)
+        active = np.ones(K, bool)
         for _ in range(iterations_per_scale):
-            p = apply(pose, obs_xy)
-            d, tgt, _ = local_map.closest(p, float(gate.max()))
-            m = np.isfinite(d) & (d <= gate)
-            if m.sum() < 2:
+            idx = np.flatnonzero(active)
+            if idx.size == 0:
                 break
-            u2 = d[m] ** 2 / s2[m]
-            w = w_obs[m] / s2[m] / (1.0 + u2) ** 2
-            dtheta, dt = weighted_rigid_fit(p[m], tgt[m], w)
-            new = compose(dtheta, dt, pose)
-            step = math.hypot(new[0] - pose[0], new[1] - pose[1])
-            pose = new
-            total += 1
-            if record:
-                trace.append(pose)
-            if step < options.tolerance_m and abs(dtheta) < options.tolerance_rad:
-                break
-    return RefineResult(pose=pose, iterations=total, trace=trace)
+            P = poses[idx]
+            cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
+            px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
+            py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
+            pts = np.stack([px, py], -1).reshape(-1, 2)
+            d, tgt, _ = local_map.closest(pts, float(gate.max()))
+            d = d.reshape(-1, N)
+            tgt = tgt.reshape(-1, N, 2)
+            m = np.isfinite(d) & (d <= gate[None])
+            dd = np.where(m, d, 0.0)
+            wo = w_obs if c != options.anneal_m[-1] else np.ones_like(w_obs)
+            w = np.where(m, wo[None] / s2[None] / (1.0 + dd**2 / s2[None]) ** 2, 0.0)
+            wsum = w.sum(1)
+            ok = (m.sum(1) >= 2) & (wsum > 0)
+            ws = w / np.where(wsum > 0, wsum, 1.0)[:, None]
+            src = np.stack([px, py], -1)
+            cs = np.einsum("kn,knd->kd", ws, src)
+            cd = np.einsum("kn,knd->kd", ws, tgt)
+            a = src - cs[:, None]
+            b = tgt - cd[:, None]
+            sxx = np.einsum("kn,kn->k", ws, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1])
+            sxy = np.einsum("kn,kn->k", ws, a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+            th = np.where(ok, np.arctan2(sxy, sxx), 0.0)
+            ct, st = np.cos(th), np.sin(th)
+            tx = cd[:, 0] - (ct * cs[:, 0] - st * cs[:, 1])
+            ty = cd[:, 1] - (st * cs[:, 0] + ct * cs[:, 1])
+            nx = ct * P[:, 0] - st * P[:, 1] + tx
+            ny = st * P[:, 0] + ct * P[:, 1] + ty
+            new = np.column_stack([nx, ny, P[:, 2] + th])
+            new[~ok] = P[~ok]
+            step = np.hypot(new[:, 0] - P[:, 0], new[:, 1] - P[:, 1])
+            poses[idx] = new
+            iters[idx[ok]] += 1
+            if record and idx[0] == 0 and ok[0]:
+                trace.append(tuple(new[0]))
+            done = ~ok | ((step < tol) & (np.abs(th) < options.tolerance_rad))
+            active[idx[done]] = False
+    return [
+        RefineResult(pose=tuple(float(v) for v in poses[k]), iterations=int(iters[k]),
+                     trace=trace if k == 0 else [])
+        for k in range(K)
+    ]
 
 
 def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:
