@@ -195,6 +195,24 @@ def test_create_read_replace_patch_delete_with_etags(api):
         assert_problem(c.delete(f"{base}/{fid}"), 404)
 
 
+def test_qgis_style_create_with_null_attributes(api):
+    """QGIS posts every attribute of the layer, null where the user left it empty."""
+    map_id = api.new_map()
+    body = feature(8.428, 49.0071, weight=None, length_m=None, width_m=None, bearing_deg=None, score=None,
+                   kind=None, source=None, status=None, version=None)  # fmt: skip
+    body["id"] = None
+    with api.client(headers={**api.auth, "Content-Type": "application/geo+json"}) as c:
+        r = c.post(f"/collections/{map_id}/items", json=body)
+        assert r.status_code == 201, r.text
+        props = r.json()["properties"]
+        assert props["source"] == "manual" and props["status"] == "unreviewed" and props["weight"] == 1.0
+        fid = r.json()["id"]
+        put = c.put(f"/collections/{map_id}/items/{fid}", json={**body, "properties": {**body["properties"],
+                    "status": "accepted"}})  # fmt: skip
+        assert put.status_code == 200 and put.json()["properties"]["status"] == "accepted"
+        assert put.json()["properties"]["source"] == "manual"
+
+
 def test_options_answers_allow(api):
     map_id = api.new_map()
     with api.client(headers=api.auth) as c:

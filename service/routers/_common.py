@@ -10,7 +10,7 @@ from typing import Any
 from fastapi import Request
 
 from mapbuilder.crs import from_wgs84
-from mapbuilder.geojson import feature_to_marking, marking_to_feature
+from mapbuilder.geojson import KNOWN_PROPERTIES, feature_to_marking, marking_to_feature
 from mapbuilder.model import Marking
 
 from ..problems import Problem
@@ -127,6 +127,10 @@ def marking_from_feature(feature: Any, crs: str | None, *, default_source: str =
     """A validated marking from a feature, positioned in ``crs`` (when known)."""
     from mapbuilder.geojson import GeoJSONError
 
+    if isinstance(feature, dict) and isinstance(feature.get("properties"), dict):
+        # GIS clients (QGIS) send every attribute, null where unset: null means "not given".
+        props = {k: v for k, v in feature["properties"].items() if not (v is None and k in KNOWN_PROPERTIES)}
+        feature = {**feature, "properties": props}
     try:
         m = feature_to_marking(feature, default_source=default_source)
     except GeoJSONError as exc:
