@@ -41,6 +41,7 @@ import rasterio
 from scipy.optimize import linear_sum_assignment
 
 from mapbuilder.build import BuildParams, build_map
+from mapbuilder.cluster import ClusterParams
 from mapbuilder.lanelet2 import read_lanelet2
 from mapbuilder.store import Store
 from mapbuilder.synth import lanelet_scene, procedural_scene, render
@@ -64,13 +65,13 @@ HELDOUT_SEED = 9000
 TOL = 0.3
 
 
-def heldout_scenes(n: int, size_m: float):
+def heldout_scenes(n: int, size_m: float, first_seed: int = HELDOUT_SEED):
     lmap = read_lanelet2(KARLSRUHE)
     xs = np.array([c[len(c) // 2, 0] for c in lmap.centerlines])
     east = [c for c, x in zip(lmap.centerlines, xs) if x >= np.median(xs) and len(c) > 5]
-    rng = np.random.default_rng(HELDOUT_SEED)
+    rng = np.random.default_rng(first_seed)
     for i in range(n):
-        seed = HELDOUT_SEED + i
+        seed = first_seed + i
         if i % 3 == 2:
             c = east[int(rng.integers(len(east)))]
             x, y = c[len(c) // 2]
@@ -205,18 +206,26 @@ def main() -> None:
     ap.add_argument("--size", type=float, default=150.0, help="scene side, metres")
     ap.add_argument("--model", default=None)
     ap.add_argument("--workers", type=int, default=os.cpu_count())
+    ap.add_argument("--seed", type=int, default=HELDOUT_SEED,
+                    help="first scene seed; tune on others than the held-out 9000+")
+    ap.add_argument("--threshold", type=float, default=ClusterParams.threshold)
+    ap.add_argument("--min-length", type=float, default=ClusterParams.min_length_m)
+    ap.add_argument("--min-area", type=float, default=ClusterParams.min_area_m2)
+    ap.add_argument("--link", type=float, default=ClusterParams.link_m)
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    params = BuildParams(model=args.model)
+    cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
+                            min_area_m2=args.min_area, link_m=args.link)
+    params = BuildParams(model=args.model, cluster=cluster)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}
     errors, cross, per_scene = [], [], []
     t_build = 0.0
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(f"sqlite:///{tmp}/quality.sqlite")
-        for i, (name, scene) in enumerate(heldout_scenes(args.n, args.size)):
+        for i, (name, scene) in enumerate(heldout_scenes(args.n, args.size, args.seed)):
             tif = Path(tmp) / f"{name}.tif"
-            r = render(scene, tif, 0.1, seed=HELDOUT_SEED + 100 + i,
+            r = render(scene, tif, 0.1, seed=args.seed + 100 + i,
                        jpeg_quality=85 if i % 2 else None)
             t0 = time.perf_counter()
             build_map(store, name, [tif], params, workers=args.workers, progress=False)
@@ -243,6 +252,8 @@ def main() -> None:
         store.close()
     errors, cross = np.array(errors), np.array(cross)
     figures = {
+        "first_seed": args.seed,
+        "cluster": vars(cluster) if hasattr(cluster, "__dict__") else str(cluster),
         "scenes": args.n,
         "scene_side_m": args.size,
         "precision": round(totals["tp_det"] / max(totals["n_det"], 1), 4),
