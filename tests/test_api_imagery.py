@@ -111,7 +111,7 @@ def test_build_runs_as_a_job_and_writes_detections(api):
     job_id = job_url.rsplit("/", 1)[1]
     assert r.json()["status"] in ("accepted", "running") and r.json()["imagery"] == [img["id"]]
     job = wait_job(api, job_id)
-    assert job["status"] == "successful", job
+    assert job["status"] == "successful", job["message"]
     assert job["progress"] == 100 and job["finished"]
     items = httpx.get(f"{api.base_url}/collections/{map_id}/items?limit=1000").json()
     assert items["numberMatched"] > 0

@@ -9,6 +9,7 @@ import socket
 import stat
 import subprocess
 import sys
+import time
 
 import httpx
 
@@ -80,6 +81,9 @@ def test_several_workers_share_the_store(tmp_path):
                    for i in range(10)}  # fmt: skip
             assert len(ids) == 10
             assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 10
+        deadline = time.monotonic() + 60
+        while len(re.findall(r"Started server process", server.log())) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
         assert len(re.findall(r"Started server process", server.log())) == 2
     finally:
         server.stop()
