@@ -54,6 +54,15 @@ class ClusterParams:
         Smallest accepted painted area, square metres.
     direction_step_deg : float
         Quantisation of the cutting direction of long clusters, degrees.
+    join_gap_m : float
+        Collinear clusters whose facing ends are at most this far apart along
+        their axis are joined (a marking broken by wear or a shadow); 0, the
+        default, disables it: with a noisy classifier, joining also drags true
+        dashes onto nearby false fragments.
+    join_angle_deg : float
+        Largest difference of direction of clusters to join, degrees.
+    join_offset_m : float
+        Largest sideways offset of a facing end from the other cluster's axis, metres.
     """
 
     threshold: float = 0.5
@@ -65,6 +74,9 @@ class ClusterParams:
     min_length_m: float = 0.3
     min_area_m2: float = 0.04
     direction_step_deg: float = 2.0
+    join_gap_m: float = 0.0
+    join_angle_deg: float = 12.0
+    join_offset_m: float = 0.12
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -79,6 +91,8 @@ class ClusterParams:
             )
         if self.link_m < 0:
             raise ValueError(f"link_m must be >= 0, got {self.link_m}")
+        if self.join_gap_m < 0:
+            raise ValueError(f"join_gap_m must be >= 0, got {self.join_gap_m}")
 
 
 @dataclass
@@ -384,6 +398,94 @@ def split_long(
     return out, int(lab.max())
 
 
+def _label_ids(lab: np.ndarray) -> np.ndarray:
+    n = np.bincount(lab)
+    ids = np.flatnonzero(n)
+    return ids[ids > 0]
+
+
+def join_collinear(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    lab: np.ndarray,
+    transform: Affine,
+    gap_m: float = 0.6,
+    angle_deg: float = 12.0,
+    offset_m: float = 0.12,
+) -> np.ndarray:
+    """Join clusters that continue each other: a marking broken by wear or shadow.
+
+    Two elongated clusters are joined when their directions differ by at most
+    ``angle_deg``, their facing ends are at most ``gap_m`` apart along the
+    axis, and each facing end lies within ``offset_m`` of the other's axis
+    (so parallel double lines stay apart).
+
+    Parameters
+    ----------
+    rows, cols, lab : ndarray
+        Marking pixels and their cluster labels (> 0).
+    transform : Affine
+        Pixel to CRS metres.
+
+    Returns
+    -------
+    ndarray
+        New labels for the pixels.
+    """
+    from scipy.spatial import cKDTree
+
+    if lab.size == 0 or gap_m <= 0:
+        return lab
+    c = _measure(rows, cols, lab, np.zeros(lab.size), transform)
+    ids = _label_ids(lab)
+    elongated = c.length_m >= 2.5 * c.width_m
+    idx = np.flatnonzero(elongated)
+    if idx.size < 2:
+        return lab
+    ends = np.concatenate([np.column_stack([c.x0[idx], c.y0[idx]]),
+                           np.column_stack([c.x1[idx], c.y1[idx]])])
+    owner = np.concatenate([idx, idx])
+    pairs = cKDTree(ends).query_pairs(gap_m + offset_m, output_type="ndarray")
+    if len(pairs) == 0:
+        return lab
+    i, j = pairs[:, 0], pairs[:, 1]
+    a, b = owner[i], owner[j]
+    ok = a != b
+    i, j, a, b = i[ok], j[ok], a[ok], b[ok]
+    diff = np.abs(c.bearing_deg[a] - c.bearing_deg[b]) % 180.0
+    ok = np.minimum(diff, 180.0 - diff) <= angle_deg
+    i, j, a, b = i[ok], j[ok], a[ok], b[ok]
+    parent = np.arange(len(c))
+
+    def find(k):
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for ei, ej, ca, cb in zip(i, j, a, b):
+        pa, pb = ends[ei], ends[ej]
+        # Each end must face the other cluster: it is the end nearer to it.
+        far_a = ends[ei + len(idx) if ei < len(idx) else ei - len(idx)]
+        far_b = ends[ej + len(idx) if ej < len(idx) else ej - len(idx)]
+        if np.hypot(*(far_a - pb)) < np.hypot(*(pa - pb)) or np.hypot(*(far_b - pa)) < np.hypot(*(pa - pb)):
+            continue
+        ua = (pa - far_a) / max(np.hypot(*(pa - far_a)), 1e-9)
+        ub = (pb - far_b) / max(np.hypot(*(pb - far_b)), 1e-9)
+        d = pb - pa
+        along = float(d @ ua)
+        side_a = abs(float(d @ np.array([-ua[1], ua[0]])))
+        side_b = abs(float(d @ np.array([-ub[1], ub[0]])))
+        if -offset_m <= along <= gap_m and side_a <= offset_m and side_b <= offset_m:
+            parent[find(ca)] = find(cb)
+    roots = np.array([find(k) for k in range(len(c))])
+    if np.all(roots == np.arange(len(c))):
+        return lab
+    lut = np.zeros(int(lab.max()) + 1, np.int64)
+    lut[ids] = ids[roots]
+    return lut[lab]
+
+
 def filter_clusters(clusters: Clusters, params: ClusterParams) -> Clusters:
     """Keep clusters whose shape a lane marking can have."""
     area = clusters.width_m * clusters.length_m
@@ -431,6 +533,9 @@ def detect_markings(
     if idx.size == 0:
         return Clusters.empty()
     rows, cols = np.divmod(idx, labels.shape[1])
+    if params.join_gap_m > 0:
+        lab = join_collinear(rows, cols, lab, transform, params.join_gap_m,
+                             params.join_angle_deg, params.join_offset_m)
     lab = _split_sparse(rows, cols, lab, transform, params.max_length_m, params.split_factor,
                         params.direction_step_deg)
     clusters = _measure(rows, cols, lab, prob.ravel()[idx], transform)

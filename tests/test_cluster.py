@@ -149,17 +149,38 @@ def test_cuts_do_not_depend_on_the_window():
     np.testing.assert_array_equal(np.sort(a.weight[sel_a]), np.sort(b.weight[sel_b]))
 
 
-def test_link_distance_joins_a_broken_dash():
+def test_a_dash_broken_by_wear_is_joined():
     res = 0.05
     t = _grid(res)
     img = np.zeros((200, 200), np.float32)
     _draw(img, t, X0 + 5, Y0 - 4.2, 1.3, 0.15, 0)
     _draw(img, t, X0 + 5, Y0 - 5.8, 1.3, 0.15, 0)   # a 0.3 m worn gap
-    params = ClusterParams(min_length_m=0.1)
-    assert len(detect_markings(img, None, t, params)) == 2
-    joined = detect_markings(img, None, t, ClusterParams(link_m=0.4, min_length_m=0.1))
-    assert len(joined) == 1
-    assert joined.length_m[0] == pytest.approx(2.9, abs=0.1)
+    apart = detect_markings(img, None, t, ClusterParams(min_length_m=0.1, join_gap_m=0))
+    assert len(apart) == 2
+    for params in (ClusterParams(min_length_m=0.1, join_gap_m=0.6),  # collinear join
+                   ClusterParams(link_m=0.4, min_length_m=0.1, join_gap_m=0)):  # link distance
+        joined = detect_markings(img, None, t, params)
+        assert len(joined) == 1
+        assert joined.length_m[0] == pytest.approx(2.9, abs=0.1)
+        assert joined.y[0] == pytest.approx(Y0 - 5.0, abs=0.02)
+        assert joined.weight[0] == apart.weight.sum()
+
+
+def test_only_continuing_clusters_are_joined():
+    res = 0.05
+    t = _grid(res)
+    img = np.zeros((300, 300), np.float32)
+    # A double line: parallel, 0.25 m between centres, side by side.
+    _draw(img, t, X0 + 3, Y0 - 5, 3.0, 0.12, 0)
+    _draw(img, t, X0 + 3.25, Y0 - 5, 3.0, 0.12, 0)
+    # Two dashes 1.5 m apart end to end: a gap, not wear.
+    _draw(img, t, X0 + 8, Y0 - 2.5, 2.0, 0.15, 0)
+    _draw(img, t, X0 + 8, Y0 - 6.0, 2.0, 0.15, 0)
+    # A stall line ending 0.2 m before a perpendicular line.
+    _draw(img, t, X0 + 12, Y0 - 4, 2.0, 0.12, 0)
+    _draw(img, t, X0 + 12, Y0 - 5.3, 3.0, 0.12, 90)
+    c = detect_markings(img, None, t, ClusterParams(min_length_m=0.1, join_gap_m=1.0))
+    assert len(c) == 6
 
 
 def test_split_long_keeps_short_clusters():
