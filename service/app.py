@@ -20,7 +20,7 @@ from mapbuilder.store import Store
 
 from . import problems
 from .deps import Context
-from .middleware import BodyGuard
+from .middleware import BodyGuard, HeadAsGet
 from .settings import ServiceSettings, Token, resolve_tokens
 
 log = logging.getLogger(__name__)
@@ -115,6 +115,7 @@ def create_app(
 
     # Outermost first: CORS must also answer for requests the body guard refuses.
     app.add_middleware(BodyGuard, max_bytes=settings.max_body_bytes, stream_paths=STREAM_PATHS)
+    app.add_middleware(HeadAsGet)
     origins = settings.cors_origin_list()
     if origins:
         app.add_middleware(

@@ -164,6 +164,8 @@ def test_create_read_replace_patch_delete_with_etags(api):
         assert r.json()["properties"]["source"] == "manual"
         g = c.get(f"{base}/{fid}")
         assert g.headers["etag"] == '"1"'
+        h = c.head(f"{base}/{fid}")
+        assert h.status_code == 200 and h.headers["etag"] == '"1"' and h.content == b""
         assert g.json()["geometry"]["coordinates"] == pytest.approx([8.428, 49.0071], abs=1e-9)
         # PUT replaces, If-Match honoured
         put = c.put(f"{base}/{fid}", json=feature(8.4281, 49.0072, weight=50, status="accepted"),

@@ -30,8 +30,8 @@ router = APIRouter(dependencies=[Depends(require_read)])
 MapId = PathParam(..., description="The map's id", max_length=64)
 FeatureId = PathParam(..., description="A marking id (an integer as a string)", max_length=40)
 
-COLLECTION_ALLOW = "GET, POST, OPTIONS"
-ITEM_ALLOW = "GET, PUT, PATCH, DELETE, OPTIONS"
+COLLECTION_ALLOW = "GET, HEAD, POST, OPTIONS"
+ITEM_ALLOW = "GET, HEAD, PUT, PATCH, DELETE, OPTIONS"
 
 FEATURE_SCHEMA = {
     "type": "object",
