@@ -74,6 +74,24 @@ def main() -> None:
                     amb += 1
             n = len(runs)
             print(f"{T:4.1f}  {thr:.2f}  {cw / n:9.2%}  {amb / n:9.2%}  {good / n:8.2%}")
+    print(f"per scenario at T={T0}, threshold {opts.ambiguity_probability}: "
+          "confidently wrong (truth among candidates or not) / ambiguous")
+    for sc in SCENARIOS:
+        rs = [r for r in runs if r["scn"] == sc.name and not r["failed"] and len(r["data"])]
+        cw_in = cw_out = amb = 0
+        for r in rs:
+            s = r["data"] / T0 + r["prior"]
+            pr = np.exp(s - s.max())
+            pr /= pr.sum()
+            b = int(np.argmax(s))
+            if pr[b] < opts.ambiguity_probability:
+                amb += 1
+            elif r["errs"][b] > 1.0:
+                if (r["errs"] < 0.5).any():
+                    cw_in += 1
+                else:
+                    cw_out += 1
+        print(f"  {sc.name:22s} {cw_in:3d} {cw_out:3d} / {amb:3d} of {len(runs) // len(SCENARIOS)}")
     maha = np.array([r["maha"] for r in runs if not r["failed"] and r["err"] <= 1.0])
     for k in (1.0, 1.5, 2.0, 3.0, 4.0):
         print(f"inflation {k}: 95% ellipse coverage {np.mean(maha / k <= 5.991):.1%}, "

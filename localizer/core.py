@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -190,14 +191,20 @@ def localize(
             options.outlier_density, options.candidates, options.temperature,
         )
         view = view_of(obs_xy, options)
-        results = robust_refine(
-            local, obs_xy, w_data, sig, [(c.x, c.y, c.yaw) for c in cands], options,
-            record=options.record_trace,
-        ) if cands else []
+        inits = [(c.x, c.y, c.yaw) for c in cands]
+        coarse = robust_refine(local, obs_xy, w_data, sig, inits, options,
+                               record=options.record_trace) if cands else []
+        # The coarse-to-fine schedule can be dragged off a right candidate by heavy
+        # clutter; a fine-only refinement from the same start cannot go far. Keep
+        # whichever explains the observations better.
+        fine = robust_refine(local, obs_xy, w_data, sig, inits,
+                             replace(options, anneal_m=options.anneal_m[-2:])) if cands else []
         refined = []
-        for r, cand in zip(results, cands):
-            score = data_score(local, obs_xy, w_data, sig, r.pose, options, view) / options.temperature
-            score += log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
+        for a, b, cand in zip(coarse, fine, cands):
+            sa = data_score(local, obs_xy, w_data, sig, a.pose, options, view)
+            sb = data_score(local, obs_xy, w_data, sig, b.pose, options, view)
+            r, sc = (a, sa) if sa >= sb else (b, sb)
+            score = sc / options.temperature + log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
             refined.append((score, r, cand))
         refined.sort(key=lambda t: -t[0])
         all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in cands]

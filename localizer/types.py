@@ -235,7 +235,7 @@ class Options:
     view_min_range_m: float | None = None
     view_max_range_m: float | None = None
     view_half_fov_deg: float | None = None
-    temperature: float = 2.0
+    temperature: float = 1.5
     ambiguity_probability: float = 0.95
     min_inliers: int = 3
     inlier_distance_m: float = 0.75
