@@ -95,10 +95,13 @@ def test_bad_uploads_leave_nothing_behind(api, tmp_path):
                   b"Content-Type: image/tiff\r\nContent-Length: %d\r\n\r\n"
                   % (map_id.encode(), api.token.encode(), len(data)))  # fmt: skip
         s.sendall(data[: len(data) // 2])
-    time.sleep(1.0)
+    incoming = api.data_dir / "imagery" / ".incoming"
+    deadline = time.monotonic() + 20
+    while list(incoming.glob("*")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not list(incoming.glob("*"))  # the partial upload was removed
     assert httpx.get(f"{api.base_url}/collections/{map_id}/imagery").json()["imagery"] == []
-    assert not list((api.data_dir / "imagery" / ".incoming").glob("*"))
-    assert not list((api.data_dir / "imagery" / map_id).glob("*")) if (api.data_dir / "imagery" / map_id).exists() else True
+    assert not list((api.data_dir / "imagery").glob(f"{map_id}/*"))
     assert_problem(httpx.get(f"{api.base_url}/collections/{map_id}/imagery/424242"), 404)
 
 
