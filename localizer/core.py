@@ -15,7 +15,7 @@ from .frames import wrap_angle
 from .geometry import LocalMap, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
-from .robust import data_score, data_weights, view_of, fit_statistics, log_prior, noise_sigma, robust_refine
+from .robust import data_scores, data_weights, view_of, fit_statistics, log_prior, noise_sigma, robust_refine
 from .search import correlative_search
 from .types import Hypothesis, Options, Pose, Prior
 
@@ -191,6 +191,10 @@ def localize(
             options.outlier_density, options.candidates, options.temperature,
         )
         view = view_of(obs_xy, options)
+        if cands:
+            # Candidates far below the best cannot become competitive.
+            floor = cands[0].score - options.candidate_margin
+            cands = [c for k, c in enumerate(cands) if k < 4 or c.score >= floor]
         inits = [(c.x, c.y, c.yaw) for c in cands]
         coarse = robust_refine(local, obs_xy, w_data, sig, inits, options,
                                record=options.record_trace) if cands else []
@@ -200,9 +204,12 @@ def localize(
         fine = robust_refine(local, obs_xy, w_data, sig, inits,
                              replace(options, anneal_m=options.anneal_m[-2:])) if cands else []
         refined = []
-        for a, b, cand in zip(coarse, fine, cands):
-            sa = data_score(local, obs_xy, w_data, sig, a.pose, options, view)
-            sb = data_score(local, obs_xy, w_data, sig, b.pose, options, view)
+        if cands:
+            both = data_scores(local, obs_xy, w_data, sig,
+                               [r.pose for r in coarse] + [r.pose for r in fine], options, view)
+        for k, cand in enumerate(cands):
+            a, b = coarse[k], fine[k]
+            sa, sb = both[k], both[len(cands) + k]
             r, sc = (a, sa) if sa >= sb else (b, sb)
             score = sc / options.temperature + log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
             refined.append((score, r, cand))

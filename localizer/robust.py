@@ -149,39 +149,54 @@ def data_score(
     """Log-likelihood ratio of the observations at ``pose``, with negative evidence.
 
     Each observation adds ``w log(1 + N(d; s) / π)`` (matched marking versus
-    clutter; a match on a segment counts less, its density being spread along it). Each point-like map marking that the camera should see at
-    ``pose`` (inside ``view``) but that no observation explains subtracts
-    ``log(1 / p_miss)``: a wrong pose on a repeating pattern usually predicts
-    a marking where none was seen, or sees one where the map has none.
+    clutter; a match on a segment counts less, its density being spread along it).
+    Each point-like map marking that the camera should see at ``pose`` (inside
+    ``view``) but that no observation explains subtracts ``log(1 / p_miss)``: a
+    wrong pose on a repeating pattern usually predicts a marking where none was
+    seen, or sees one where the map has none.
     """
-    p = apply(pose, obs_xy)
+    return float(data_scores(local_map, obs_xy, w_obs, sigma_obs, [pose], options, view)[0])
+
+
+def data_scores(
+    local_map: LocalMap, obs_xy, w_obs, sigma_obs, poses, options: Options, view=None
+) -> np.ndarray:
+    """:func:`data_score` of several poses (K, 3) at once."""
+    P = np.asarray(poses, float).reshape(-1, 3)
+    K, N = len(P), len(obs_xy)
+    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
+    px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
+    py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
+    pts = np.stack([px, py], -1)
     s = np.sqrt(0.15**2 + sigma_obs**2)
-    d, _, _, which = local_map.closest(p, 4.0 * float(s.max()), return_index=True)
+    d, _, _, which = local_map.closest(pts.reshape(-1, 2), 4.0 * float(s.max()), return_index=True)
+    d, which = d.reshape(K, N), which.reshape(K, N)
     fin = np.isfinite(d)
-    k = np.where(fin, np.exp(-0.5 * (np.where(fin, d, 0.0) / s) ** 2), 0.0)
+    k = np.where(fin, np.exp(-0.5 * (np.where(fin, d, 0.0) / s[None]) ** 2), 0.0)
     # A solid-line piece explains an observation anywhere along its length: its
     # density is spread over the length, so a match on it is weaker evidence.
     half = np.where(which >= 0, local_map.half[np.maximum(which, 0)], 0.0)
     seg = half > 0
-    k[seg] *= np.minimum(1.0, math.sqrt(2 * math.pi) * s[seg] / (2 * half[seg]))
-    score = float(np.sum(w_obs * np.log1p(k / options.outlier_density)))
+    k[seg] *= np.minimum(1.0, (math.sqrt(2 * math.pi) * s[None] / np.maximum(2 * half, 1e-9))[seg])
+    score = np.sum(w_obs[None] * np.log1p(k / options.outlier_density), axis=1)
     if view is None or options.miss_probability >= 1.0 or len(local_map) == 0:
         return score
-    rmin, rmax, half = view
-    pts = local_map.xy[local_map.half == 0]
-    c, sn = math.cos(pose[2]), math.sin(pose[2])
-    dx = pts[:, 0] - pose[0]
-    dy = pts[:, 1] - pose[1]
-    vx = c * dx + sn * dy
-    vy = -sn * dx + c * dy
-    r = np.hypot(vx, vy)
-    seen = (r >= rmin) & (r <= rmax) & (np.abs(np.arctan2(vy, vx)) <= half)
-    if not seen.any():
-        return score
-    pred = pts[seen]
-    dd, _ = cKDTree(p).query(pred, distance_upper_bound=options.explain_distance_m)
-    missing = int(np.sum(~np.isfinite(dd)))
-    return score - missing * math.log(1.0 / options.miss_probability)
+    rmin, rmax, halfang = view
+    mp = local_map.xy[local_map.half == 0]
+    penalty = math.log(1.0 / options.miss_probability)
+    for j in range(K):
+        dx = mp[:, 0] - P[j, 0]
+        dy = mp[:, 1] - P[j, 1]
+        vx = cos[j] * dx + sin[j] * dy
+        vy = -sin[j] * dx + cos[j] * dy
+        r = np.hypot(vx, vy)
+        seen = (r >= rmin) & (r <= rmax) & (np.abs(np.arctan2(vy, vx)) <= halfang)
+        if not seen.any():
+            continue
+        pred = mp[seen]
+        dd = np.min(np.hypot(pred[:, None, 0] - px[j][None], pred[:, None, 1] - py[j][None]), axis=1)
+        score[j] -= penalty * int(np.sum(dd > options.explain_distance_m))
+    return score
 
 
 @dataclass

@@ -176,7 +176,10 @@ class Options:
     max_search_observations : int
         The coarse search uses at most this many observations (highest weight first).
     candidates : int
-        Coarse optima that are refined.
+        Coarse optima that are refined (at most).
+    candidate_margin : float
+        Beyond the best four, coarse optima scoring more than this below the best
+        (log units) are not refined.
     anneal_m : tuple of float
         Robust (Geman-McClure) scales of the refinement, coarse to fine, metres.
     noise_m, noise_range_coeff : float
@@ -226,6 +229,7 @@ class Options:
     search_cell_m: float | None = None
     max_search_observations: int = 120
     candidates: int = 20
+    candidate_margin: float = 10.0
     anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2)
     noise_m: float = 0.05
     noise_range_coeff: float = 5e-4

@@ -1,0 +1,110 @@
+"""Latency of the localizer on this machine.
+
+* ``MapIndex.from_arrays`` for maps of 2,000 to 200,000 markings;
+* local refinement (the default method's robust IRLS, and the paper's ICP)
+  for 30 observations against a 2,000-marking neighbourhood;
+* the full default method (global search + refinement + scoring), from a
+  5 m / 10° prior (the API default) and a 1 m / 9° one, on Karlsruhe scenes.
+
+Run: ``.venv/bin/python benchmarks/localize_latency.py`` (report ``uptime`` load with it).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from _localizer_helpers import karlsruhe  # noqa: E402
+
+from localizer import MapIndex, Options, Prior, localize  # noqa: E402
+from localizer.geometry import LocalMap  # noqa: E402
+from localizer.pink2008 import pink2008_icp  # noqa: E402
+from localizer.robust import data_weights, noise_sigma, robust_refine  # noqa: E402
+from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene  # noqa: E402
+
+ORIGIN = np.array([458000.0, 5428000.0])
+
+
+def timeit(fn, repeat: int) -> np.ndarray:
+    out = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        out.append(1000 * (time.perf_counter() - t0))
+    return np.array(out)
+
+
+def line(name: str, ms: np.ndarray) -> str:
+    return f"| {name} | {np.median(ms):.2f} | {np.percentile(ms, 95):.2f} |"
+
+
+def main() -> None:
+    rows = ["| operation | p50 ms | p95 ms |", "|---|---|---|"]
+    rng = np.random.default_rng(0)
+    for n in (2_000, 20_000, 200_000):
+        side = math.sqrt(n / 0.05)  # 0.05 markings per m², a dense urban map
+        xy = ORIGIN + rng.uniform(0, side, (n, 2))
+        ms = timeit(lambda: MapIndex.from_arrays(xy[:, 0], xy[:, 1], np.ones(n), "EPSG:25832"), 5)
+        rows.append(line(f"MapIndex.from_arrays, {n:,} markings", ms))
+
+    # 2,000 markings within the neighbourhood of one request.
+    xy = ORIGIN + rng.uniform(-45, 45, (2_000, 2))
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, "EPSG:25832")
+    pose = (ORIGIN[0], ORIGIN[1], 0.3)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d = xy - ORIGIN
+    v = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    r = np.hypot(*v.T)
+    vis = np.flatnonzero((r > 4) & (r < 25) & (np.abs(np.arctan2(v[:, 1], v[:, 0])) < math.radians(30)))
+    obs = v[rng.choice(vis, 30, replace=False)] + rng.normal(0, 0.05, (30, 2))
+    gamma = rng.uniform(20, 200, 30)
+    opts = Options()
+    local = LocalMap(index, ORIGIN, 45.0)
+    init = (0.4, -0.3, pose[2] + math.radians(2))
+    w, sig = data_weights(gamma), noise_sigma(obs, opts)
+    rows.append(line(f"LocalMap (neighbourhood of {len(local)} markings)",
+                     timeit(lambda: LocalMap(index, ORIGIN, 45.0), 200)))
+    rows.append(line("robust refinement, 30 obs, 2,000 markings",
+                     timeit(lambda: robust_refine(local, obs, w, sig, [init], opts), 200)))
+    rows.append(line("pink2008 ICP, 30 obs, 2,000 markings",
+                     timeit(lambda: pink2008_icp(local, obs, gamma, init, opts), 200)))
+
+    index, smap = karlsruhe()
+    poses = sample_poses(smap, 100, np.random.default_rng(1), min_visible=4)
+    srng = np.random.default_rng(2)
+    scenes = [simulate_scene(smap, p, srng, Camera(), Clutter()) for p in poses]
+    frame = index.frame
+    for sigma_m, sigma_deg, dist in ((5.0, 10.0, 5.0), (1.0, 9.0, 1.5)):
+        for method in ("default", "pink2008"):
+            ms = []
+            n_obs = []
+            for p, sc in tqdm(list(zip(poses, scenes)), desc=f"{method} {sigma_m} m", leave=False):
+                init = perturb(p, dist, srng.uniform(-10, 10), srng)
+                lon, lat = frame.to_lonlat(init[0], init[1])
+                prior = Prior(lat, lon, float(frame.grid_yaw_to_heading(init[2], lon, lat)),
+                              sigma_m, sigma_deg)
+                t0 = time.perf_counter()
+                localize(index, sc.observations, prior, method=method)
+                ms.append(1000 * (time.perf_counter() - t0))
+                n_obs.append(len(sc.observations))
+            rows.append(line(
+                f"localize {method}, Karlsruhe, prior {sigma_m:g} m/{sigma_deg:g}° "
+                f"({np.median(n_obs):.0f} obs median)", np.array(ms)))
+    print(f"load average {os.getloadavg()[0]:.2f}, {os.cpu_count()} cores")
+    print("\n".join(rows))
+    out = ROOT / "benchmarks" / "out"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "localize_latency.md").write_text("\n".join(rows) + "\n")
+
+
+if __name__ == "__main__":
+    main()
