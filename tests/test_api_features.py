@@ -71,7 +71,8 @@ def test_create_list_and_delete_collections(api):
         assert col["storageCrs"] == "http://www.opengis.net/def/crs/EPSG/0/25832"
         assert any(link["rel"] == "items" for link in col["links"])
         assert_problem(c.post("/collections", json={"id": map_id}, headers=api.auth), 409, map_id)
-        assert_problem(c.post("/collections", json={"id": "bad id!"}, headers=api.auth), 400, "map id")
+        assert_problem(c.post("/collections", json={"id": "bad id!"}, headers=api.auth), 422, "body id")
+        assert_problem(c.post("/collections", json={"id": "m", "crs": "EPSG:4326"}, headers=api.auth), 400, "metric")
         assert_problem(c.post("/collections", json={"id": 5}, headers=api.auth), 422, "body id")
         assert c.delete(f"/collections/{map_id}", headers=api.auth).status_code == 204
         assert_problem(c.get(f"/collections/{map_id}"), 404, map_id)

@@ -105,7 +105,9 @@ def test_bad_uploads_leave_nothing_behind(api, tmp_path):
     assert_problem(httpx.get(f"{api.base_url}/collections/{map_id}/imagery/424242"), 404)
 
 
-def test_build_runs_as_a_job_and_writes_detections(api):
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_build_runs_as_a_job_and_writes_detections(kind):
+    api = shared_server(kind)
     map_id = api.new_map(crs="EPSG:26913")
     img = upload(api, map_id, USGS).json()
     r = httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"]}, headers=api.auth)

@@ -71,7 +71,8 @@ FEATURE_EXAMPLE = {
 
 class CollectionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    id: str = Field(..., description="1-64 letters, digits, '.', '_' or '-'", max_length=64)
+    id: str = Field(..., description="1-64 letters, digits, '.', '_' or '-', starting with a letter or digit",
+                    pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
     title: str = Field("", max_length=500)
     crs: str | None = Field(
         None, description="Metric storage CRS, e.g. EPSG:25832; default: the UTM zone of the first data",
