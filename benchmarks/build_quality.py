@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import tempfile
 import time
@@ -258,7 +257,8 @@ def main() -> None:
         "scene_side_m": args.size,
         "precision": round(totals["tp_det"] / max(totals["n_det"], 1), 4),
         "recall": round(totals["tp_truth"] / max(totals["n_truth"], 1), 4),
-        "recall_discrete": round(totals["tp_truth_discrete"] / max(totals["n_truth_discrete"], 1), 4),
+        "recall_discrete": round(
+            totals["tp_truth_discrete"] / max(totals["n_truth_discrete"], 1), 4),
         "centroid_rmse_m": round(float(np.sqrt(np.mean(errors**2))), 4) if errors.size else None,
         "cross_track_rmse_m": round(float(np.sqrt(np.mean(cross**2))), 4) if cross.size else None,
         "detections": totals["n_det"],

@@ -27,9 +27,8 @@ from collections import OrderedDict
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
-
 import multiprocessing as mp
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 from rasterio.windows import Window
@@ -38,7 +37,14 @@ from rasterio.windows import transform as window_transform
 from .cluster import ClusterParams, Clusters, detect_markings
 from .crs import meridian_convergence_deg, to_wgs84
 from .model import Marking
-from .raster import GridReader, ImageryError, PixelGrid, default_storage_crs, inspect_imagery, make_reader
+from .raster import (
+    GridReader,
+    ImageryError,
+    PixelGrid,
+    default_storage_crs,
+    inspect_imagery,
+    make_reader,
+)
 from .tiling import image_tag, tile_grid, tile_key
 
 log = logging.getLogger(__name__)
@@ -423,7 +429,9 @@ def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iter
         n_workers = max(1, sum(client.nthreads().values()))
         in_flight_max = 2 * n_workers
         it = iter(tasks)
-        first = [client.submit(process_tile, t, pure=False) for _, t in zip(range(in_flight_max), it)]
+        first = [
+            client.submit(process_tile, t, pure=False) for _, t in zip(range(in_flight_max), it)
+        ]
         ac = as_completed(first)
         for fut in ac:
             result = fut.result()
@@ -464,7 +472,8 @@ def _ensure_map(store, map_id: str, first_image: str, title: str) -> str:
 def _register_imagery(store, map_id: str, plan: ImagePlan) -> None:
     known = {i.path for i in store.list_imagery(map_id)}
     if plan.path not in known:
-        store.add_imagery(map_id, plan.path, plan.grid.crs, plan.grid.bounds, plan.grid.resolution_m)
+        grid = plan.grid
+        store.add_imagery(map_id, plan.path, grid.crs, grid.bounds, grid.resolution_m)
 
 
 def _drop_stale_tiles(store, map_id: str, plans: list[ImagePlan]) -> int:

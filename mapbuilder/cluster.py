@@ -468,7 +468,8 @@ def join_collinear(
         # Each end must face the other cluster: it is the end nearer to it.
         far_a = ends[ei + len(idx) if ei < len(idx) else ei - len(idx)]
         far_b = ends[ej + len(idx) if ej < len(idx) else ej - len(idx)]
-        if np.hypot(*(far_a - pb)) < np.hypot(*(pa - pb)) or np.hypot(*(far_b - pa)) < np.hypot(*(pa - pb)):
+        gap = np.hypot(*(pa - pb))
+        if np.hypot(*(far_a - pb)) < gap or np.hypot(*(far_b - pa)) < gap:
             continue
         ua = (pa - far_a) / max(np.hypot(*(pa - far_a)), 1e-9)
         ub = (pb - far_b) / max(np.hypot(*(pb - far_b)), 1e-9)
