@@ -38,11 +38,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mapbuilder.crs import from_wgs84, to_wgs84  # noqa: E402
-from mapbuilder.geojson import markings_to_feature_collection  # noqa: E402
-from mapbuilder.lanelet2 import layout_markings, read_lanelet2  # noqa: E402
-from tests._api_helpers import SHARED_DATA, fresh_postgres_db, start_server  # noqa: E402
-from tests.test_api_localize import gps_near, scene  # noqa: E402
+from mapbuilder.crs import from_wgs84, to_wgs84
+from mapbuilder.geojson import markings_to_feature_collection
+from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+from tests._api_helpers import SHARED_DATA, fresh_postgres_db, start_server
+from tests.test_api_localize import gps_near, scene
 
 CRS = "EPSG:25832"
 

@@ -9,8 +9,8 @@ one, so that ``numberMatched`` and paging agree with what is returned.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import fields
-from typing import Sequence
 
 from sqlalchemy import and_, func, select
 

@@ -74,8 +74,7 @@ def parse_version(value: str | int | None, field: str = "version") -> int | None
     if isinstance(value, int):
         return value
     text = str(value).strip()
-    if text.startswith("W/"):
-        text = text[2:]
+    text = text.removeprefix("W/")
     text = text.strip('"')
     if not re.fullmatch(r"\d{1,19}", text):
         raise Problem(422, f"{field}: {str(value)[:40]!r} is not an ETag of this server", "invalid-version")
@@ -89,8 +88,7 @@ def if_match_versions(header: str | None) -> list[int] | None:
     out = []
     for part in header.split(","):
         part = part.strip()
-        if part.startswith("W/"):
-            part = part[2:]
+        part = part.removeprefix("W/")
         part = part.strip('"')
         if re.fullmatch(r"\d{1,19}", part):
             out.append(int(part))

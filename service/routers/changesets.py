@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from datetime import timezone
+from datetime import UTC
 from typing import Any, Literal
 
-from fastapi import APIRouter, Body, Depends, Path as PathParam, Query, Request
+from fastapi import APIRouter, Body, Depends, Query, Request
+from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
@@ -13,13 +14,28 @@ from sqlalchemy import select
 from mapbuilder.model import Marking
 from mapbuilder.schema import changesets, edits
 from mapbuilder.store import (
-    Change, ChangesetInfo, ChangesetResult, Conflict, ConflictError, EditInfo, StoreError,
+    Change,
+    ChangesetInfo,
+    ChangesetResult,
+    Conflict,
+    ConflictError,
+    EditInfo,
+    StoreError,
     UnknownMarkingError,
 )  # fmt: skip
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
-from ._common import JSON, base_url, link, marking_from_feature, parse_id, parse_version, patched_marking, update_fields
+from ._common import (
+    JSON,
+    base_url,
+    link,
+    marking_from_feature,
+    parse_id,
+    parse_version,
+    patched_marking,
+    update_fields,
+)
 
 router = APIRouter(tags=["Changesets"], dependencies=[Depends(require_read)])
 
@@ -208,7 +224,7 @@ def _find_changeset(ctx: Context, map_id: str, cid: int) -> ChangesetInfo | None
         ).first()
     if r is None:
         return None
-    at = r.at if r.at.tzinfo else r.at.replace(tzinfo=timezone.utc)
+    at = r.at if r.at.tzinfo else r.at.replace(tzinfo=UTC)
     return ChangesetInfo(r.id, r.map_id, r.who, at, r.comment, r.n_create, r.n_update, r.n_delete, r.reverts)
 
 

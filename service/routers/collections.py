@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import logging
 import math
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, Body, Depends, Header, Path as PathParam, Query, Request, Response
+from fastapi import APIRouter, Body, Depends, Header, Query, Request, Response
+from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -19,8 +21,19 @@ from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
 from ..queries import markings_in_lonlat_box
 from ._common import (
-    CRS84, GEOJSON, JSON, base_url, crs_uri, etag, feature_of, if_match_versions, link,
-    marking_from_feature, parse_id, patched_marking, update_fields,
+    CRS84,
+    GEOJSON,
+    JSON,
+    base_url,
+    crs_uri,
+    etag,
+    feature_of,
+    if_match_versions,
+    link,
+    marking_from_feature,
+    parse_id,
+    patched_marking,
+    update_fields,
 )  # fmt: skip
 
 log = logging.getLogger(__name__)
@@ -244,14 +257,14 @@ def get_items(
         links.append(link(str(url.include_query_params(offset=offset + lim, limit=lim)), "next", GEOJSON))
     if offset > 0:
         links.append(link(str(url.include_query_params(offset=max(0, offset - lim), limit=lim)), "prev", GEOJSON))
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     body = {
         "type": "FeatureCollection",
         "features": [feature_of(m) for m in items],
         "numberMatched": matched,
         "numberReturned": len(items),
-        "timeStamp": datetime.now(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "timeStamp": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
         "links": links,
     }
     return JSONResponse(body, media_type=GEOJSON)

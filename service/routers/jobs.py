@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Depends, Path as PathParam, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapbuilder.store import JobInfo, UnknownJobError
+from mapbuilder.store import JobInfo
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..jobs import build_job_params
@@ -138,5 +139,3 @@ def delete_job(
             ctx.store.update_job(job_id, status="dismissed", error="cancelled")
     return job_json(ctx.store.get_job(job_id), request)
 
-
-__all__ = ["router", "UnknownJobError"]

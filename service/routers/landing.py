@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request
 
 from ..deps import require_read
-from ._common import GEOJSON, JSON, base_url, link
+from ._common import JSON, base_url, link
 
 router = APIRouter(tags=["Capabilities"], dependencies=[Depends(require_read)])
 
@@ -51,5 +51,3 @@ def landing(request: Request) -> dict:
 def conformance() -> dict:
     return {"conformsTo": CONFORMANCE}
 
-
-__all__ = ["router", "CONFORMANCE", "GEOJSON"]
