@@ -21,7 +21,8 @@ Methods
        "clutter"), the GPS prior is added as a Gaussian log-density, and the
        best local maxima become candidates.
     2. Each candidate is refined by IRLS with a Geman-McClure kernel whose
-       scale is annealed from 1.5 m to 0.2 m; solid-line pieces (when the map
+       scale is annealed from 0.8 m to 0.15 m (a fine-only run from the same
+       start guards against clutter dragging the coarse scales off); solid-line pieces (when the map
        gives their direction and length) are matched point-to-segment.
     3. Refined candidates are scored (data log-likelihood, tempered, plus the
        prior); their posterior probabilities decide ``ok`` versus

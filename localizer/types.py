@@ -230,7 +230,7 @@ class Options:
     max_search_observations: int = 120
     candidates: int = 20
     candidate_margin: float = 10.0
-    anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2)
+    anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2, 0.15)
     noise_m: float = 0.05
     noise_range_coeff: float = 5e-4
     outlier_density: float = 0.05
