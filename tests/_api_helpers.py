@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import atexit
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -158,7 +159,12 @@ def shared_server(kind: str) -> ApiServer:
             server = start_server(url, tmp / "data")
             server.dropped.append(drop)
         _SERVERS[kind] = server
-        atexit.register(server.stop)
+
+        def cleanup(server=server, tmp=tmp):
+            server.stop()
+            shutil.rmtree(tmp, ignore_errors=True)
+
+        atexit.register(cleanup)
     return _SERVERS[kind]
 
 
