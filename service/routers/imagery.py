@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import uuid
@@ -146,15 +147,24 @@ def get_imagery(request: Request, mapId: str = MapId, imageryId: str = PathParam
 
 
 # ---------------------------------------------------------------------------- tiles
-_EMPTY_PNG: bytes | None = None
-
-
 def render_tile(paths: list[str], z: int, x: int, y: int) -> bytes | None:
     """A 256 px WebMercatorQuad PNG of the first image covering the tile; None if none does."""
+    stamps = []
+    for path in paths:
+        try:
+            stamps.append((path, os.stat(path).st_mtime_ns))
+        except OSError:
+            continue
+    return _render_tile(tuple(stamps), z, x, y)
+
+
+@functools.lru_cache(maxsize=512)
+def _render_tile(stamps: tuple[tuple[str, int], ...], z: int, x: int, y: int) -> bytes | None:
+    # Keyed by file and modification time: panning back to a tile costs nothing.
     from rio_tiler.errors import TileOutsideBounds
     from rio_tiler.io import Reader
 
-    for path in paths:
+    for path, _mtime in stamps:
         try:
             with Reader(path) as src:
                 if not src.tile_exists(x, y, z):
