@@ -160,6 +160,23 @@ def _check_source(src, path: str) -> None:
         raise ImageryError(f"{path}: image has no geotransform (not georeferenced)")
 
 
+def _native_resolution(src, dst_crs: str) -> float:
+    """Side of a square pixel of the same ground area as the file's pixels, in ``dst_crs``.
+
+    Measured on the pixel at the image centre, so that a rotated or sheared
+    geotransform keeps its resolution (GDAL's default warp size would coarsen it).
+    """
+    from rasterio.warp import transform as warp_transform
+
+    c, r = src.width / 2.0, src.height / 2.0
+    t = src.transform
+    pts = [t * (c, r), t * (c + 1, r), t * (c, r + 1)]
+    xs, ys = warp_transform(src.crs, dst_crs, [p[0] for p in pts], [p[1] for p in pts])
+    ax, ay = xs[1] - xs[0], ys[1] - ys[0]
+    bx, by = xs[2] - xs[0], ys[2] - ys[0]
+    return math.sqrt(abs(ax * by - ay * bx))
+
+
 def default_storage_crs(path: str | os.PathLike) -> str:
     """The metric CRS a new map built from this image is stored in.
 
@@ -223,11 +240,7 @@ def inspect_imagery(path: str | os.PathLike, storage_crs: str | None = None) -> 
         if north_up and _same_crs(storage_crs, src.crs):
             grid = PixelGrid(storage_crs, tuple(t)[:6], src.width, src.height, warped=False)
         else:
-            dst, w, h = calculate_default_transform(
-                src.crs, storage_crs, src.width, src.height, *src.bounds
-            )
-            # Square pixels of the same area as GDAL's suggestion.
-            res = math.sqrt(abs(dst.a * dst.e))
+            res = _native_resolution(src, storage_crs)
             dst, w, h = calculate_default_transform(
                 src.crs, storage_crs, src.width, src.height, *src.bounds, resolution=res
             )

@@ -102,7 +102,8 @@ def test_geographic_image_is_read_through_a_warped_vrt(tmp_path):
     info, rgb, valid = _read_all(geo)
     assert info.grid.warped and info.grid.crs == "EPSG:32613"
     assert info.src_crs == "EPSG:4326"
-    assert info.grid.resolution_m == pytest.approx(0.15, abs=0.01)
+    # The ground size of the geographic file's pixels (its reprojection coarsened them a little).
+    assert info.grid.resolution_m == pytest.approx(0.155, abs=0.01)
     # The warped grid lands where the original UTM image is (NAD83 ≈ WGS84 here).
     minx, miny, maxx, maxy = info.grid.bounds
     assert minx == pytest.approx(src_bounds.left, abs=1.0)
@@ -154,3 +155,24 @@ def test_unreadable_file_is_rejected(tmp_path):
 def test_geographic_storage_crs_is_rejected():
     with pytest.raises(ImageryError, match="not projected"):
         inspect_imagery(USGS_BASE, "EPSG:4326")
+
+
+def test_rotated_geotransform_is_warped_north_up(tmp_path):
+    from affine import Affine
+
+    with rasterio.open(USGS_BASE) as src:
+        data, profile = src.read(), src.profile
+    t = Affine.translation(519467.5, 4311669.8) @ Affine.rotation(10.0) @ Affine.scale(0.15, -0.15)
+    path = tmp_path / "rotated.tif"
+    profile.update(transform=t)
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(data)
+    info, rgb, valid = _read_all(path)
+    assert info.grid.warped and info.grid.crs == "EPSG:26913"
+    a, b, _, d, e, _ = info.grid.transform
+    assert b == 0 and d == 0 and a > 0 and e < 0
+    assert info.grid.resolution_m == pytest.approx(0.15, rel=0.05)
+    # The rotated footprint covers part of the north-up grid; the corners are invalid.
+    assert 0.6 < valid.mean() < 0.95
+    assert not valid[0, 0] and not valid[-1, -1]
+    assert rgb[valid].mean() > 40
