@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import rasterio
+from rasterio.errors import NotGeoreferencedWarning
 from rasterio.transform import from_origin
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 from rasterio.windows import Window
@@ -124,7 +125,8 @@ def test_other_metric_crs_is_warped_into_the_storage_crs():
 
 def test_no_georeferencing_is_rejected(tmp_path):
     path = tmp_path / "plain.tif"
-    _write(path, np.zeros((3, 64, 64), np.uint8))
+    with pytest.warns(NotGeoreferencedWarning):
+        _write(path, np.zeros((3, 64, 64), np.uint8))
     with pytest.raises(ImageryError, match="georeferenced"):
         inspect_imagery(path)
 
