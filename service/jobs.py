@@ -17,6 +17,7 @@ import logging
 import multiprocessing as mp
 import os
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -55,9 +56,27 @@ class _Cancelled(Exception):
     pass
 
 
+def _exit_with_parent(period_s: float = 1.0) -> None:
+    """End this worker when the server that started it dies.
+
+    A restarted server resumes the job; an orphaned worker would build it twice.
+    """
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(period_s)
+            if os.getppid() != parent:
+                log.warning("the server died; ending the build worker")
+                os._exit(3)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def run_build_job(db_url: str, job_id: int) -> None:
     """Body of a worker process: run the build of job ``job_id`` to its end."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s build job %(process)d: %(message)s")
+    _exit_with_parent()
     from mapbuilder.build import build_map
 
     store = Store(db_url)
