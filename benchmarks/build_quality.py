@@ -211,10 +211,13 @@ def main() -> None:
     ap.add_argument("--min-length", type=float, default=ClusterParams.min_length_m)
     ap.add_argument("--min-area", type=float, default=ClusterParams.min_area_m2)
     ap.add_argument("--link", type=float, default=ClusterParams.link_m)
+    ap.add_argument("--threshold-low", type=float, default=ClusterParams.threshold_low)
+    ap.add_argument("--join-gap", type=float, default=ClusterParams.join_gap_m)
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
-                            min_area_m2=args.min_area, link_m=args.link)
+                            min_area_m2=args.min_area, link_m=args.link,
+                            threshold_low=args.threshold_low, join_gap_m=args.join_gap)
     params = BuildParams(model=args.model, cluster=cluster)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}

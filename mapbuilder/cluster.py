@@ -38,6 +38,9 @@ class ClusterParams:
     ----------
     threshold : float
         Probability above which a pixel is a marking pixel.
+    threshold_low : float or None
+        Hysteresis: pixels above this are marking pixels when connected to one
+        above ``threshold``; None disables it.
     link_m : float
         Marking pixels closer than this (metres) join one cluster even when not
         8-connected; 0 keeps plain 8-connectivity.
@@ -66,6 +69,7 @@ class ClusterParams:
     """
 
     threshold: float = 0.5
+    threshold_low: float | None = None
     link_m: float = 0.0
     max_length_m: float = 3.0
     split_factor: float = 1.2
@@ -149,6 +153,7 @@ def label_pixels(
     valid: np.ndarray | None = None,
     threshold: float = 0.5,
     link_px: int = 0,
+    threshold_low: float | None = None,
 ) -> tuple[np.ndarray, int]:
     """Group marking pixels into clusters.
 
@@ -163,6 +168,10 @@ def label_pixels(
     link_px : int
         Marking pixels up to this many pixels apart (Chebyshev) join one
         cluster; 0 or 1 mean 8-connectivity.
+    threshold_low : float, optional
+        Hysteresis: pixels above this join a cluster that holds at least one
+        pixel above ``threshold`` (faint parts of a marking stay attached,
+        faint noise on its own does not).
 
     Returns
     -------
@@ -175,6 +184,15 @@ def label_pixels(
     if valid is not None:
         mask &= valid
     structure = np.ones((3, 3), bool)
+    if threshold_low is not None and threshold_low < threshold:
+        weak = prob > threshold_low
+        if valid is not None:
+            weak &= valid
+        labels, n = ndi.label(weak, structure=structure)
+        strong = np.zeros(n + 1, bool)
+        strong[labels[mask]] = True
+        strong[0] = False
+        mask = strong[labels]
     if link_px <= 1:
         labels, n = ndi.label(mask, structure=structure)
         return labels.astype(np.int32, copy=False), int(n)
@@ -520,7 +538,7 @@ def detect_markings(
     params = params or ClusterParams()
     res = _resolution(transform)
     link_px = int(round(params.link_m / res)) if params.link_m > 0 else 0
-    labels, n = label_pixels(prob, valid, params.threshold, link_px)
+    labels, n = label_pixels(prob, valid, params.threshold, link_px, params.threshold_low)
     if n == 0:
         return Clusters.empty()
     # Work on the marking pixels only: a few percent of the window.

@@ -212,3 +212,17 @@ def test_a_hairpin_is_cut_into_single_strokes():
     legs = c.width_m < 0.3
     assert legs.sum() >= len(c) - 1
     assert set(np.round(c.y[legs] - Y0, 1)) <= {-6.0, -6.8}
+
+
+def test_hysteresis_keeps_faint_parts_attached_to_a_marking():
+    t = _grid(0.05)
+    prob = np.zeros((200, 200), np.float32)
+    _draw(prob, t, X0 + 5, Y0 - 4.0, 1.5, 0.15, 0, value=0.9)
+    _draw(prob, t, X0 + 5, Y0 - 5.5, 1.5, 0.15, 0, value=0.35)   # its faint, worn half
+    _draw(prob, t, X0 + 8, Y0 - 5.0, 2.0, 0.15, 0, value=0.35)   # faint noise on its own
+    plain = detect_markings(prob, None, t)
+    assert len(plain) == 1 and plain.length_m[0] == pytest.approx(1.5, abs=0.1)
+    hyst = detect_markings(prob, None, t, ClusterParams(threshold_low=0.3))
+    assert len(hyst) == 1
+    assert hyst.length_m[0] == pytest.approx(3.0, abs=0.1)
+    assert hyst.x[0] == pytest.approx(X0 + 5, abs=0.02)
