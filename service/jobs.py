@@ -56,27 +56,27 @@ class _Cancelled(Exception):
     pass
 
 
-def _exit_with_parent(period_s: float = 1.0) -> None:
-    """End this worker when the server that started it dies.
+def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
+    """End this worker when the server ``parent`` that started it dies.
 
     A restarted server resumes the job; an orphaned worker would build it twice.
     """
-    parent = os.getppid()
 
     def watch():
         while True:
-            time.sleep(period_s)
             if os.getppid() != parent:
                 log.warning("the server died; ending the build worker")
                 os._exit(3)
+            time.sleep(period_s)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def run_build_job(db_url: str, job_id: int) -> None:
+def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> None:
     """Body of a worker process: run the build of job ``job_id`` to its end."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s build job %(process)d: %(message)s")
-    _exit_with_parent()
+    if server_pid is not None:
+        _exit_with_parent(server_pid)
     from mapbuilder.build import build_map
 
     store = Store(db_url)
@@ -193,7 +193,7 @@ class JobRunner:
             except UnknownJobError:
                 return
             proc = mp.get_context("spawn").Process(
-                target=run_build_job, args=(self.store.url, job_id), name=f"lanemap-build-{job_id}"
+                target=run_build_job, args=(self.store.url, job_id, os.getpid()), name=f"lanemap-build-{job_id}"
             )
             with self._lock:
                 proc.start()

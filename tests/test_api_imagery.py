@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import signal
 import socket
 import time
 from pathlib import Path
@@ -146,7 +148,18 @@ def test_cancel_a_waiting_job_and_restart_resumes_interrupted_ones(tmp_path):
         assert_problem(httpx.delete(f"{server.base_url}/jobs/{jobs[1]}"), 401)
         # a crash while jobs are unfinished
         states = {j: httpx.get(f"{server.base_url}/jobs/{j}").json()["status"] for j in (jobs[0], jobs[2])}
-        server.kill_hard()
+        os.kill(server.proc.pid, signal.SIGKILL)  # the server only: its build worker must end by itself
+        server.proc.wait(10)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(server.proc.pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.2)
+        else:
+            server.kill_hard()
+            raise AssertionError("a build worker outlived its server")
         unfinished = [j for j, st in states.items() if st in ("accepted", "running")]
         assert unfinished, states  # the last job waits for the only worker
         server = start_server(db, tmp_path / "data", env={"LANEMAP_BUILD_WORKERS": "1"})
