@@ -164,7 +164,8 @@ def test_cancel_a_waiting_job_and_restart_resumes_interrupted_ones(tmp_path):
         assert unfinished, states  # the last job waits for the only worker
         server = start_server(db, tmp_path / "data", env={"LANEMAP_BUILD_WORKERS": "1"})
         for j in (jobs[0], jobs[2]):
-            assert wait_job(server, j)["status"] == "successful"
+            job = wait_job(server, j)
+            assert job["status"] == "successful", job["message"]
         assert wait_job(server, jobs[1])["status"] == "dismissed"
         counts = [httpx.get(f"{server.base_url}/collections/{m}/items").json()["numberMatched"] for m in maps]
         assert counts[0] > 0 and counts[2] > 0 and counts[1] == 0
