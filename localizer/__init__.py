@@ -16,21 +16,33 @@ Methods
     converges to the nearest optimum.
 ``default``
     1. A global correlative search over heading × translation covering ±3σ of
-       the prior: per heading, the observations are correlated with a
-       likelihood raster of the map (log-likelihood ratio of "marking" versus
-       "clutter"), the GPS prior is added as a Gaussian log-density, and the
-       best local maxima become candidates.
+       the prior (radius clamped to 3-45 m): per heading, the observations are
+       correlated with a likelihood raster of the map around the prior (per
+       observation, the log-likelihood ratio of "marking" versus "clutter";
+       built per request from the KD-tree neighbourhood, so no global field is
+       precomputed), the GPS prior is added as a Gaussian log-density, and the
+       best local maxima of the volume become candidates.
     2. Each candidate is refined by IRLS with a Geman-McClure kernel whose
-       scale is annealed from 0.8 m to 0.15 m (a fine-only run from the same
-       start guards against clutter dragging the coarse scales off); solid-line pieces (when the map
-       gives their direction and length) are matched point-to-segment.
-    3. Refined candidates are scored (data log-likelihood, tempered, plus the
-       prior); their posterior probabilities decide ``ok`` versus
-       ``ambiguous`` (repeating 9 m dashes, parallel lanes 3.5 m apart).
-    4. The covariance of (easting, northing, yaw) averages the model-based
-       and sandwich estimates of the weighted fit, with the prior's
-       information filling directions the map leaves open (along a solid line).
-    5. Too few observations within 0.75 m of the map → ``failed``.
+       scale is annealed from 0.8 m to 0.15 m (observation noise grows with
+       range², so each observation's kernel is widened by its own noise); a
+       fine-only run from the same start guards against clutter dragging the
+       coarse scales off. Pieces of solid lines (given ``bearing_deg`` and
+       ``length_m``) are matched point-to-segment: a camera clusters a solid
+       line at its own phase.
+    3. Refined candidates are scored: the data log-likelihood (matched versus
+       clutter; a match on a segment counts less; every map marking that should
+       be in view but is unexplained costs ``log(1/p_miss)``), divided by a
+       temperature for correlated errors, plus the prior. Their posterior
+       probabilities decide ``ok`` versus ``ambiguous`` (repeating 9 m dashes,
+       parallel lanes 3.5 m apart): ``ok`` needs 95 %.
+    4. The covariance of (easting, northing, yaw) averages the model-based and
+       sandwich estimates of the weighted fit, adds the propagated effect of a
+       camera pitch error (ranges stretch together), and lets the prior's
+       information fill directions the map leaves open (along a solid line).
+    5. Fewer than 3 observations within 0.75 m (or 3σ) of the map → ``failed``.
+
+    Temperature, weight cap and thresholds were calibrated with
+    ``benchmarks/localize_calibrate.py``; figures in ``benchmarks/RESULTS-localizer.md``.
 
 Conventions
 -----------

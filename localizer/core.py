@@ -196,13 +196,12 @@ def localize(
             floor = cands[0].score - options.candidate_margin
             cands = [c for k, c in enumerate(cands) if k < 4 or c.score >= floor]
         inits = [(c.x, c.y, c.yaw) for c in cands]
-        coarse = robust_refine(local, obs_xy, w_data, sig, inits, options,
-                               record=options.record_trace) if cands else []
+        coarse = robust_refine(local, obs_xy, w_data, sig, inits, options) if cands else []
         # The coarse-to-fine schedule can be dragged off a right candidate by heavy
         # clutter; a fine-only refinement from the same start cannot go far. Keep
         # whichever explains the observations better.
-        fine = robust_refine(local, obs_xy, w_data, sig, inits,
-                             replace(options, anneal_m=options.anneal_m[-2:])) if cands else []
+        fine_options = replace(options, anneal_m=options.anneal_m[-2:])
+        fine = robust_refine(local, obs_xy, w_data, sig, inits, fine_options) if cands else []
         refined = []
         if cands:
             both = data_scores(local, obs_xy, w_data, sig,
@@ -210,9 +209,9 @@ def localize(
         for k, cand in enumerate(cands):
             a, b = coarse[k], fine[k]
             sa, sb = both[k], both[len(cands) + k]
-            r, sc = (a, sa) if sa >= sb else (b, sb)
+            r, sc, sched = (a, sa, options) if sa >= sb else (b, sb, fine_options)
             score = sc / options.temperature + log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
-            refined.append((score, r, cand))
+            refined.append((score, r, cand, sched))
         refined.sort(key=lambda t: -t[0])
         all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in cands]
         if not refined:
@@ -220,7 +219,7 @@ def localize(
         # Refinements that end inside the best one's uncertainty are the same optimum
         # (e.g. sliding along a solid line), not an alternative.
         best_fit = fit_statistics(local, obs_xy, w_data, sig, refined[0][1].pose, options, prior_info)
-        kept: list[tuple[float, Any, Any]] = [refined[0]]
+        kept: list[tuple[float, Any, Any, Any]] = [refined[0]]
         for item in refined[1:]:
             if not any(_same_optimum(item[1].pose, o[1].pose, best_fit.covariance) for o in kept):
                 kept.append(item)
@@ -231,7 +230,9 @@ def localize(
         pose, iterations = best.pose, best.iterations
         trace = []
         if options.record_trace:
-            trace = [prior_pose, (kept[0][2].x, kept[0][2].y, kept[0][2].yaw)] + best.trace[1:]
+            start = (kept[0][2].x, kept[0][2].y, kept[0][2].yaw)
+            again = robust_refine(local, obs_xy, w_data, sig, [start], kept[0][3], record=True)[0]
+            trace = [prior_pose] + again.trace
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
         diagnostics = {
             "search": all_search,

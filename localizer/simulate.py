@@ -102,12 +102,15 @@ class Scene:
         True map position of each inlier observation; NaN for outliers.
     label : (N,) ndarray of str
         ``dash``, ``stop_line``, ``solid``, ``curb``, ``vehicle``, ``clutter``.
+    true_dir : (N, 2) ndarray
+        Unit direction of the line under a solid-line observation; zeros otherwise.
     """
 
     pose: tuple[float, float, float]
     observations: np.ndarray
     true_xy: np.ndarray
     label: np.ndarray
+    true_dir: np.ndarray | None = None
 
     @property
     def inlier(self) -> np.ndarray:
@@ -127,14 +130,23 @@ def _in_view(v: np.ndarray, cam: Camera) -> np.ndarray:
     return (r >= cam.min_range_m) & (r <= cam.max_range_m) & (np.abs(b) <= cam.half_fov_deg)
 
 
-def _pieces(line: np.ndarray, piece: float, phase: float) -> np.ndarray:
-    """Centroids of consecutive pieces of ``line`` starting at arc length ``phase``."""
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(line, axis=0).T))])
+def _pieces(line: np.ndarray, piece: float, phase: float, with_direction: bool = False):
+    """Centroids of consecutive pieces of ``line`` starting at arc length ``phase``.
+
+    With ``with_direction`` also the unit tangent of the line at each centroid.
+    """
+    seg = np.hypot(*np.diff(line, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
     starts = np.arange(phase, s[-1] - 0.5, piece)
     if starts.size == 0:
-        return np.zeros((0, 2))
+        return (np.zeros((0, 2)), np.zeros((0, 2))) if with_direction else np.zeros((0, 2))
     mids = np.minimum(starts + piece / 2, (starts + np.minimum(starts + piece, s[-1])) / 2)
-    return np.column_stack([np.interp(mids, s, line[:, 0]), np.interp(mids, s, line[:, 1])])
+    c = np.column_stack([np.interp(mids, s, line[:, 0]), np.interp(mids, s, line[:, 1])])
+    if not with_direction:
+        return c
+    k = np.clip(np.searchsorted(s, mids) - 1, 0, len(seg) - 1)
+    d = np.diff(line, axis=0)[k] / np.maximum(seg[k], 1e-12)[:, None]
+    return c, d
 
 
 def _gamma(r: np.ndarray, lateral_m, longitudinal_m, cam: Camera, rng) -> np.ndarray:
@@ -180,6 +192,7 @@ def simulate_scene(
     world: list[np.ndarray] = []
     labels: list[np.ndarray] = []
     shapes: list[np.ndarray] = []  # (lateral, longitudinal) extent in metres
+    dirs: list[np.ndarray] = []  # line direction of solid pieces (zeros otherwise)
 
     if len(scene_map.marking_xy):
         v = _to_vehicle(pose, scene_map.marking_xy)
@@ -187,18 +200,20 @@ def simulate_scene(
         kinds = np.asarray(scene_map.marking_kind)[m]
         obs_true.append(v[m])
         world.append(scene_map.marking_xy[m])
+        dirs.append(np.zeros((int(m.sum()), 2)))
         labels.append(kinds.astype(object))
         shp = np.where((kinds == "stop_line")[:, None], [3.0, 0.5], [0.15, 3.0])
         shapes.append(np.asarray(shp, float).reshape(-1, 2))
     reach = cam.max_range_m + 50.0
     for line in _local_lines(scene_map.solid_lines, pose, reach):
-        c = _pieces(line, cam.solid_piece_m, rng.uniform(0, cam.solid_piece_m))
+        c, u = _pieces(line, cam.solid_piece_m, rng.uniform(0, cam.solid_piece_m), True)
         if not len(c):
             continue
         v = _to_vehicle(pose, c)
         m = _in_view(v, cam) & (rng.random(len(v)) >= cam.miss_probability)
         obs_true.append(v[m])
         world.append(c[m])
+        dirs.append(u[m])
         labels.append(np.full(m.sum(), "solid", object))
         shapes.append(np.tile([0.15, cam.solid_piece_m], (m.sum(), 1)))
 
@@ -212,6 +227,7 @@ def simulate_scene(
         v = v[m] + rng.normal(0, 0.1, (m.sum(), 2))
         obs_true.append(v)
         world.append(np.full((len(v), 2), np.nan))
+        dirs.append(np.zeros((len(v), 2)))
         labels.append(np.full(len(v), "curb", object))
         shapes.append(np.tile([0.2, 2.0], (len(v), 1)))
     if rng.random() < clutter.vehicle_probability:
@@ -226,6 +242,7 @@ def simulate_scene(
         v = v[_in_view(v, cam)]
         obs_true.append(v)
         world.append(np.full((len(v), 2), np.nan))
+        dirs.append(np.zeros((len(v), 2)))
         labels.append(np.full(len(v), "vehicle", object))
         shapes.append(np.tile([1.5, 0.3], (len(v), 1)))
     nc = int(rng.poisson(clutter.clutter_mean))
@@ -234,6 +251,7 @@ def simulate_scene(
         b = np.radians(rng.uniform(-cam.half_fov_deg, cam.half_fov_deg, nc))
         obs_true.append(np.column_stack([r * np.cos(b), r * np.sin(b)]))
         world.append(np.full((nc, 2), np.nan))
+        dirs.append(np.zeros((nc, 2)))
         labels.append(np.full(nc, "clutter", object))
         shapes.append(np.tile([0.3, 0.5], (nc, 1)) * rng.uniform(0.5, 2.0, (nc, 1)))
 
@@ -242,8 +260,10 @@ def simulate_scene(
         w = np.concatenate(world)
         lab = np.concatenate(labels)
         shp = np.concatenate(shapes)
+        tdir = np.concatenate(dirs)
     else:
         v, w, lab, shp = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, object), np.zeros((0, 2))
+        tdir = np.zeros((0, 2))
 
     # Camera measurement: pitch bias (shared), range and bearing noise (per centroid).
     r = np.hypot(v[:, 0], v[:, 1])
@@ -261,6 +281,7 @@ def simulate_scene(
         observations=np.column_stack([ob, gamma])[order],
         true_xy=w[order],
         label=lab[order],
+        true_dir=tdir[order],
     )
 
 
@@ -300,19 +321,52 @@ def sample_poses(
     return np.array(out, float).reshape(-1, 3)
 
 
-def oracle_pose(scene: Scene, sigma_m: np.ndarray | None = None) -> tuple[float, float, float] | None:
+def oracle_pose(
+    scene: Scene, sigma_m: np.ndarray | None = None, line_aware: bool = True
+) -> tuple[float, float, float] | None:
     """Weighted least squares on the true inliers with their true positions (noise floor).
 
     ``sigma_m`` (N,) is the per-observation noise; weights are ``1 / sigma²``.
-    Returns None with fewer than two inliers.
+    With ``line_aware`` an observation of a solid line constrains only the
+    distance across the line: where along the line a camera's cluster of it
+    lies is arbitrary, so its along-line position carries no information (the
+    simulator draws it at random, and no method can know it). Returns None with
+    fewer than two inliers.
     """
     m = scene.inlier
     if m.sum() < 2:
         return None
     obs = scene.observations[m, :2]
+    tgt = scene.true_xy[m] - np.asarray(scene.pose[:2])
     w = np.ones(m.sum()) if sigma_m is None else 1.0 / np.asarray(sigma_m)[m] ** 2
-    theta, t = weighted_rigid_fit(obs, scene.true_xy[m] - scene.pose[:2], w)
-    return (float(t[0] + scene.pose[0]), float(t[1] + scene.pose[1]), float(theta))
+    theta, t = weighted_rigid_fit(obs, tgt, w)
+    pose = np.array([t[0], t[1], theta])
+    if line_aware and scene.true_dir is not None and np.any(scene.true_dir[m]):
+        u = scene.true_dir[m]
+        normal = np.column_stack([-u[:, 1], u[:, 0]])
+        line = np.any(u != 0, axis=1)
+        for _ in range(10):  # Gauss-Newton; point rows for points, normal rows for lines
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            q = np.column_stack([c * obs[:, 0] - s * obs[:, 1], s * obs[:, 0] + c * obs[:, 1]])
+            r = q + pose[:2] - tgt
+            H = np.zeros((3, 3))
+            g = np.zeros(3)
+            for j in range(len(obs)):
+                J = np.array([[1.0, 0.0, -q[j, 1]], [0.0, 1.0, q[j, 0]]])
+                rj = r[j]
+                if line[j]:
+                    J = normal[j][None] @ J
+                    rj = np.array([normal[j] @ r[j]])
+                H += w[j] * J.T @ J
+                g += w[j] * J.T @ rj
+            try:
+                step = np.linalg.solve(H, -g)
+            except np.linalg.LinAlgError:
+                break
+            pose += step
+            if np.abs(step).max() < 1e-9:
+                break
+    return (float(pose[0] + scene.pose[0]), float(pose[1] + scene.pose[1]), float(pose[2]))
 
 
 def perturb(pose, distance_m: float, heading_deg: float, rng: np.random.Generator):

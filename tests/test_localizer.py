@@ -377,3 +377,35 @@ def test_bad_method_and_map_inputs_raise(small):
         MapIndex.from_arrays([1.0], [2.0], [0.0], CRS)
     with pytest.raises(LocalizationInputError, match="crs"):
         MapIndex.from_arrays([1.0], [2.0], None, "EPSG:4326")
+
+
+def test_solid_pieces_are_inferred_and_dashes_stay_points():
+    # A solid line of five 3 m pieces continued by a dashed line (3 m dash, 6 m gap).
+    solid = [(1.5 + 3 * k, 0.0) for k in range(5)]
+    dashes = [(16.5 + 9 * k, 0.0) for k in range(4)]
+    xy = ORIGIN + np.array(solid + dashes)
+    n = len(xy)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS,
+                                 bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
+    assert index.half_length.tolist() == [0, 1.5, 1.5, 1.5, 1.5, 0, 0, 0, 0]
+    assert np.allclose(np.abs(index.axis[1:5, 0]), 1.0)
+    # Given kinds win over the inference.
+    kinds = ["solid"] * 5 + ["dash"] * 4
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, kind=kinds,
+                                 bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
+    assert index.half_length.tolist() == [1.5] * 5 + [0] * 4
+
+
+def test_trace_records_the_default_method_from_prior_to_result():
+    rng = np.random.default_rng(16)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0] + 5.0, ORIGIN[1], -0.5)
+    scene = observe(xy, pose, Camera(), rng)
+    start = perturb(pose, 3.0, 8.0, rng)
+    r = localize(index, scene.observations, prior_at(index, start), options=Options(record_trace=True))
+    assert r.status == "ok"
+    assert r.trace[0] == pytest.approx(start, abs=1e-6)  # the prior
+    assert r.trace[-1] == pytest.approx((r.easting, r.northing, r.yaw_grid_rad), abs=1e-9)
+    errs = [math.hypot(t[0] - pose[0], t[1] - pose[1]) for t in r.trace]
+    assert errs[1] < 1.5 and errs[-1] < 0.2  # the global search lands near, IRLS finishes

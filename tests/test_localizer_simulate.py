@@ -83,3 +83,20 @@ def test_clutter_levels_order():
     none, paper, heavy = outlier_share(NONE), outlier_share(Clutter()), outlier_share(HEAVY)
     assert none == 0.0
     assert 0.1 < paper < 0.45 < heavy
+
+
+def test_line_aware_oracle_ignores_where_along_a_solid_line_a_cluster_lies():
+    _, smap = karlsruhe()
+    rng = np.random.default_rng(7)
+    for pose in sample_poses(smap, 20, rng, min_visible=3):
+        s = simulate_scene(smap, pose, rng, EXACT, NONE)
+        solid = s.label == "solid"
+        if solid.sum() >= 2 and (~solid).sum() >= 2:
+            break
+    else:
+        pytest.fail("no scene with solid and point-like markings")
+    # Slide the solid pieces' true positions along their lines.
+    s.true_xy[solid] += 1.2 * s.true_dir[solid]
+    assert oracle_pose(s) == pytest.approx(tuple(pose), abs=1e-6)
+    moved = oracle_pose(s, line_aware=False)
+    assert math.hypot(moved[0] - pose[0], moved[1] - pose[1]) > 0.05
