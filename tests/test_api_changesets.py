@@ -191,3 +191,36 @@ def test_concurrent_patches_without_if_match_lose_nothing(api):
     with api.client() as c:
         props = c.get(f"/collections/{map_id}/items/{a}").json()["properties"]
     assert props["status"] == "accepted" and props["kind"] == "stop_line" and props["version"] == 3
+
+
+def test_many_concurrent_writers_lose_nothing(api):
+    """Eight clients edit and create at once: no server error, every change lands exactly once."""
+    map_id, ids = _seed(api, 8)
+    errors = []
+
+    def work(k):
+        with httpx.Client(base_url=api.base_url, headers=api.auth, timeout=120) as c:
+            for i in range(10):
+                r = c.patch(f"/collections/{map_id}/items/{ids[k]}", json={"properties": {"weight": 1000 + i}})
+                if r.status_code != 200:
+                    errors.append(r.text)
+                r = c.post(f"/collections/{map_id}/changesets", json={"changes": [
+                    {"op": "create", "feature": feature(8.43 + k * 1e-4, 49.0 + i * 1e-5, worker=k, i=i)}]})  # fmt: skip
+                if r.status_code != 201:
+                    errors.append(r.text)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    with api.client() as c:
+        state = _state(c, map_id)
+        assert len(state) == 8 + 80
+        for k in range(8):
+            assert state[ids[k]][0] == 1009 and state[ids[k]][2] == 11
+        created = c.get(f"/collections/{map_id}/items?limit=1000").json()["features"]
+        tags = {(f["properties"].get("worker"), f["properties"].get("i")) for f in created}
+        assert {(k, i) for k in range(8) for i in range(10)} <= tags
+        assert c.get(f"/collections/{map_id}/history").json()["numberMatched"] == 8 + 80 + 80
