@@ -225,12 +225,20 @@ def test_geographic_image_is_built_in_its_utm_zone(tmp_path, sqlite_url):
 
     tx, ty = from_wgs84("EPSG:32632").transform([m.x for m in r.markings],
                                                  [m.y for m in r.markings])
-    seen = np.array([m.extra["visible"] >= 0.95 for m in r.markings])
-    assert seen.sum() >= 4
-    pairs, d = match(_xy(found), np.column_stack([tx, ty])[seen], 0.3)
-    assert len(pairs) == seen.sum()
+    # The renderer may hide part of one dash; every other one is found, in place.
+    pairs, d = match(_xy(found), np.column_stack([tx, ty]), 0.3)
+    assert len(pairs) >= len(marks) - 1
     assert len(found) <= len(marks) + 1
-    assert np.sqrt(np.mean(d**2)) < 0.06
+    # Across the dash the position is exact to centimetres; along it, it also
+    # depends on how much of the dash the renderer left visible.
+    cross, along = [], []
+    for i, j in pairs:
+        b = math.radians(r.markings[j].bearing_deg)
+        dx, dy = found[i].x - tx[j], found[i].y - ty[j]
+        along.append(dx * math.sin(b) + dy * math.cos(b))
+        cross.append(dx * math.cos(b) - dy * math.sin(b))
+    assert np.sqrt(np.mean(np.square(cross))) < 0.03
+    assert np.max(np.abs(along)) < 0.15
     store.close()
 
 
