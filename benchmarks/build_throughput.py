@@ -163,6 +163,9 @@ def main() -> None:
                            for k, v in result.timings.items()},
         "classify_mpx_per_s_per_process": round(
             mpx / max(result.timings.get("classify", 0.0), 1e-9), 2),
+        "read_mpx_per_s_per_process": round(mpx / max(result.timings.get("read", 0.0), 1e-9), 1),
+        "cluster_mpx_per_s_per_process": round(
+            mpx / max(result.timings.get("cluster", 0.0), 1e-9), 1),
         "peak_rss_tree_mb": round(rss.peak / 2**20),
         "load_avg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
         "cpus": os.cpu_count(),
