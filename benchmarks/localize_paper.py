@@ -186,7 +186,7 @@ def summarize(rows: list[dict], method: str) -> dict:
     }
 
 
-def plots(traces: dict) -> None:
+def plots(traces: dict, suffix: str = "") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -208,7 +208,7 @@ def plots(traces: dict) -> None:
             axes[1, col].set_yscale("symlog", linthresh=1.0)
         fig.tight_layout()
         safe = name.replace("/", "_").replace("±", "pm").replace("°", "deg").replace(" ", "_")
-        fig.savefig(OUT / f"localize_iterations_{safe}.png", dpi=110)
+        fig.savefig(OUT / f"localize_iterations_{safe}{suffix}.png", dpi=110)
         plt.close(fig)
 
 
@@ -253,7 +253,7 @@ def main() -> None:
     tag = args.tag or ("intersections" if args.intersections else "all")
     (OUT / f"localize_paper_{tag}.md").write_text(tab + "\n")
     (OUT / f"localize_paper_{tag}.json").write_text(json.dumps(out["results"], default=float))
-    plots(out["traces"])
+    plots(out["traces"], "_intersections" if args.intersections else "")
 
 
 if __name__ == "__main__":
