@@ -448,7 +448,9 @@ def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iter
 
 
 def _find_resumable(store, map_id: str, job_params: dict[str, Any]):
-    jobs = store.find_jobs(kind=JOB_KIND, map_id=map_id, status=("accepted", "running", "failed"))
+    """The latest interrupted build with the same parameters. An ``accepted`` job
+    is waiting for a server's worker and is left to it."""
+    jobs = store.find_jobs(kind=JOB_KIND, map_id=map_id, status=("running", "failed"))
     for job in reversed(jobs):
         if job.params == job_params:
             return job
