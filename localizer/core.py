@@ -24,7 +24,9 @@ log = logging.getLogger(__name__)
 METHODS = ("default", "pink2008")
 
 
-def parse_observations(observations, max_count: int = 500) -> np.ndarray:
+def parse_observations(
+    observations, max_count: int = 500, max_range_m: float = 150.0
+) -> np.ndarray:
     """Validate observations into an ``(N, 3)`` array of ``x, y, weight``.
 
     Parameters
@@ -34,6 +36,9 @@ def parse_observations(observations, max_count: int = 500) -> np.ndarray:
         a mapping needs ``x`` and ``y``, ``weight`` defaults to 1.
     max_count : int
         Largest accepted N.
+    max_range_m : float
+        Observations farther from the vehicle are rejected (a camera sees the
+        ground a few tens of metres ahead; far values are unit or frame errors).
 
     Raises
     ------
@@ -77,6 +82,12 @@ def parse_observations(observations, max_count: int = 500) -> np.ndarray:
         raise LocalizationInputError("observations: contain NaN or infinite values")
     if np.any(arr[:, 2] <= 0):
         raise LocalizationInputError("observations: weights must be positive")
+    far = np.hypot(arr[:, 0], arr[:, 1]) > max_range_m
+    if far.any():
+        raise LocalizationInputError(
+            f"observations: {int(far.sum())} lie farther than {max_range_m:g} m from the vehicle "
+            "(expected metres in the vehicle frame)"
+        )
     return arr
 
 
@@ -139,7 +150,7 @@ def localize(
         raise LocalizationInputError(f"method: {method!r} is not one of {', '.join(METHODS)}")
     if not isinstance(map_index, MapIndex):
         raise LocalizationInputError("map_index: expected a localizer.MapIndex")
-    obs = parse_observations(observations, options.max_observations)
+    obs = parse_observations(observations, options.max_observations, options.max_observation_range_m)
     _check_prior(prior)
     frame = map_index.frame
     crs = map_index.crs

@@ -213,6 +213,8 @@ class Options:
         Scale of the estimated covariance (calibrated on the benchmark).
     max_observations : int
         More observations than this are rejected as bad input.
+    max_observation_range_m : float
+        Observations farther from the vehicle are rejected as bad input.
     record_trace : bool
         Keep the pose after every iteration in ``Pose.trace``.
     """
@@ -247,4 +249,5 @@ class Options:
     pitch_sigma_deg: float = 0.05
     covariance_inflation: float = 1.0
     max_observations: int = 500
+    max_observation_range_m: float = 150.0
     record_trace: bool = False

@@ -222,6 +222,13 @@ def test_failed_when_the_prior_is_far_from_the_map():
     assert json.loads(json.dumps(r.to_dict(), allow_nan=False))["reason"] == r.reason
 
 
+def test_an_empty_map_fails_with_a_reason():
+    index = MapIndex.from_arrays([], [], None, CRS)
+    assert len(index) == 0
+    r = localize(index, [[10.0, 0.0, 5.0]] * 4, prior_at(index, (ORIGIN[0], ORIGIN[1], 0.0)))
+    assert r.status == "failed" and "no map markings" in r.reason
+
+
 def test_empty_observations_fail_with_a_reason():
     index = MapIndex.from_arrays([ORIGIN[0]], [ORIGIN[1]], [1.0], CRS)
     r = localize(index, [], prior_at(index, (ORIGIN[0], ORIGIN[1], 0.0)))
@@ -338,6 +345,7 @@ def small():
         (lambda o: [{"x": 1.0}], "needs keys"),
         (lambda o: [{"x": "a", "y": 1.0}], "numbers"),
         (lambda o: {"x": 1}, "mapping"),
+        (lambda o: np.vstack([o, [5000.0, 0.0, 10.0]]), "farther than 150 m"),
     ],
 )
 def test_bad_observations_raise_a_clear_error(small, mutate, match):
