@@ -265,9 +265,13 @@ def localize(
             inliers=fit.inliers,
             reason=(
                 f"only {fit.inliers} of {len(obs)} observations match the map within "
-                f"{options.inlier_distance_m} m (need {options.min_inliers})"
+                f"{options.inlier_distance_m} m (3 sigma at long range; need {options.min_inliers})"
             ),
         )
+    log.debug(
+        "localize %s: %s, %d/%d inliers, rms %.3f m, %d hypotheses",
+        method, status, fit.inliers, len(obs), fit.rms_m or 0.0, len(hyps),
+    )
     out = _make_pose(frame, local.origin, pose, status, crs)
     out.covariance = fit.covariance
     out.iterations = int(iterations)

@@ -69,7 +69,8 @@ class Pose:
         ``ambiguous``: several poses explain the observations about equally well
         (repeating dashes, parallel lanes); see ``hypotheses``. ``failed``: see ``reason``.
     lat, lon : float or None
-        WGS84 position of the vehicle frame origin, degrees.
+        WGS84 position of the vehicle frame origin, degrees. When ambiguous, the
+        pose fields describe the most probable hypothesis.
     heading_deg : float or None
         Degrees clockwise from true north.
     easting, northing : float or None
