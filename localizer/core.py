@@ -281,8 +281,8 @@ def localize(
     if options.record_trace:
         out.trace = [(t[0] + local.origin[0], t[1] + local.origin[1], t[2]) for t in trace]
     if status == "ambiguous":
-        for hp, p in hyps[:5]:
-            if p < 0.01:
+        for hp, p in hyps[: options.max_hypotheses]:
+            if p < options.min_hypothesis_probability:
                 break
             h = _make_pose(frame, local.origin, hp, "ok", crs)
             out.hypotheses.append(

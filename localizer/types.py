@@ -201,6 +201,8 @@ class Options:
         > 1 accounts for correlated observation errors.
     ambiguity_probability : float
         ``ok`` needs the best hypothesis to hold at least this posterior probability.
+    max_hypotheses, min_hypothesis_probability : int, float
+        An ambiguous result lists at most this many hypotheses, each at least this probable.
     min_inliers : int
         Fewer matched observations → ``failed``.
     inlier_distance_m : float
@@ -244,6 +246,8 @@ class Options:
     view_half_fov_deg: float | None = None
     temperature: float = 1.5
     ambiguity_probability: float = 0.95
+    max_hypotheses: int = 8
+    min_hypothesis_probability: float = 0.002
     min_inliers: int = 3
     inlier_distance_m: float = 0.75
     camera_height_m: float = 1.3
