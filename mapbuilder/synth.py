@@ -33,7 +33,7 @@ from shapely.geometry import LineString, Point, Polygon, box
 from shapely.ops import substring
 
 from .crs import meridian_convergence_deg, to_wgs84
-from .lanelet2 import LaneletMap, layout_markings
+from .lanelet2 import MARKING_TYPES, LaneletMap, layout_markings
 from .model import Marking
 
 log = logging.getLogger(__name__)
@@ -108,6 +108,7 @@ LAYERS = (
     "sidewalk",
     "road",
     "patch",
+    "verge",
     "curb",
     "crack",
     "marking",
@@ -127,6 +128,7 @@ _TEXTURE = {
     "sidewalk": (7.0, 0.1, 8.0, 3.0),
     "road": (9.0, 0.08, 10.0, 6.0),
     "patch": (8.0, 0.08, 6.0, 2.0),
+    "verge": (7.0, 0.1, 8.0, 3.0),
     "curb": (6.0, 0.1, 6.0, 2.0),
     "crack": (4.0, 0.1, 0.0, 1.0),
     "marking": (8.0, 0.05, 10.0, 0.6),
@@ -139,6 +141,8 @@ _TEXTURE = {
     "shadow": (0.0, 1.0, 0.0, 1.0),
 }
 _SHADOW_LAYERS = {"car_shadow", "tree_shadow", "shadow"}
+#: Layers that hide the markings under them.
+_OCCLUDERS = {"building", "car", "car_glass", "tree"}
 
 
 @dataclass
@@ -223,7 +227,7 @@ class _Palette:
         )
 
     def paint(self) -> np.ndarray:
-        v = self.rng.uniform(175, 250)
+        v = self.rng.uniform(195, 250)
         return np.array([v, v, v * self.rng.uniform(0.94, 1.0)])
 
     def car(self) -> np.ndarray:
@@ -310,12 +314,16 @@ def _stripe_line(scene: Scene, pal: _Palette, line: LineString, width: float, ki
         for part in parts:
             if part.length < 0.5:
                 continue
-            for piece in _pieces(part, piece_m):
+            pieces = _pieces(part, piece_m)
+            continuous = len(pieces) > 1 or kind == "solid"
+            for piece in pieces:
                 poly = piece.buffer(width / 2, cap_style="flat", join_style="mitre")
                 if poly.is_empty or poly.geom_type != "Polygon":
                     continue
-                alpha = float(np.clip(1.0 - wear * pal.rng.uniform(0.3, 1.0), 0.35, 1.0))
-                scene.add_marking(_marking_from_polygon(poly, piece, width, kind), poly, colour, alpha)
+                alpha = float(np.clip(1.0 - wear * pal.rng.uniform(0.3, 1.0), 0.5, 1.0))
+                m = _marking_from_polygon(poly, piece, width, kind)
+                m.extra["continuous"] = continuous
+                scene.add_marking(m, poly, colour, alpha)
 
 
 def _road(scene, pal, centre: LineString, n_lanes: int, lane_w: float, sun, wear, avoid,
@@ -410,13 +418,29 @@ def _parking_lot(scene, pal, cx, cy, angle_deg, n_stalls, rows, sun, wear, piece
         for i in range(n_stalls + 1):
             x = -width / 2 + i * stall_w
             line = rot(LineString([(x, y0), (x, y0 + stall_l)]))
-            for piece in _pieces(line, piece_m):
+            pieces = _pieces(line, piece_m)
+            for piece in pieces:
                 poly = piece.buffer(line_w / 2, cap_style="flat", join_style="mitre")
-                alpha = float(np.clip(1.0 - wear * pal.rng.uniform(0.3, 1.0), 0.35, 1.0))
-                scene.add_marking(_marking_from_polygon(poly, piece, line_w, "stall"), poly, colour, alpha)
-            if i < n_stalls and pal.rng.random() < 0.55:
-                c = rot(Point(x + stall_w / 2, y0 + stall_l / 2 + pal.rng.normal(0, 0.2)))
-                _car(scene, pal, c.x, c.y, math.radians(angle_deg + 90 + pal.rng.normal(0, 2)), sun)
+                alpha = float(np.clip(1.0 - wear * pal.rng.uniform(0.3, 1.0), 0.5, 1.0))
+                m = _marking_from_polygon(poly, piece, line_w, "stall")
+                m.extra["continuous"] = len(pieces) > 1
+                scene.add_marking(m, poly, colour, alpha)
+            if i < n_stalls and pal.rng.random() < 0.6:
+                # parked anywhere in the stall, sometimes right beside the line
+                cw = pal.rng.uniform(1.7, 1.95)
+                dx = pal.rng.uniform(-1, 1) * max(0.0, (stall_w - cw) / 2 - 0.05)
+                c = rot(Point(x + stall_w / 2 + dx, y0 + stall_l / 2 + pal.rng.normal(0, 0.2)))
+                _car(scene, pal, c.x, c.y, math.radians(angle_deg + 90 + pal.rng.normal(0, 2)), sun,
+                     width=cw)
+        if pal.rng.random() < 0.5:
+            # a planted island with a curb where the stalls end (grass, mulch)
+            end = y0 + stall_l if r == rows - 1 else y0
+            isl = box(-width / 2 - 1, end, width / 2 + 1, end + pal.rng.uniform(1.5, 4.0)) \
+                if r == rows - 1 else box(-width / 2 - 1, end - pal.rng.uniform(1.5, 4.0), width / 2 + 1, end)
+            isl = rot(isl)
+            scene.add("sidewalk", isl, pal.ground(), texture=2.5)
+            scene.add("curb", isl.buffer(0.2).difference(isl),
+                      np.minimum(pal.concrete * pal.rng.uniform(0.95, 1.2), 250))
     for _ in range(int(width * depth / 40)):
         _crack(scene, pal, lot_g)
     return lot_g.buffer(0.3)
@@ -497,7 +521,7 @@ def procedural_scene(
     x0, y0 = origin
     scene = Scene(crs=crs, bounds=(x0, y0, x0 + w, y0 + h), seed=seed)
     sun = _sun(rng)
-    wear = rng.uniform(0.0, 0.6)
+    wear = rng.uniform(0.0, 0.45)
     _ground(scene, pal)
     centres: list[tuple[LineString, int, float]] = []
     if max(w, h) < 1.5 * road_spacing_m:
@@ -610,7 +634,7 @@ def lanelet_scene(lmap: LaneletMap, seed: int = 0,
     rng = np.random.default_rng(seed)
     pal = _Palette(rng)
     sun = _sun(rng)
-    wear = rng.uniform(0.0, 0.5)
+    wear = rng.uniform(0.0, 0.45)
     if bounds is None:
         xy = np.vstack([ln.xy for ln in lmap.lines])
         bounds = (*xy.min(0), *xy.max(0))
@@ -620,10 +644,28 @@ def lanelet_scene(lmap: LaneletMap, seed: int = 0,
     lanes = [LineString(c) for c in lmap.centerlines if len(c) >= 2]
     lanes = [c for c in lanes if c.intersects(bb)]
     curbs = [LineString(ln.xy) for ln in lmap.lines_of("curbstone", "road_border") if LineString(ln.xy).intersects(bb)]
-    road = shapely.union_all([c.buffer(1.8, cap_style="flat") for c in lanes]) if lanes else None
+    # Lane surface: around the centrelines, and around every painted line so that no
+    # marking ends up on a sidewalk where lanes are wider than usual.
+    paint_lines = [LineString(ln.xy) for ln in lmap.lines_of(*MARKING_TYPES)
+                   if LineString(ln.xy).intersects(bb)]
+    road_parts = [c.buffer(2.0, cap_style="flat") for c in lanes] + [p.buffer(1.0) for p in paint_lines]
+    road = shapely.union_all(road_parts) if road_parts else None
     if curbs:
-        walk = shapely.union_all([c.buffer(rng.uniform(1.5, 3.0)) for c in curbs])
-        scene.add("sidewalk", walk.difference(road) if road is not None else walk, pal.concrete)
+        # the sidewalk lies on the side of a curb away from the lanes, and covers the
+        # road surface there: the curb then separates asphalt from pavement, as it does
+        lanes_u = shapely.union_all(lanes) if lanes else None
+        walks = []
+        for c in curbs:
+            wdt = rng.uniform(1.5, 3.0)
+            if lanes_u is None:
+                walks.append(c.buffer(wdt))
+                continue
+            probe = [c.offset_curve(s * 1.0) for s in (1, -1)]
+            dist = [lanes_u.distance(p.interpolate(0.5, normalized=True)) if not p.is_empty else 0
+                    for p in probe]
+            side = 1 if dist[0] > dist[1] else -1
+            walks.append(c.buffer(side * wdt, single_sided=True))
+        scene.add("verge", shapely.union_all(walks), pal.concrete)
     if road is not None:
         scene.add("road", road, pal.asphalt)
         for _ in range(int(road.area / 40)):
@@ -637,7 +679,8 @@ def lanelet_scene(lmap: LaneletMap, seed: int = 0,
         if not bb.contains(Point(m.x, m.y)):
             continue
         poly = marking_polygon(m)
-        alpha = float(np.clip(1.0 - wear * rng.uniform(0.3, 1.0), 0.35, 1.0))
+        alpha = float(np.clip(1.0 - wear * rng.uniform(0.3, 1.0), 0.5, 1.0))
+        m.extra["continuous"] = m.kind == "solid"
         scene.add_marking(m, poly, colour, alpha)
     for c in lanes:
         s = rng.uniform(0, 20)
@@ -712,13 +755,19 @@ def _window_xy(transform: Affine, row0: int, col0: int, h: int, w: int, scene_cr
 
 def _draw(scene: Scene, prep: _Prepared, transform: Affine, row0: int, col0: int, h: int,
           w: int, crs: str, look: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Composite one window: float RGB (h, w, 3) before sensor effects, and the label mask."""
+    """Composite one window.
+
+    Returns float RGB (h, w, 3) before sensor effects, the index + 1 of the true
+    marking painted at each pixel (0: none) and the mask of pixels hidden by
+    cars, trees and buildings.
+    """
     win_t = transform * Affine.translation(col0, row0)
     xs, ys = _window_xy(transform, row0, col0, h, w, scene.crs, crs)
-    x0w, y0w = win_t * (0, 0)
-    x1w, y1w = win_t * (w, h)
+    x0w, y0w = win_t @ (0, 0)
+    x1w, y1w = win_t @ (w, h)
     qbox = box(min(x0w, x1w), min(y0w, y1w), max(x0w, x1w), max(y0w, y1w))
     img = np.zeros((h, w, 3), np.float32)
+    occ = np.zeros((h, w), bool)
     for name, geoms, rgb, alpha, tex, tree in prep.layers:
         idx = tree.query(qbox)
         if len(idx) == 0:
@@ -728,6 +777,8 @@ def _draw(scene: Scene, prep: _Prepared, transform: Affine, row0: int, col0: int
         m = ids > 0
         if not m.any():
             continue
+        if name in _OCCLUDERS:
+            occ |= m
         sel = ids[m] - 1
         a = alpha[idx][sel][:, None]
         xm, ym = xs[m], ys[m]
@@ -748,13 +799,13 @@ def _draw(scene: Scene, prep: _Prepared, transform: Affine, row0: int, col0: int
             wearn = fractal_noise(xm, ym, 0.25, seed + 13, 3)
             a = np.clip(a + 0.5 * wearn[:, None] * (1.0 - a) * 2.0, 0.1, 1.0)
         img[m] = img[m] * (1 - a) + colour * a
-    label = np.zeros((h, w), bool)
+    ids = np.zeros((h, w), np.int32)
     if prep.mark_tree is not None:
         idx = prep.mark_tree.query(qbox)
         if len(idx):
-            label = rasterize(((prep.marks[i], 1) for i in idx), out_shape=(h, w),
-                              transform=win_t, fill=0, dtype="uint8").astype(bool)
-    return img, label
+            ids = rasterize(((prep.marks[i], int(i) + 1) for i in idx), out_shape=(h, w),
+                            transform=win_t, fill=0, dtype="int32")
+    return img, ids, occ
 
 
 def _sensor(img: np.ndarray, look: dict, rng: np.random.Generator) -> np.ndarray:
@@ -770,8 +821,9 @@ def random_look(rng: np.random.Generator, resolution_m: float) -> dict:
     """Random optics and exposure of one image."""
     return {
         "blur_px": float(rng.uniform(0.4, 1.1) * min(1.5, 0.1 / resolution_m) ** 0.5),
-        "gain": rng.uniform(0.94, 1.06, 3).astype(np.float32) * np.float32(rng.uniform(0.8, 1.2)),
-        "offset": np.float32(rng.uniform(-10, 15)),
+        # colour cast and exposure: aerial surveys are often bluish or warm
+        "gain": rng.uniform(0.88, 1.12, 3).astype(np.float32) * np.float32(rng.uniform(0.8, 1.2)),
+        "offset": (rng.uniform(-10, 15) + rng.uniform(-6, 6, 3)).astype(np.float32),
         "gamma": float(rng.uniform(0.8, 1.2)),
         "noise": float(rng.uniform(1.5, 5.0)),
         "shadow": float(rng.uniform(0.4, 0.65)),
@@ -817,7 +869,7 @@ def render_array(scene: Scene, resolution_m: float = 0.1, seed: int = 0,
     -------
     rgb : (H, W, 3) uint8
     label : (H, W) bool
-        True on painted marking pixels.
+        True on visible painted marking pixels (not under cars, trees, roofs).
     transform : Affine
     """
     if not 0.02 <= resolution_m <= 1.0:
@@ -826,7 +878,8 @@ def render_array(scene: Scene, resolution_m: float = 0.1, seed: int = 0,
     look = look or random_look(rng, resolution_m)
     transform, (h, w) = _grid(scene, resolution_m, scene.crs)
     prep = _prepare(scene, scene.crs)
-    img, label = _draw(scene, prep, transform, 0, 0, h, w, scene.crs, look, rng)
+    img, ids, occ = _draw(scene, prep, transform, 0, 0, h, w, scene.crs, look, rng)
+    label = (ids > 0) & ~occ
     rgb = _sensor(img, look, rng)
     if jpeg_quality:
         rgb = _jpeg_roundtrip(rgb, jpeg_quality)
@@ -911,7 +964,7 @@ def render(
     mask_poly = None
     if alpha or nodata is not None:
         # a slanted image edge: the last ~15 % of the image along one corner is empty
-        (x0, y0), (x1, y1) = transform * (0, 0), transform * (width, height)
+        (x0, y0), (x1, y1) = transform @ (0, 0), transform @ (width, height)
         xa, ya = x0 + 0.7 * (x1 - x0), y1
         mask_poly = Polygon([(xa, ya), (x1, ya), (x1, y0 + 0.5 * (y1 - y0))])
     profile = dict(
@@ -935,6 +988,7 @@ def render(
     from tqdm import tqdm
 
     halo = 6
+    n_vis = np.zeros(len(scene.markings) + 1, np.int64)
     with rasterio.open(out_tif, "w", **profile) as ds:
         if labels_tif is not None:
             lab_ds = rasterio.open(
@@ -947,9 +1001,11 @@ def render(
             for r0 in range(0, height, strip_rows):
                 h = min(strip_rows, height - r0)
                 ra, rb = max(0, r0 - halo), min(height, r0 + h + halo)
-                img, label = _draw(scene, prep, transform, ra, 0, rb - ra, width, crs, look, rng)
+                img, ids, occ = _draw(scene, prep, transform, ra, 0, rb - ra, width, crs, look, rng)
                 rgb = _sensor(img, look, rng)[r0 - ra: r0 - ra + h]
-                label = label[r0 - ra: r0 - ra + h]
+                ids = ids[r0 - ra: r0 - ra + h]
+                occ = occ[r0 - ra: r0 - ra + h]
+                label = (ids > 0) & ~occ
                 win = rasterio.windows.Window(0, r0, width, h)
                 valid = None
                 if mask_poly is not None:
@@ -961,6 +1017,9 @@ def render(
                         # keep real pixels off the nodata value
                         real = np.all(rgb == nodata, axis=-1) & valid
                         rgb[real] = np.clip(int(nodata) + 1, 0, 255)
+                seen = ~occ if valid is None else (~occ & valid)
+                label &= seen
+                n_vis += np.bincount(ids[seen].ravel(), minlength=n_vis.size)[: n_vis.size]
                 ds.write(np.moveaxis(rgb, -1, 0), indexes=[1, 2, 3], window=win)
                 if alpha:
                     ds.write((valid * 255).astype(np.uint8), 4, window=win)
@@ -983,13 +1042,15 @@ def render(
         else:
             ix, iy = Transformer.from_crs(scene.crs, crs, always_xy=True).transform(pts_x, pts_y)
         inv = ~transform
-        for m, x, y in zip(scene.markings, ix, iy):
-            c, r = inv * (x, y)
+        for i, (m, x, y) in enumerate(zip(scene.markings, ix, iy)):
+            c, r = inv @ (x, y)
             if not (0 <= c < width and 0 <= r < height):
                 continue
             if mask_poly is not None and mask_poly.contains(Point(x, y)):
                 continue
-            truth.append((m, float(x), float(y)))
+            px_area = scene.marking_polygons[i].area / (resolution_m * resolution_m)
+            visible = min(1.0, n_vis[i + 1] / max(px_area, 1e-9))
+            truth.append((m, float(x), float(y), round(float(visible), 3)))
     markings = _truth_markings(truth, scene.crs, crs)
     truth_path = out_tif.with_suffix(".truth.geojson")
     write_truth_geojson(markings, crs, truth_path)
@@ -1001,15 +1062,15 @@ def _truth_markings(items, scene_crs: str, crs: str) -> list[Marking]:
     """Markings in the image CRS with true-north bearings."""
     if not items:
         return []
-    sc = _wgs84_crs_of(scene_crs)
-    lon, lat = to_wgs84(sc).transform(np.array([m.x for m, _, _ in items]),
-                                      np.array([m.y for m, _, _ in items]))
+    sc = scene_crs
+    lon, lat = to_wgs84(sc).transform(np.array([it[0].x for it in items]),
+                                      np.array([it[0].y for it in items]))
     conv = np.atleast_1d(meridian_convergence_deg(sc, lon, lat))
     t = None
     if CRS.from_user_input(scene_crs) != CRS.from_user_input(crs):
         t = Transformer.from_crs(scene_crs, crs, always_xy=True)
     out = []
-    for (m, x, y), cv in zip(items, conv):
+    for (m, x, y, visible), cv in zip(items, conv):
         e = [m.x0, m.y0, m.x1, m.y1]
         if t is not None and m.x0 is not None:
             a = t.transform(m.x0, m.y0)
@@ -1019,19 +1080,17 @@ def _truth_markings(items, scene_crs: str, crs: str) -> list[Marking]:
             x=x, y=y, length_m=m.length_m, width_m=m.width_m,
             bearing_deg=float((m.bearing_deg + cv) % 180.0), weight=m.weight, kind=m.kind,
             source="imported", x0=e[0], y0=e[1], x1=e[2], y1=e[3],
+            extra={**m.extra, "visible": visible},
         ))
     return out
-
-
-def _wgs84_crs_of(crs: str) -> str:
-    return crs
 
 
 def write_truth_geojson(markings: Iterable[Marking], crs: str, path: str | Path) -> Path:
     """Write markings as a GeoJSON FeatureCollection of WGS84 points.
 
     Properties: ``length_m``, ``width_m``, ``bearing_deg`` (clockwise from true
-    north), ``kind``, and ``x``/``y`` in ``crs``.
+    north), ``kind``, ``x``/``y`` in ``crs``, and ``visible`` (share of the painted
+    area not hidden by cars, trees, roofs or no-data) when known.
     """
     markings = list(markings)
     path = Path(path)
@@ -1046,7 +1105,7 @@ def write_truth_geojson(markings: Iterable[Marking], crs: str, path: str | Path)
                 "properties": {
                     "length_m": round(m.length_m, 4), "width_m": round(m.width_m, 4),
                     "bearing_deg": round(m.bearing_deg, 3), "kind": m.kind,
-                    "x": m.x, "y": m.y,
+                    "x": m.x, "y": m.y, **m.extra,
                 },
             })
     path.write_text(json.dumps({"type": "FeatureCollection", "crs_of_xy": str(crs), "features": feats}))
