@@ -5,9 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import typer
 
-from localizer import METHODS, LocalizationInputError, MapIndex, Prior, localize
+from localizer import METHODS, GeoFrame, LocalizationInputError, MapIndex, Prior, localize
 from service.cli_errors import fail
 
 
@@ -57,9 +58,15 @@ def register(app: typer.Typer) -> None:
             fail(f"map {map_id!r} has no markings yet")
         arrays = store.marking_arrays(map_id)
         try:
+            bearing = None
+            if len(arrays):
+                # The store keeps bearings from true north; the index wants grid bearings.
+                frame = GeoFrame(info.crs)
+                lon0, lat0 = frame.to_lonlat(float(np.mean(arrays.x)), float(np.mean(arrays.y)))
+                bearing = np.asarray(arrays.bearing_deg) - frame.convergence_deg(lon0, lat0)
             index = MapIndex.from_arrays(
                 arrays.x, arrays.y, arrays.weight, info.crs,
-                bearing_deg=arrays.bearing_deg, length_m=arrays.length_m,
+                bearing_deg=bearing, length_m=arrays.length_m if bearing is not None else None,
             )
             prior = Prior(
                 lat=lat, lon=lon, heading_deg=heading,
