@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from localizer import MapIndex
+from localizer import GeoFrame, MapIndex
 from localizer.simulate import SceneMap
 
 CRS = "EPSG:25832"
@@ -30,9 +30,12 @@ def karlsruhe(path: str = str(KARLSRUHE_OSM)) -> tuple[MapIndex, SceneMap]:
     marks = layout_markings(lmap)
     x = np.array([m.x for m in marks])
     y = np.array([m.y for m in marks])
+    # Marking bearings are from true north; the index wants grid bearings.
+    frame = GeoFrame(CRS)
+    conv = frame.convergence_deg(*frame.to_lonlat(float(x.mean()), float(y.mean())))
     index = MapIndex.from_arrays(
         x, y, np.array([m.weight for m in marks]), CRS,
-        bearing_deg=[m.bearing_deg for m in marks],
+        bearing_deg=np.array([m.bearing_deg for m in marks]) - conv,
         length_m=[m.length_m for m in marks],
     )
     point_like = np.array([m.kind != "solid" for m in marks])
