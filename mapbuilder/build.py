@@ -197,6 +197,9 @@ class BuildResult:
 _READERS: "OrderedDict[tuple, GridReader]" = OrderedDict()
 _MODELS: dict[Any, Any] = {}
 
+#: Most tiles a worker processes in one go (neighbours along a row).
+MAX_RUN = 8
+
 #: GDAL block cache per process while building, MB. GDAL's default (5 % of RAM)
 #: would let every worker cache most of a large image; tiles are read once.
 GDAL_CACHE_MB = 128
@@ -212,7 +215,7 @@ def _limit_gdal_cache() -> None:
     if "GDAL_CACHEMAX" not in os.environ:
         from rasterio.env import set_gdal_config
 
-        set_gdal_config("GDAL_CACHEMAX", GDAL_CACHE_MB)
+        set_gdal_config("GDAL_CACHEMAX", GDAL_CACHE_MB * 2**20)  # bytes: a bare 128 is 128 bytes
 
 
 def _reader(path: str, grid: PixelGrid) -> GridReader:
@@ -391,34 +394,64 @@ def _init_worker() -> None:
             pass
 
 
-def _run_inline(tasks: Sequence[TileTask]) -> Iterator[TileResult]:
+def process_tiles(tasks: Sequence[TileTask]) -> list[TileResult]:
+    """Process a run of tiles one after the other (see :func:`group_runs`)."""
+    return [process_tile(t) for t in tasks]
+
+
+def group_runs(tasks: Sequence[TileTask], run_len: int) -> list[list[TileTask]]:
+    """Group tiles into runs of up to ``run_len`` neighbours along a row of one image.
+
+    A worker reads a run's windows in order, so the image blocks shared by
+    neighbouring windows (the halo) are decoded once and served from GDAL's
+    cache; tile by tile, two workers would each decode them.
+    """
+    runs: list[list[TileTask]] = []
     for task in tasks:
-        yield process_tile(task)
+        last = runs[-1][-1] if runs else None
+        if (
+            last is not None
+            and len(runs[-1]) < run_len
+            and last.path == task.path
+            and last.core[1] == task.core[1]
+            and last.core[0] + last.core[2] == task.core[0]
+        ):
+            runs[-1].append(task)
+        else:
+            runs.append([task])
+    return runs
 
 
-def _run_pool(tasks: Sequence[TileTask], workers: int) -> Iterator[TileResult]:
+def _run_inline(runs: Sequence[list[TileTask]]) -> Iterator[TileResult]:
+    for run in runs:
+        for task in run:
+            yield process_tile(task)
+
+
+def _run_pool(runs: Sequence[list[TileTask]], workers: int) -> Iterator[TileResult]:
     ctx = mp.get_context("spawn")
     in_flight_max = 2 * workers
     with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker) as pool:
         pending = set()
-        it = iter(tasks)
         try:
-            for task in it:
-                pending.add(pool.submit(process_tile, task))
+            for run in runs:
+                pending.add(pool.submit(process_tiles, run))
                 if len(pending) >= in_flight_max:
                     done, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for fut in done:
-                        yield fut.result()
+                        yield from fut.result()
             while pending:
                 done, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for fut in done:
-                    yield fut.result()
+                    yield from fut.result()
         finally:
             for fut in pending:
                 fut.cancel()
 
 
-def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iterator[TileResult]:
+def _run_dask(
+    runs: Sequence[list[TileTask]], address: str, timeout_s: float
+) -> Iterator[TileResult]:
     from distributed import Client, as_completed
 
     try:
@@ -428,18 +461,18 @@ def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iter
     try:
         n_workers = max(1, sum(client.nthreads().values()))
         in_flight_max = 2 * n_workers
-        it = iter(tasks)
+        it = iter(runs)
         first = [
-            client.submit(process_tile, t, pure=False) for _, t in zip(range(in_flight_max), it)
+            client.submit(process_tiles, r, pure=False) for _, r in zip(range(in_flight_max), it)
         ]
         ac = as_completed(first)
         for fut in ac:
-            result = fut.result()
+            results = fut.result()
             fut.release()
             nxt = next(it, None)
             if nxt is not None:
-                ac.add(client.submit(process_tile, nxt, pure=False))
-            yield result
+                ac.add(client.submit(process_tiles, nxt, pure=False))
+            yield from results
     finally:
         client.close()
 
@@ -594,12 +627,15 @@ def build_map(
     all_tasks = [t for plan in plans for t in plan.tasks]
     todo = [t for t in all_tasks if t.key not in done]
     skipped = len(all_tasks) - len(todo)
+    n_exec = 1 if inline else max(1, workers)
+    # Runs long enough to share decoded blocks, short enough to keep every worker busy.
+    runs = group_runs(todo, max(1, min(MAX_RUN, len(todo) // (4 * n_exec))))
     if dask_address:
-        results = _run_dask(todo, dask_address, dask_timeout_s)
-    elif inline or len(todo) <= 1:
-        results = _run_inline(todo)
+        results = _run_dask(runs, dask_address, dask_timeout_s)
+    elif inline or len(runs) <= 1:
+        results = _run_inline(runs)
     else:
-        results = _run_pool(todo, min(workers, len(todo)))
+        results = _run_pool(runs, min(workers, len(runs)))
 
     n_markings = 0
     timings: dict[str, float] = {}

@@ -64,3 +64,21 @@ def test_tile_keys_are_unique_and_stable(tmp_path):
     keys = [tile_key(tag, grid, t) for t in grid]
     assert len(set(keys)) == len(keys)
     assert keys[1] == f"{tag}/256/0/1"
+
+
+def test_runs_group_row_neighbours_of_one_image():
+    from mapbuilder.build import TileTask, group_runs
+    from mapbuilder.cluster import ClusterParams
+    from mapbuilder.raster import PixelGrid
+
+    grid = tile_grid(1000, 700, 256, 40)
+    pg = PixelGrid("EPSG:25832", (0.1, 0, 0, 0, -0.1, 0), 1000, 700)
+    tasks = [TileTask(p, pg, f"{p}{t.row}{t.col}", t.core, t.read, None, ClusterParams())
+             for p in ("a.tif", "b.tif") for t in grid]
+    runs = group_runs(tasks, 3)
+    assert [len(r) for r in runs] == [3, 1] * 3 * 2
+    assert [t for r in runs for t in r] == tasks
+    for r in runs:
+        assert len({(t.path, t.core[1]) for t in r}) == 1
+        assert all(a.core[0] + a.core[2] == b.core[0] for a, b in zip(r, r[1:]))
+    assert [len(r) for r in group_runs(tasks, 1)] == [1] * len(tasks)
