@@ -665,7 +665,12 @@ def lanelet_scene(lmap: LaneletMap, seed: int = 0,
                     for p in probe]
             side = 1 if dist[0] > dist[1] else -1
             walks.append(c.buffer(side * wdt, single_sided=True))
-        scene.add("verge", shapely.union_all(walks), pal.concrete)
+        walk = shapely.union_all(walks)
+        # never over a lane or a painted line (curbs between carriageways, odd geometry)
+        keep_clear = [c.buffer(1.5, cap_style="flat") for c in lanes] + [p.buffer(0.8) for p in paint_lines]
+        if keep_clear:
+            walk = walk.difference(shapely.union_all(keep_clear))
+        scene.add("verge", walk, pal.concrete)
     if road is not None:
         scene.add("road", road, pal.asphalt)
         for _ in range(int(road.area / 40)):
