@@ -20,12 +20,14 @@ imagery from 5 to 30 cm per pixel:
   (maximum over a ~0.6 m cell neighbourhood; paint continues, specks do not).
 
 Speed matters more than anything here (the whole pipeline must run at
-10 Mpx/s on two cores). Running minima and maxima use log-doubling on
-uint16, and the neighbourhood statistics (means, deviations, the broad
-top-hat) are computed on a decimated grid and sampled only where needed.
+10 Mpx/s on two cores). Only the narrow opening runs at full resolution
+(running minima and maxima by log-doubling on uint16); everything else runs on
+a ~20 cm grid (wide and broad openings, side and continuation maps) or a
+~60 cm grid (3 m background statistics) and is looked up where needed.
 :func:`candidate_features` evaluates the features only at pixels whose narrow
-top-hat exceeds a small threshold (a few percent of an image); every other
-pixel cannot be a marking. :func:`pixel_features` evaluates them everywhere.
+top-hat exceeds a few grey levels and which are not strongly coloured (a few
+to fifteen percent of an image); every other pixel cannot be a marking.
+:func:`pixel_features` evaluates them everywhere (for training and tests).
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ FEATURE_NAMES: tuple[str, ...] = (
 )
 
 #: Version of the feature definition; stored in model files and checked on load.
-FEATURE_VERSION = "6"
+FEATURE_VERSION = "7"
 
 #: Filter sizes, metres.
 SCALES_M = {
@@ -63,7 +65,7 @@ SCALES_M = {
 }
 
 #: Narrow top-hat (grey levels, 0–255) below which a pixel is never a marking.
-CANDIDATE_TOPHAT = 10.0
+CANDIDATE_TOPHAT = 12.0
 
 
 class FeatureError(ValueError):
@@ -133,27 +135,6 @@ def _box(img: np.ndarray, n: int) -> np.ndarray:
     return ndimage.uniform_filter(np.asarray(img, np.float32), n, mode="nearest")
 
 
-def _decimate(img: np.ndarray, k: int) -> np.ndarray:
-    """Block mean by ``k`` as float32 (edge blocks are partial means)."""
-    if k <= 1:
-        return img.astype(np.float32)
-    h, w = img.shape
-    hs, ws = -(-h // k), -(-w // k)
-    acc = np.zeros((hs, w), np.float32)
-    cnt = np.zeros((hs, 1), np.float32)
-    for i in range(k):
-        part = img[i::k]
-        acc[: part.shape[0]] += part
-        cnt[: part.shape[0]] += 1
-    out = np.zeros((hs, ws), np.float32)
-    cntc = np.zeros((1, ws), np.float32)
-    for j in range(k):
-        part = acc[:, j::k]
-        out[:, : part.shape[1]] += part
-        cntc[:, : part.shape[1]] += 1
-    return out / (cnt * cntc)
-
-
 def _block_max(img: np.ndarray, k: int) -> np.ndarray:
     """Block maximum by ``k`` as float32."""
     if k <= 1:
@@ -171,24 +152,58 @@ def _block_max(img: np.ndarray, k: int) -> np.ndarray:
     return res.astype(np.float32)
 
 
-def _sample(small: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Bilinear sample of a ``k``-decimated image at full-resolution pixels."""
+def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
+    """Block mean by ``k`` of a float32 image (edge blocks padded with edge values)."""
+    h, w = img.shape
+    ph, pw = (-h) % k, (-w) % k
+    if ph or pw:
+        img = np.pad(img, ((0, ph), (0, pw)), mode="edge")
+    acc = img[0::k].copy()
+    for i in range(1, k):
+        acc += img[i::k]
+    out = acc[:, 0::k].copy()
+    for j in range(1, k):
+        out += acc[:, j::k]
+    return out * np.float32(1.0 / (k * k))
+
+
+def _block_min(img: np.ndarray, k: int) -> np.ndarray:
+    """Block minimum by ``k`` (same dtype)."""
     if k <= 1:
-        return small[rows, cols].astype(np.float32)
-    ry = np.clip((rows + 0.5) / k - 0.5, 0, small.shape[0] - 1).astype(np.float32)
-    rx = np.clip((cols + 0.5) / k - 0.5, 0, small.shape[1] - 1).astype(np.float32)
-    y0 = ry.astype(np.intp)
-    x0 = rx.astype(np.intp)
-    y1 = np.minimum(y0 + 1, small.shape[0] - 1)
-    x1 = np.minimum(x0 + 1, small.shape[1] - 1)
-    fy = ry - y0
-    fx = rx - x0
-    if small.ndim == 3:
-        fx = fx[:, None]
-        fy = fy[:, None]
-    top = small[y0, x0] * (1 - fx) + small[y0, x1] * fx
-    bot = small[y1, x0] * (1 - fx) + small[y1, x1] * fx
-    return top * (1 - fy) + bot * fy
+        return img
+    h, w = img.shape
+    ph, pw = (-h) % k, (-w) % k
+    if ph or pw:
+        img = np.pad(img, ((0, ph), (0, pw)), mode="edge")
+    out = img[0::k]
+    for i in range(1, k):
+        out = np.minimum(out, img[i::k])
+    res = out[:, 0::k]
+    for j in range(1, k):
+        res = np.minimum(res, out[:, j::k])
+    return res
+
+
+def _block_mean_rgb(rgb: np.ndarray, k: int) -> list[np.ndarray]:
+    """Block means of the three channels of an (H, W, 3) uint8 image by ``k``, float32."""
+    out = []
+    for c in range(3):
+        ch = rgb[..., c]
+        if k <= 1:
+            out.append(ch.astype(np.float32))
+            continue
+        h, w = ch.shape
+        ph, pw = (-h) % k, (-w) % k
+        if ph or pw:
+            ch = np.pad(ch, ((0, ph), (0, pw)), mode="edge")
+        acc = ch[0::k].astype(np.uint16)
+        for i in range(1, k):
+            acc += ch[i::k]
+        res = acc[:, 0::k].copy()
+        for j in range(1, k):
+            res += acc[:, j::k]
+        out.append(res.astype(np.float32) * np.float32(1.0 / (k * k)))
+    return out
 
 
 def _features(rgb, valid, resolution_m, threshold):
@@ -219,47 +234,55 @@ def _features(rgb, valid, resolution_m, threshold):
     idx = np.flatnonzero(cand)
     rows, cols = np.divmod(idx, w)
 
-    op_w = _opening(op_n, _px(SCALES_M["tophat_wide"], res))
-
-    # neighbourhood statistics on a ~20 cm grid; invalid pixels take the mean of valid ones
+    # neighbourhood statistics on a ~20 cm grid; invalid cells take the mean of valid ones
     k = max(1, int(round(0.2 / res)))
-    lum_s = _decimate(lum, k)
-    sat_s = _decimate(sat, k)
+    r_s, g_s, b_s = _block_mean_rgb(rgb, k)
     if not all_valid:
-        vs = _decimate(valid.astype(np.uint8), k) > 0.5
+        vs = _block_min(valid.view(np.uint8), k) > 0
         if vs.any():
-            lum_s[~vs] = lum_s[vs].mean()
-            sat_s[~vs] = sat_s[vs].mean()
+            for ch in (r_s, g_s, b_s):
+                ch[~vs] = ch[vs].mean()
+    lum_s = r_s + g_s + b_s
+    sat_s = np.maximum(np.maximum(r_s, g_s), b_s) - np.minimum(np.minimum(r_s, g_s), b_s)
     rk = res * k
     sq_s = lum_s * lum_s
-    d_side = int(round(SCALES_M["side"] / rk / 1.0))
+    # the wide opening only needs the coarse grid: no marking survives it
+    op_w_s = _opening(_block_min(op_n, k), _px(SCALES_M["tophat_wide"], rk))
+    d_side = int(round(SCALES_M["side"] / rk))
     d_cont = int(round(SCALES_M["continuation"] / rk))
     pad = max(d_side, d_cont) + 1
-    # every coarse map in one padded (hs, ws, C) stack, gathered by flat cell index
+    # local maps on the ~20 cm grid, in one padded (hs, ws, C) stack gathered by flat index
     stack = np.stack([
-        _box(lum_s, _px(SCALES_M["mean"], rk)),
-        _box(sq_s, _px(SCALES_M["mean"], rk)),
-        _opening(_decimate(op_w, k), _px(SCALES_M["tophat_broad"], rk)),
+        _opening(op_w_s, _px(SCALES_M["tophat_broad"], rk)),
         _box(lum_s, _px(SCALES_M["side_smoothing"], rk)),
         _box(sat_s, _px(SCALES_M["side_smoothing"], rk)),
         _sliding(_sliding(_block_max(th_n, k), 3, 0, np.maximum), 3, 1, np.maximum),
-        *(_box(_decimate(ch, k), _px(SCALES_M["mean"], rk)) for ch in (r, g, b)),
+        op_w_s,
     ], axis=-1)
     hs, ws = stack.shape[:2]
     stack = np.pad(stack, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
     wp = ws + 2 * pad
     flat = stack.reshape(-1, stack.shape[2])
-    sides = np.ascontiguousarray(flat[:, 3:5])
-    th_s = np.ascontiguousarray(flat[:, 5])
-    base = (np.minimum(rows // k, hs - 1) + pad) * wp + np.minimum(cols // k, ws - 1) + pad
+    sides = np.ascontiguousarray(flat[:, 1:3])
+    th_s = np.ascontiguousarray(flat[:, 3])
+    cy = rows // k
+    cx = cols // k
+    base = (np.minimum(cy, hs - 1) + pad) * wp + np.minimum(cx, ws - 1) + pad
     st = flat[base]
+    # background statistics over 3 m need no finer grid than ~0.6 m
+    m = 3
+    bg = [_block_mean(a, m) for a in (lum_s, sq_s, r_s, g_s, b_s)]
+    n_bg = _px(SCALES_M["mean"], rk * m)
+    bg = np.stack([_box(a, n_bg) for a in bg], axis=-1)
+    bg = bg.reshape(-1, 5)[np.minimum(cy // m, bg.shape[0] - 1) * bg.shape[1]
+                           + np.minimum(cx // m, bg.shape[1] - 1)]
 
     third = np.float32(1.0 / 3.0)
     L = lum.ravel()[idx].astype(np.float32) * third
-    mean = st[:, 0] * third
-    std = np.sqrt(np.maximum(st[:, 1] * (third * third) - mean * mean, 0.0))
-    op_wv = op_w.ravel()[idx].astype(np.float32)
-    op_b = np.minimum(st[:, 2], op_wv) * third
+    mean = bg[:, 0] * third
+    std = np.sqrt(np.maximum(bg[:, 1] * (third * third) - mean * mean, 0.0))
+    op_wv = st[:, 4]
+    op_b = np.minimum(st[:, 0], op_wv) * third
 
     # both sides of the pixel across the direction it stands out most
     n = len(idx)
@@ -283,9 +306,12 @@ def _features(rgb, valid, resolution_m, threshold):
         along[better] = np.minimum(th_s[base[better] + off], th_s[base[better] - off]) * third
 
     # what the pixel adds to the local background colour
-    diff = rgb.reshape(-1, 3)[idx].astype(np.float32) - st[:, 6:9]
-    added = np.maximum(diff.mean(axis=1), 0.0)
-    chroma = (diff.max(axis=1) - diff.min(axis=1)) / (added + 16.0)
+    px = rgb.reshape(-1, 3)[idx]
+    d0 = px[:, 0] - bg[:, 2]
+    d1 = px[:, 1] - bg[:, 3]
+    d2 = px[:, 2] - bg[:, 4]
+    added = np.maximum((d0 + d1 + d2) * third, 0.0)
+    chroma = (np.maximum(np.maximum(d0, d1), d2) - np.minimum(np.minimum(d0, d1), d2)) / (added + 16.0)
 
     s = np.float32(1.0 / 128.0)
     feats = np.empty((len(idx), nf), np.float32)
