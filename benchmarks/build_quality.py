@@ -245,11 +245,8 @@ def main() -> None:
             per_scene.append((name, s["n_det"], s["n_truth"], round(p, 3), round(rc, 3)))
             print(f"{name:>18}: {s['n_det']:4d} detections, {s['n_truth']:4d} true, "
                   f"precision {p:.3f}, recall {rc:.3f}")
-            if i < 3:
-                cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
-                overlay(OUT / f"build_quality_{name}.png", tif, s["_det"], s["_det_kind"],
-                        s["_missed"], f"{name}, 10 cm (centre 60 m)",
-                        window=(cx - 30, cy - 30, cx + 30, cy + 30))
+            overlay(OUT / f"build_quality_{name}.png", tif, s["_det"], s["_det_kind"],
+                    s["_missed"], f"{name}, 10 cm")
         usgs = run_usgs(store, params, args.workers)
         store.close()
     errors, cross = np.array(errors), np.array(cross)
