@@ -57,21 +57,34 @@ def _hash01(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
 
 
 def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, seed: int) -> np.ndarray:
-    """Smooth noise in [-1, 1] at world coordinates ``x``, ``y`` (metres), feature size ``cell_m``."""
-    gx = x / cell_m
-    gy = y / cell_m
+    """Smooth noise in [-1, 1] at world coordinates ``x``, ``y`` (metres), feature size ``cell_m``.
+
+    Deterministic in the world coordinates, so adjacent strips join seamlessly.
+    """
+    gx = np.asarray(x, np.float64) / cell_m
+    gy = np.asarray(y, np.float64) / cell_m
+    if gx.size == 0:
+        return np.zeros(gx.shape, np.float32)
     ix = np.floor(gx)
     iy = np.floor(gy)
+    x0, y0 = ix.min(), iy.min()
+    nx = int(ix.max() - x0) + 2
+    ny = int(iy.max() - y0) + 2
+    if nx * ny > gx.size:
+        # lattice finer than the pixels: the nearest lattice value is as good as any
+        return _hash01(np.round(gx), np.round(gy), seed) * 2.0 - 1.0
+    lx = np.arange(nx, dtype=np.int64) + int(x0)
+    ly = np.arange(ny, dtype=np.int64) + int(y0)
+    table = _hash01(lx[None, :], ly[:, None], seed).ravel()
     fx = (gx - ix).astype(np.float32)
     fy = (gy - iy).astype(np.float32)
     fx = fx * fx * (3 - 2 * fx)
     fy = fy * fy * (3 - 2 * fy)
-    ix = ix.astype(np.int64)
-    iy = iy.astype(np.int64)
-    v00 = _hash01(ix, iy, seed)
-    v10 = _hash01(ix + 1, iy, seed)
-    v01 = _hash01(ix, iy + 1, seed)
-    v11 = _hash01(ix + 1, iy + 1, seed)
+    k = (iy - y0).astype(np.int64) * nx + (ix - x0).astype(np.int64)
+    v00 = table[k]
+    v10 = table[k + 1]
+    v01 = table[k + nx]
+    v11 = table[k + nx + 1]
     top = v00 + (v10 - v00) * fx
     bot = v01 + (v11 - v01) * fx
     return (top + (bot - top) * fy) * 2.0 - 1.0
@@ -818,7 +831,7 @@ def _sensor(img: np.ndarray, look: dict, rng: np.random.Generator) -> np.ndarray
     out = ndimage.gaussian_filter(img, sigma=(look["blur_px"], look["blur_px"], 0), mode="nearest")
     out = out * look["gain"] + look["offset"]
     out = 255.0 * np.clip(out / 255.0, 0, 1) ** look["gamma"]
-    out += rng.normal(0, look["noise"], out.shape).astype(np.float32)
+    out += rng.standard_normal(out.shape, dtype=np.float32) * np.float32(look["noise"])
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -903,7 +916,7 @@ def render(
     labels_tif: str | Path | None = None,
     alpha: bool = False,
     nodata: int | None = None,
-    strip_rows: int = 512,
+    strip_rows: int = 256,
     progress: bool = False,
     markings_crs: str | None = None,
 ) -> RenderResult:
@@ -915,7 +928,7 @@ def render(
         What to draw. A Lanelet2 map becomes :func:`lanelet_scene`; bare markings
         (in ``markings_crs``) become :func:`markings_scene`.
     out_tif : path
-        GeoTIFF to write (RGB uint8, tiled 512 px).
+        GeoTIFF to write (RGB uint8, tiled 256 px).
     resolution_m : float
         Ground sampling distance, metres per pixel (0.02–1).
     crs : str, optional
@@ -974,7 +987,7 @@ def render(
         mask_poly = Polygon([(xa, ya), (x1, ya), (x1, y0 + 0.5 * (y1 - y0))])
     profile = dict(
         driver="GTiff", width=width, height=height, count=4 if alpha else 3, dtype="uint8",
-        crs=out_crs, transform=transform, tiled=True, blockxsize=512, blockysize=512,
+        crs=out_crs, transform=transform, tiled=True, blockxsize=256, blockysize=256,
         BIGTIFF="IF_SAFER",
     )
     if jpeg_quality:
@@ -998,7 +1011,7 @@ def render(
         if labels_tif is not None:
             lab_ds = rasterio.open(
                 labels_tif, "w", driver="GTiff", width=width, height=height, count=1, dtype="uint8",
-                crs=out_crs, transform=transform, tiled=True, blockxsize=512, blockysize=512,
+                crs=out_crs, transform=transform, tiled=True, blockxsize=256, blockysize=256,
                 compress="DEFLATE")
         try:
             strip_rows = max(16, (strip_rows // 16) * 16)

@@ -138,7 +138,7 @@ def test_render_with_nodata(scene, tmp_path):
 
 
 def test_strips_do_not_change_the_picture(scene, tmp_path):
-    a = render(scene, tmp_path / "a.tif", 0.1, seed=7, strip_rows=512, labels_tif=tmp_path / "la.tif")
+    a = render(scene, tmp_path / "a.tif", 0.1, seed=7, strip_rows=256, labels_tif=tmp_path / "la.tif")
     b = render(scene, tmp_path / "b.tif", 0.1, seed=7, strip_rows=48, labels_tif=tmp_path / "lb.tif")
     with rasterio.open(tmp_path / "la.tif") as da, rasterio.open(tmp_path / "lb.tif") as db:
         assert (da.read() == db.read()).all()
