@@ -59,9 +59,10 @@ class ClusterParams:
         Quantisation of the cutting direction of long clusters, degrees.
     join_gap_m : float
         Collinear clusters whose facing ends are at most this far apart along
-        their axis are joined (a marking broken by wear or a shadow); 0, the
-        default, disables it: with a noisy classifier, joining also drags true
-        dashes onto nearby false fragments.
+        their axis are joined (a marking broken by wear or a shadow); 0
+        disables it. On validation renders with the default model, 0.6 m
+        raised the recall of dashes and stop lines from 0.47 to 0.70 and
+        precision from 0.74 to 0.78.
     join_angle_deg : float
         Largest difference of direction of clusters to join, degrees.
     join_offset_m : float
@@ -78,7 +79,7 @@ class ClusterParams:
     min_length_m: float = 0.3
     min_area_m2: float = 0.04
     direction_step_deg: float = 2.0
-    join_gap_m: float = 0.0
+    join_gap_m: float = 0.6
     join_angle_deg: float = 12.0
     join_offset_m: float = 0.12
 
