@@ -26,7 +26,7 @@ KARLSRUHE = ROOT.parent / "shared" / "data" / "karlsruhe-lanelet2" / "mapping_ex
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--n", type=int, default=80, help="number of training renders")
+    ap.add_argument("--n", type=int, default=100, help="number of training renders")
     ap.add_argument("--C", type=float, default=0.5, help="SVM regularisation")
     ap.add_argument("--out", default=str(default_model_path()))
     args = ap.parse_args(argv)

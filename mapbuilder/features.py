@@ -20,14 +20,15 @@ imagery from 5 to 30 cm per pixel:
   (maximum over a ~0.6 m cell neighbourhood; paint continues, specks do not).
 
 Speed matters more than anything here (the whole pipeline must run at
-10 Mpx/s on two cores). Only the narrow opening runs at full resolution
-(running minima and maxima by log-doubling on uint16); everything else runs on
-a ~20 cm grid (wide and broad openings, side and continuation maps) or a
-~60 cm grid (3 m background statistics) and is looked up where needed.
-:func:`candidate_features` evaluates the features only at pixels whose narrow
-top-hat exceeds a few grey levels and which are not strongly coloured (a few
-to fifteen percent of an image); every other pixel cannot be a marking.
-:func:`pixel_features` evaluates them everywhere (for training and tests).
+10 Mpx/s on two cores), and so does translation invariance (a pixel must get
+the same features whatever window it is read in, or tiles would disagree at
+their borders). Openings, side and continuation maps are computed at full
+resolution (running minima and maxima by log-doubling on uint16, box means);
+the broad opening and the 3 m background statistics run on coarse grids and
+are interpolated bilinearly. :func:`candidate_features` evaluates the features
+only at pixels whose narrow top-hat exceeds a few grey levels and which are not
+strongly coloured (a few to fifteen percent of an image); every other pixel
+cannot be a marking. :func:`pixel_features` evaluates them everywhere.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ FEATURE_NAMES: tuple[str, ...] = (
 )
 
 #: Version of the feature definition; stored in model files and checked on load.
-FEATURE_VERSION = "7"
+FEATURE_VERSION = "8"
 
 #: Filter sizes, metres.
 SCALES_M = {
@@ -133,6 +134,23 @@ def _opening(img: np.ndarray, n: int) -> np.ndarray:
 def _box(img: np.ndarray, n: int) -> np.ndarray:
     """Box mean over ``n`` x ``n`` (edges repeat the border values)."""
     return ndimage.uniform_filter(np.asarray(img, np.float32), n, mode="nearest")
+
+
+def _bilinear(grid: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a (hs, ws, C) grid of ``k``-pixel blocks at full-resolution pixels."""
+    hs, ws, nc = grid.shape
+    ry = np.clip((rows + 0.5) / k - 0.5, 0, hs - 1).astype(np.float32)
+    rx = np.clip((cols + 0.5) / k - 0.5, 0, ws - 1).astype(np.float32)
+    y0 = ry.astype(np.intp)
+    x0 = rx.astype(np.intp)
+    y1 = np.minimum(y0 + 1, hs - 1)
+    x1 = np.minimum(x0 + 1, ws - 1)
+    fy = (ry - y0)[:, None]
+    fx = (rx - x0)[:, None]
+    flat = grid.reshape(-1, nc)
+    top = flat[y0 * ws + x0] * (1 - fx) + flat[y0 * ws + x1] * fx
+    bot = flat[y1 * ws + x0] * (1 - fx) + flat[y1 * ws + x1] * fx
+    return top * (1 - fy) + bot * fy
 
 
 def _block_max(img: np.ndarray, k: int) -> np.ndarray:
@@ -246,43 +264,38 @@ def _features(rgb, valid, resolution_m, threshold):
     sat_s = np.maximum(np.maximum(r_s, g_s), b_s) - np.minimum(np.minimum(r_s, g_s), b_s)
     rk = res * k
     sq_s = lum_s * lum_s
-    # the wide opening only needs the coarse grid: no marking survives it
-    op_w_s = _opening(_block_min(op_n, k), _px(SCALES_M["tophat_wide"], rk))
-    d_side = int(round(SCALES_M["side"] / rk))
-    d_cont = int(round(SCALES_M["continuation"] / rk))
-    pad = max(d_side, d_cont) + 1
-    # local maps on the ~20 cm grid, in one padded (hs, ws, C) stack gathered by flat index
-    stack = np.stack([
-        _opening(op_w_s, _px(SCALES_M["tophat_broad"], rk)),
-        _box(lum_s, _px(SCALES_M["side_smoothing"], rk)),
-        _box(sat_s, _px(SCALES_M["side_smoothing"], rk)),
-        _sliding(_sliding(_block_max(th_n, k), 3, 0, np.maximum), 3, 1, np.maximum),
-        op_w_s,
-    ], axis=-1)
-    hs, ws = stack.shape[:2]
-    stack = np.pad(stack, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
-    wp = ws + 2 * pad
-    flat = stack.reshape(-1, stack.shape[2])
-    sides = np.ascontiguousarray(flat[:, 1:3])
-    th_s = np.ascontiguousarray(flat[:, 3])
-    cy = rows // k
-    cx = cols // k
-    base = (np.minimum(cy, hs - 1) + pad) * wp + np.minimum(cx, ws - 1) + pad
-    st = flat[base]
-    # background statistics over 3 m need no finer grid than ~0.6 m
-    m = 3
-    bg = [_block_mean(a, m) for a in (lum_s, sq_s, r_s, g_s, b_s)]
-    n_bg = _px(SCALES_M["mean"], rk * m)
-    bg = np.stack([_box(a, n_bg) for a in bg], axis=-1)
-    bg = bg.reshape(-1, 5)[np.minimum(cy // m, bg.shape[0] - 1) * bg.shape[1]
-                           + np.minimum(cx // m, bg.shape[1] - 1)]
-
     third = np.float32(1.0 / 3.0)
     L = lum.ravel()[idx].astype(np.float32) * third
+
+    # Maps read at a pixel's exact neighbours are full-resolution, so that the
+    # features do not depend on where a window starts; smooth backgrounds come
+    # from coarse grids by bilinear interpolation, for the same reason.
+    op_w = _opening(op_n, _px(SCALES_M["tophat_wide"], res))
+    op_wv = op_w.ravel()[idx].astype(np.float32)
+    op_b_s = _opening(_block_mean(op_w.astype(np.float32), k), _px(SCALES_M["tophat_broad"], rk))
+    op_b = np.minimum(_bilinear(op_b_s[..., None], k, rows, cols)[:, 0], op_wv) * third
+    m = 3  # background statistics over 3 m need no finer grid than ~0.6 m
+    bg = np.stack([_box(_block_mean(a, m), _px(SCALES_M["mean"], rk * m))
+                   for a in (lum_s, sq_s, r_s, g_s, b_s)], axis=-1)
+    bg = _bilinear(bg, k * m, rows, cols)
     mean = bg[:, 0] * third
     std = np.sqrt(np.maximum(bg[:, 1] * (third * third) - mean * mean, 0.0))
-    op_wv = st[:, 4]
-    op_b = np.minimum(st[:, 0], op_wv) * third
+
+    lum_f = lum.astype(np.float32)
+    sat_f = sat.astype(np.float32)
+    if not all_valid and valid.any():
+        lum_f[~valid] = lum_f[valid].mean()
+        sat_f[~valid] = sat_f[valid].mean()
+    n_side = _px(SCALES_M["side_smoothing"], res)
+    side_l = _box(lum_f, n_side).ravel()
+    side_s = _box(sat_f, n_side).ravel()
+    n_cont = _px(0.3, res)
+    th_max = _sliding(_sliding(th_n, n_cont, 0, np.maximum), n_cont, 1, np.maximum).ravel()
+    d_side = SCALES_M["side"] / res
+    d_cont = SCALES_M["continuation"] / res
+
+    def at(oy: int, ox: int) -> np.ndarray:
+        return np.clip(rows + oy, 0, h - 1) * w + np.clip(cols + ox, 0, w - 1)
 
     # both sides of the pixel across the direction it stands out most
     n = len(idx)
@@ -293,17 +306,19 @@ def _features(rgb, valid, resolution_m, threshold):
     axes = ((0.0, 1.0), (1.0, 0.0), (0.7071, 0.7071), (0.7071, -0.7071))
     perp = (1, 0, 3, 2)
     for t, (uy, ux) in enumerate(axes):
-        off = int(round(d_side * uy)) * wp + int(round(d_side * ux))
-        sa = sides[base + off]
-        sb = sides[base - off]
-        c = L - np.maximum(sa[:, 0], sb[:, 0]) * third
+        oy, ox = int(round(d_side * uy)), int(round(d_side * ux))
+        ia, ib = at(oy, ox), at(-oy, -ox)
+        la, lb = side_l[ia], side_l[ib]
+        c = L - np.maximum(la, lb) * third
         better = c > best
         best[better] = c[better]
-        asym[better] = np.abs(sa[better, 0] - sb[better, 0]) * third
-        sasym[better] = np.abs(sa[better, 1] - sb[better, 1])
-        py, px = axes[perp[t]]
-        off = int(round(d_cont * py)) * wp + int(round(d_cont * px))
-        along[better] = np.minimum(th_s[base[better] + off], th_s[base[better] - off]) * third
+        asym[better] = np.abs(la[better] - lb[better]) * third
+        sasym[better] = np.abs(side_s[ia[better]] - side_s[ib[better]])
+        py, px_ = axes[perp[t]]
+        oy, ox = int(round(d_cont * py)), int(round(d_cont * px_))
+        ca = th_max[at(oy, ox)[better]]
+        cb = th_max[at(-oy, -ox)[better]]
+        along[better] = np.minimum(ca, cb).astype(np.float32) * third
 
     # what the pixel adds to the local background colour
     px = rgb.reshape(-1, 3)[idx]

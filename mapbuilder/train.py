@@ -245,7 +245,7 @@ def synthetic_training_set(
     size_m: float = 70.0,
     lanelet_map=None,
     progress: bool = False,
-    neg_per_pos: float = 6.0,
+    neg_per_pos: float = 3.0,
 ) -> TrainingSet:
     """Render procedural (and, with ``lanelet_map``, Karlsruhe) scenes and sample pixels.
 
