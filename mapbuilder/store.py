@@ -107,7 +107,7 @@ class Conflict:
     """One change of a changeset that cannot apply."""
 
     id: int
-    reason: str  # "version" | "missing"
+    reason: str  # "version" | "missing" | "exists"
     expected_version: int | None = None
     actual_version: int | None = None
 
@@ -673,8 +673,10 @@ class Store:
                 raise StoreError(f"bbox {name} must be finite")
         if minx > maxx or miny > maxy:
             raise StoreError("bbox must be (minx, miny, maxx, maxy) with min <= max")
-        gx0, gx1 = math.floor(minx / GRID_CELL_M), math.floor(maxx / GRID_CELL_M)
-        gy0, gy1 = math.floor(miny / GRID_CELL_M), math.floor(maxy / GRID_CELL_M)
+        # Clamp to the 32-bit range of the grid columns: a huge box must not overflow them.
+        lim = 2**31 - 1
+        gx0, gx1 = (max(-lim, min(lim, math.floor(v / GRID_CELL_M))) for v in (minx, maxx))
+        gy0, gy1 = (max(-lim, min(lim, math.floor(v / GRID_CELL_M))) for v in (miny, maxy))
         c = markings.c
         # Listing the grid columns turns one long range scan into one short
         # index seek per column (gx = ? AND gy BETWEEN ...): 8x faster at 1M rows.
@@ -867,6 +869,9 @@ class Store:
                 # Re-creating a deleted marking (a revert) keeps its id, and its
                 # version moves on so that old ETags stay stale.
                 row["id"] = c.id
+                taken = conn.execute(select(markings.c.id).where(markings.c.id == c.id)).first()
+                if taken is not None:
+                    raise ConflictError([Conflict(id=c.id, reason="exists")])
                 row["version"] = (m.version or 0) + 1
             new_id = conn.execute(insert(markings).values(**row).returning(markings.c.id)).scalar_one()
             after = marking_to_json(_marking_from_row(_row_obj(row, new_id)))

@@ -140,6 +140,7 @@ def test_bbox_query_matches_brute_force(store):
         store.query_bbox("ka", E0 + 1, N0, E0, N0 + 1)
     with pytest.raises(StoreError, match="finite"):
         store.query_bbox("ka", math.nan, N0, E0, N0 + 1)
+    assert len(store.query_bbox("ka", -1e12, -1e12, 1e12, 1e12)) == len(pts)
 
 
 def test_bbox_uses_the_grid_index(store):
@@ -238,9 +239,15 @@ def test_history_and_revert(store):
         store.get_marking("ka", created)
     infos, n = store.changesets("ka")
     assert infos[0].id == rv.changeset_id and infos[0].reverts == cs.changeset_id and n == 3
-    # Reverting again conflicts: the markings changed since that changeset.
+    # Reverting again conflicts: the markings changed since that changeset, and
+    # the deleted one exists again.
     with pytest.raises(ConflictError):
         store.revert_changeset("ka", cs.changeset_id, who="erin")
+    only_delete = store.apply_changeset("ka", [Change("delete", id=b)], who="f")
+    store.revert_changeset("ka", only_delete.changeset_id, who="f")
+    with pytest.raises(ConflictError) as err:
+        store.revert_changeset("ka", only_delete.changeset_id, who="f")
+    assert [(c.id, c.reason) for c in err.value.conflicts] == [(b, "exists")]
 
 
 def test_deleted_ids_are_never_reused(store):
