@@ -71,14 +71,14 @@ def map_index(ctx: Context, map_id: str):
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
         arrays = ctx.store.marking_arrays(map_id)
-        kind = getattr(arrays, "kind", None)
         extra = {}
-        if kind is not None and len(arrays):
+        if len(arrays):
             # The store keeps bearings from true north; the index wants grid bearings.
+            # The index infers which pieces belong to solid lines from their geometry.
             cx, cy = float(np.mean(arrays.x)), float(np.mean(arrays.y))
             lon, lat = to_wgs84(info.crs).transform(cx, cy)
             conv = float(meridian_convergence_deg(info.crs, lon, lat))
-            extra = dict(kind=kind, bearing_deg=np.asarray(arrays.bearing_deg) - conv, length_m=arrays.length_m)
+            extra = dict(bearing_deg=np.asarray(arrays.bearing_deg) - conv, length_m=arrays.length_m)
         index = MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, info.crs, **extra)
         ctx.indexes[map_id] = (revision, index)
         log.info("map %s: spatial index of %d markings at revision %d", map_id, len(index), revision)
