@@ -17,7 +17,7 @@ import math
 import re
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from sqlalchemy.engine import Connection, Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
 
 from . import migrate
-from .crs import CRSError, metric_crs, to_wgs84, utm_crs_for
+from .crs import CRSError, from_wgs84, metric_crs, to_wgs84, utm_crs_for
 from .model import SOURCES, STATUSES, Marking
 from .schema import GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings
 from .settings import Settings
@@ -595,8 +595,6 @@ class Store:
                 )
             crs = self._crs_for_write(conn, map_id, hint)
             if lonlat:
-                from .crs import from_wgs84
-
                 xs, ys = from_wgs84(crs).transform(
                     np.array([m.lon for m in items], float), np.array([m.lat for m in items], float)
                 )
@@ -859,8 +857,6 @@ class Store:
                 raise StoreError("a create change needs a marking")
             m = c.marking
             if m.lon is not None and m.lat is not None and not _is_position(m.x, m.y):
-                from .crs import from_wgs84
-
                 m.x, m.y = from_wgs84(crs).transform(float(m.lon), float(m.lat))
             row = marking_row(m, crs, now)
             row["map_id"] = map_id
@@ -888,8 +884,6 @@ class Store:
         m = _marking_from_row(row)
         patch = dict(c.fields)
         if "lon" in patch or "lat" in patch:
-            from .crs import from_wgs84
-
             lon = _finite("lon", patch.pop("lon", m.lon))
             lat = _finite("lat", patch.pop("lat", m.lat))
             if not (-180 <= lon <= 180 and -90 <= lat <= 90):
@@ -1170,5 +1164,5 @@ __all__ = [
     "ImageryInfo", "InvalidMarkingError", "JobInfo", "MapExistsError", "MapInfo", "MarkingArrays",
     "SchemaError", "Store", "StoreError", "StoreUnavailableError", "UnknownChangesetError",
     "UnknownImageryError", "UnknownJobError", "UnknownMapError", "UnknownMarkingError",
-    "asdict", "marking_to_json",
+    "marking_to_json",
 ]  # fmt: skip

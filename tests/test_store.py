@@ -91,7 +91,7 @@ def test_add_markings_fills_lonlat_and_is_all_or_nothing(store):
     m = store.get_marking("ka", ids[0])
     assert m.version == 1 and m.source == "imported" and m.status == "unreviewed"
     assert 8.3 < m.lon < 8.5 and 48.9 < m.lat < 49.1
-    bad = [_m(1, 1), _m(2, 2, weight=0)] if False else [_m(1, 1), Marking(x=E0, y=N0, weight=0)]
+    bad = [_m(1, 1), Marking(x=E0, y=N0, weight=0)]
     with pytest.raises(InvalidMarkingError, match="marking 1: weight must be > 0"):
         store.add_markings("ka", bad)
     with pytest.raises(InvalidMarkingError, match="x must be finite"):
