@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install everything the test suite needs on a fresh Debian machine, then run it.
 #   - Debian packages: PostgreSQL (the store tests run against a real server)
-#     and Python's venv module.
+#     Python's venv module, and Chromium (the web editor's end-to-end tests).
 #   - a virtual environment in .venv with lanemap and its test extras.
 # Extra arguments are passed to pytest, e.g. `bash scripts/test.sh -k store`.
 set -euo pipefail
@@ -15,6 +15,7 @@ as_postgres() {
 missing=()
 command -v pg_ctlcluster >/dev/null 2>&1 || missing+=(postgresql)
 python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || missing+=(python3-venv)
+[ -x /usr/bin/chromium ] || missing+=(chromium)
 if [ ${#missing[@]} -gt 0 ]; then
   echo "== installing Debian packages: ${missing[*]}"
   as_root apt-get update -qq
