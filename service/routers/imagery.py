@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import threading
 import uuid
 from pathlib import Path
 from typing import Any
@@ -158,11 +159,17 @@ def render_tile(paths: list[str], z: int, x: int, y: int) -> bytes | None:
     return _render_tile(tuple(stamps), z, x, y)
 
 
+#: rio-tiler's package imports are circular: a browser's first burst of tile requests
+#: importing it from several threads at once fails with "partially initialized module".
+_TILER_IMPORT = threading.Lock()
+
+
 @functools.lru_cache(maxsize=512)
 def _render_tile(stamps: tuple[tuple[str, int], ...], z: int, x: int, y: int) -> bytes | None:
     # Keyed by file and modification time: panning back to a tile costs nothing.
-    from rio_tiler.errors import TileOutsideBounds
-    from rio_tiler.io import Reader
+    with _TILER_IMPORT:
+        from rio_tiler.errors import TileOutsideBounds
+        from rio_tiler.io import Reader
 
     for path, _mtime in stamps:
         try:

@@ -1,0 +1,120 @@
+// The service's public HTTP API, as the editor uses it. Errors are RFC 9457 problems.
+
+import { fromFeature } from './edits.js';
+
+export class ApiError extends Error {
+  constructor(status, problem) {
+    super(problem?.detail || problem?.title || `HTTP ${status}`);
+    this.status = status;
+    this.problem = problem || {};
+  }
+}
+
+export class Api {
+  /**
+   * @param {URL|string} root  the service's root URL (the editor lives at root + "editor/")
+   * @param {() => string|null} token  the bearer token for writes, when there is one
+   */
+  constructor(root, token) {
+    this.root = new URL(root);
+    this.token = token;
+  }
+
+  url(path) {
+    return new URL(path.replace(/^\//, ''), this.root);
+  }
+
+  async request(method, path, { body, auth = false, signal, token } = {}) {
+    const headers = { Accept: 'application/json, application/geo+json, application/problem+json' };
+    const bearer = token ?? (auth ? this.token() : null);
+    if (bearer) headers.Authorization = `Bearer ${bearer}`;
+    if (body !== undefined) headers['Content-Type'] = 'application/json';
+    const url = path instanceof URL ? path : this.url(path);
+    const res = await fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), signal });
+    const text = await res.text();
+    let data = null;
+    try {
+      data = text ? JSON.parse(text) : null;
+    } catch {
+      data = { detail: text.slice(0, 200) };
+    }
+    if (!res.ok) throw new ApiError(res.status, data);
+    return data;
+  }
+
+  collections() {
+    return this.request('GET', 'collections').then((d) => d.collections);
+  }
+
+  collection(mapId) {
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}`);
+  }
+
+  tileUrl(mapId) {
+    return `${this.url(`collections/${encodeURIComponent(mapId)}/imagery/tiles/WebMercatorQuad`)}/{z}/{x}/{y}.png`;
+  }
+
+  /**
+   * Every marking in a box (following the `next` links), as flat markings.
+   * @param {number[]|null} bbox  [west, south, east, north] in degrees; null: the whole map
+   */
+  async items(mapId, bbox, { status, signal, pageSize = 5000, onPage } = {}) {
+    const q = new URLSearchParams({ limit: String(pageSize) });
+    if (bbox) q.set('bbox', bbox.map((v) => v.toFixed(7)).join(','));
+    if (status) q.set('status', status);
+    let url = this.url(`collections/${encodeURIComponent(mapId)}/items?${q}`);
+    const out = [];
+    while (url) {
+      const page = await this.request('GET', url, { signal });
+      for (const f of page.features) out.push(fromFeature(f));
+      onPage?.(out.length, page.numberMatched);
+      const next = (page.links || []).find((l) => l.rel === 'next');
+      url = next ? new URL(next.href) : null;
+    }
+    return out;
+  }
+
+  /** The server's marking now, or null when it no longer exists. */
+  async item(mapId, id) {
+    try {
+      const f = await this.request('GET', `collections/${encodeURIComponent(mapId)}/items/${encodeURIComponent(id)}`);
+      return fromFeature(f);
+    } catch (err) {
+      if (err instanceof ApiError && err.status === 404) return null;
+      throw err;
+    }
+  }
+
+  saveChangeset(mapId, body) {
+    return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`, { body, auth: true });
+  }
+
+  changesets(mapId, { limit = 30, offset = 0 } = {}) {
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}/changesets?limit=${limit}&offset=${offset}`);
+  }
+
+  changeset(mapId, id) {
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}/changesets/${encodeURIComponent(id)}`);
+  }
+
+  revert(mapId, id, comment) {
+    return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets/${encodeURIComponent(id)}/revert`,
+      { body: { comment }, auth: true });
+  }
+
+  /**
+   * Whether the server takes `token` for writes, without writing anything: an empty
+   * changeset is refused as unauthorized (401) before it is refused as invalid (422).
+   */
+  async checkToken(mapId, token) {
+    try {
+      await this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`,
+        { body: { comment: '', changes: [] }, token });
+    } catch (err) {
+      if (err instanceof ApiError && err.status === 401) return false;
+      if (err instanceof ApiError && err.status === 422) return true;
+      throw err;
+    }
+    return true;
+  }
+}

@@ -1,0 +1,826 @@
+// The map editor: wires the API, the local edit session and the Leaflet map together.
+
+import { Api, ApiError } from './api.js';
+import { EditSession, isLocalId } from './edits.js';
+import { MarkingLayer, fromEnds, isLowScore, metres } from './layer.js';
+
+const L = globalThis.L;
+const $ = (id) => document.getElementById(id);
+
+/** Below this zoom a large map's markings are not loaded (too many to be useful on screen). */
+const MIN_LOAD_ZOOM = 16;
+/** A map with at most this many markings is drawn at any zoom. */
+const SMALL_MAP = 20000;
+const REVIEW_ZOOM = 21;
+const TOKEN_KEY = 'lanemap.token';
+
+const api = new Api(new URL('../', document.baseURI), () => state.token);
+
+const state = {
+  token: sessionStorage.getItem(TOKEN_KEY),
+  who: null,
+  mapId: null,
+  collection: null,
+  session: null,
+  server: new Map(), // id -> marking, as last loaded for the view
+  known: new Map(), // id -> every server marking seen (edits start from these)
+  selection: new Set(),
+  conflicts: new Map(), // id -> conflict from the server
+  mode: 'select',
+  review: null, // {queue: [marking], index}
+  gesture: null, // a drag, box or dash being drawn
+  afterGesture: false, // the click that ends a drag is not a click
+  loadAbort: null,
+  historyOffset: 0,
+};
+
+// ---------------------------------------------------------------- the map
+const map = L.map('map', {
+  zoomControl: true,
+  boxZoom: false,
+  minZoom: 3, // fixed, so that a basemap's own limits do not move the view while a map opens
+  maxZoom: 23,
+  zoomSnap: 1, // whole zoom levels: fractional ones leave seams between imagery tiles
+  preferCanvas: true,
+  attributionControl: true,
+}).setView([49.0, 8.4], 4);
+map.attributionControl.setPrefix('<a href="https://leafletjs.com">Leaflet</a>');
+let imagery = null;
+
+const layer = new MarkingLayer(map, { onDown: onMarkingDown, onClick: onMarkingClick });
+
+function canEdit() {
+  return Boolean(state.token && state.mapId);
+}
+
+function toast(text, kind = 'info') {
+  const el = $('toast');
+  el.textContent = text;
+  el.className = `show ${kind}`;
+  clearTimeout(toast.timer);
+  toast.timer = setTimeout(() => (el.className = ''), kind === 'error' ? 8000 : 3500);
+}
+
+function problemText(err) {
+  if (err instanceof ApiError) return `${err.status}: ${err.message}`;
+  return String(err?.message || err);
+}
+
+// ---------------------------------------------------------------- markings: as edited
+/** A marking as it is locally: the edited one if there is an unsaved edit, else the server's. */
+function current(id) {
+  id = String(id);
+  const e = state.session?.pending.get(id);
+  if (e) return e.cur;
+  return state.known.get(id) ?? null;
+}
+
+function base(id) {
+  id = String(id);
+  const e = state.session?.pending.get(id);
+  return e ? e.base : state.known.get(id) ?? null;
+}
+
+function visibleMarkings() {
+  const out = new Map();
+  for (const [id, m] of state.server) {
+    const cur = state.session.effective(id, m);
+    if (cur) out.set(id, cur);
+  }
+  for (const m of state.session.localMarkings()) out.set(String(m.id), m);
+  return [...out.values()];
+}
+
+function render() {
+  if (!state.session) return;
+  const edited = state.session.pending;
+  layer.draw(visibleMarkings(), (m) => {
+    const id = String(m.id);
+    if (state.conflicts.has(id)) return 'conflict';
+    if (state.selection.has(id)) return 'selected';
+    if (edited.has(id)) return 'edited';
+    if (isLowScore(m)) return 'low';
+    return null;
+  });
+  renderSelection();
+}
+
+// ---------------------------------------------------------------- edits
+function edit(label, changes) {
+  if (!canEdit()) {
+    toast('Read-only: enter the API token to edit.', 'error');
+    return false;
+  }
+  const done = state.session.apply(label, changes);
+  if (done) render();
+  return done;
+}
+
+function setStatus(ids, status) {
+  const changes = [];
+  for (const id of ids) {
+    const m = current(id);
+    if (m && m.status !== status) changes.push({ base: base(id), cur: { ...m, status } });
+  }
+  return edit(`${status} ${changes.length}`, changes);
+}
+
+function deleteMarkings(ids) {
+  // A new marking has no base: the pending entry names it.
+  const changes = [...ids].filter((id) => current(id)).map((id) => ({ base: base(id) ?? { id }, cur: null }));
+  const ok = edit(`delete ${changes.length}`, changes);
+  if (ok) state.selection.clear();
+  render();
+  return ok;
+}
+
+function moveMarking(id, lon, lat) {
+  const m = current(id);
+  return edit('move', [{ base: base(id), cur: { ...m, lon, lat } }]);
+}
+
+/** Typical values of nearby markings for a new one: length, weight, bearing of the nearest. */
+function defaultsNear(lon, lat) {
+  const all = visibleMarkings().filter((m) => m.status !== 'rejected');
+  let nearest = null;
+  let best = 30; // metres
+  for (const m of all) {
+    const [e, n] = metres(lon, lat, m.lon, m.lat);
+    const d = Math.hypot(e, n);
+    if (d < best) [best, nearest] = [d, m];
+  }
+  const median = (xs, fallback) => {
+    const v = xs.filter((x) => Number.isFinite(x) && x > 0).sort((a, b) => a - b);
+    return v.length ? v[v.length >> 1] : fallback;
+  };
+  const dashes = all.filter((m) => m.kind === 'dash');
+  return {
+    length_m: median(dashes.map((m) => m.length_m), 3.0),
+    width_m: median(all.map((m) => m.width_m), 0.15),
+    weight: median(all.map((m) => m.weight), 100),
+    bearing_deg: nearest ? nearest.bearing_deg : 0,
+  };
+}
+
+function addMarking(props) {
+  const id = state.session.newLocalId();
+  const d = defaultsNear(props.lon, props.lat);
+  const m = {
+    id, weight: d.weight, length_m: d.length_m, width_m: d.width_m, bearing_deg: d.bearing_deg,
+    score: null, kind: 'dash', source: 'manual', status: 'accepted', version: null, ...props,
+  };
+  if (edit('add', [{ base: null, cur: m }])) {
+    state.selection = new Set([id]);
+    render();
+  }
+}
+
+function undo() {
+  const r = state.session.undo();
+  if (r) {
+    toast(`Undone: ${r.label}`);
+    render();
+  }
+}
+
+function redo() {
+  const r = state.session.redo();
+  if (r) {
+    toast(`Redone: ${r.label}`);
+    render();
+  }
+}
+
+// ---------------------------------------------------------------- mouse: select, box, move, add
+function onMarkingDown(m, e) {
+  const ev = e.originalEvent;
+  if (ev.button !== 0) return;
+  state.afterGesture = false;
+  if (state.mode === 'add' && canEdit()) {
+    ev._stopped = true;
+    L.DomEvent.stopPropagation(ev);
+    startDash(e);
+    return;
+  }
+  if (state.mode !== 'select' || !canEdit() || ev.shiftKey) return;
+  // Press on a marking: a drag moves it (the map must not pan meanwhile).
+  ev._stopped = true;
+  L.DomEvent.stopPropagation(ev);
+  state.gesture = { kind: 'move', id: String(m.id), m0: current(m.id), from: e.latlng, p0: e.containerPoint, moved: false };
+  map.dragging.disable();
+}
+
+function onMarkingClick(m, e) {
+  if (state.mode !== 'select' || state.afterGesture) return;
+  const id = String(m.id);
+  if (e.originalEvent.shiftKey || e.originalEvent.ctrlKey || e.originalEvent.metaKey) {
+    if (state.selection.has(id)) state.selection.delete(id);
+    else state.selection.add(id);
+  } else {
+    state.selection = new Set([id]);
+  }
+  render();
+}
+
+function startDash(e) {
+  const line = L.polyline([e.latlng, e.latlng], { color: '#2ee86f', weight: 4, dashArray: '6 4', interactive: false }).addTo(map);
+  state.gesture = { kind: 'dash', a: e.latlng, p0: e.containerPoint, line };
+  map.dragging.disable();
+}
+
+map.on('mousedown', (e) => {
+  const ev = e.originalEvent;
+  if (ev._stopped || ev.button !== 0) return;
+  state.afterGesture = false;
+  if (state.mode === 'add' && canEdit()) {
+    startDash(e);
+  } else if (state.mode === 'select' && ev.shiftKey) {
+    const rect = L.rectangle(L.latLngBounds(e.latlng, e.latlng), { color: '#fff', weight: 1, dashArray: '4 3', fillOpacity: 0.08, interactive: false }).addTo(map);
+    state.gesture = { kind: 'box', a: e.latlng, rect };
+    map.dragging.disable();
+  }
+});
+
+map.on('mousemove', (e) => {
+  const g = state.gesture;
+  if (!g) return;
+  if (g.kind === 'move') {
+    if (!g.moved && e.containerPoint.distanceTo(g.p0) < 3) return;
+    g.moved = true;
+    const dLon = e.latlng.lng - g.from.lng;
+    const dLat = e.latlng.lat - g.from.lat;
+    layer.preview({ ...g.m0, lon: g.m0.lon + dLon, lat: g.m0.lat + dLat });
+  } else if (g.kind === 'box') {
+    g.rect.setBounds(L.latLngBounds(g.a, e.latlng));
+  } else if (g.kind === 'dash') {
+    g.line.setLatLngs([g.a, e.latlng]);
+  }
+});
+
+function endGesture(e) {
+  const g = state.gesture;
+  if (!g) return;
+  state.gesture = null;
+  state.afterGesture = g.kind !== 'move' || g.moved;
+  map.dragging.enable();
+  if (g.kind === 'move') {
+    if (g.moved && e) {
+      const lon = g.m0.lon + (e.latlng.lng - g.from.lng);
+      const lat = g.m0.lat + (e.latlng.lat - g.from.lat);
+      moveMarking(g.id, lon, lat);
+      state.selection = new Set([g.id]);
+    }
+    render();
+  } else if (g.kind === 'box') {
+    g.rect.remove();
+    if (!e) return;
+    // Not the rectangle's bounds: the map throttles mousemove, the last one may be missing.
+    const bounds = L.latLngBounds(g.a, e.latlng);
+    const ids = visibleMarkings().filter((m) => bounds.contains([m.lat, m.lon])).map((m) => String(m.id));
+    if (!e.originalEvent.ctrlKey && !e.originalEvent.metaKey) state.selection.clear();
+    for (const id of ids) state.selection.add(id);
+    render();
+  } else if (g.kind === 'dash') {
+    g.line.remove();
+    if (!e) return;
+    if (e.containerPoint.distanceTo(g.p0) < 6) {
+      addMarking({ lon: g.a.lng, lat: g.a.lat });
+    } else {
+      addMarking(fromEnds(g.a.lng, g.a.lat, e.latlng.lng, e.latlng.lat));
+    }
+  }
+}
+
+map.on('mouseup', endGesture);
+document.addEventListener('mouseup', (ev) => {
+  // Released outside the map: finish where the pointer left it.
+  if (state.gesture && !map.getContainer().contains(ev.target)) endGesture(null);
+});
+
+map.on('click', (e) => {
+  if (state.afterGesture) return;
+  if (state.mode === 'select' && !e.originalEvent.shiftKey && state.selection.size) {
+    state.selection.clear();
+    render();
+  }
+});
+
+function setMode(mode) {
+  if (mode === 'add' && !canEdit()) {
+    toast('Read-only: enter the API token to add markings.', 'error');
+    return;
+  }
+  state.mode = mode;
+  $('mode-select').classList.toggle('active', mode === 'select');
+  $('mode-add').classList.toggle('active', mode === 'add');
+  map.getContainer().classList.toggle('adding', mode === 'add');
+}
+
+// ---------------------------------------------------------------- loading a map and the view
+async function loadMaps() {
+  const maps = await api.collections();
+  const sel = $('map-select');
+  sel.replaceChildren(...maps.map((c) => new Option(`${c.title} (${c.id})`, c.id)));
+  if (!maps.length) {
+    $('view-status').textContent = 'The server has no maps yet.';
+    return;
+  }
+  const wanted = new URLSearchParams(location.hash.slice(1)).get('map');
+  const id = maps.some((c) => c.id === wanted) ? wanted : maps[0].id;
+  sel.value = id;
+  await openMap(id, true);
+}
+
+async function openMap(mapId, fromHash = false) {
+  stopReview();
+  state.mapId = mapId;
+  state.collection = await api.collection(mapId);
+  state.server.clear();
+  state.known.clear();
+  state.selection.clear();
+  state.conflicts.clear();
+  $('conflict').hidden = true;
+  state.session = new EditSession(`lanemap.edits.${location.host}.${mapId}`);
+  state.session.onChange(updateCounters);
+  // Unsaved edits are known markings too (they may lie outside the first view).
+  for (const [id, e] of state.session.pending) if (e.base) state.known.set(id, e.base);
+  if (state.session.restored) toast(`Restored ${state.session.restored} unsaved edits of map ${mapId}.`);
+  updateCounters();
+
+  if (imagery) imagery.remove();
+  imagery = L.tileLayer(api.tileUrl(mapId), {
+    maxZoom: 23, maxNativeZoom: 22, minZoom: 10, tileSize: 256, attribution: `imagery of ${mapId}`,
+  }).addTo(map);
+
+  const h = new URLSearchParams(location.hash.slice(1));
+  const bbox = state.collection.extent?.spatial?.bbox?.[0];
+  if (fromHash && h.get('map') === mapId && h.has('z')) {
+    map.setView([+h.get('lat'), +h.get('lon')], +h.get('z'), { animate: false });
+  } else if (bbox) {
+    map.fitBounds([[bbox[1], bbox[0]], [bbox[3], bbox[2]]], { maxZoom: 20, padding: [20, 20], animate: false });
+  }
+  await loadView();
+  loadHistory(true);
+  applyTokenState();
+}
+
+async function loadView() {
+  if (!state.mapId) return;
+  const mapId = state.mapId;
+  const total = state.collection?.numberOfFeatures ?? Infinity;
+  state.loadAbort?.abort();
+  if (map.getZoom() < MIN_LOAD_ZOOM && total > SMALL_MAP) {
+    state.server.clear();
+    $('view-status').textContent = `Zoom in to see the markings (${total} in this map).`;
+    render();
+    return;
+  }
+  const ctl = new AbortController();
+  state.loadAbort = ctl;
+  const b = map.getBounds().pad(0.25);
+  const bbox = total <= SMALL_MAP ? null : [
+    Math.max(b.getWest(), -180), Math.max(b.getSouth(), -90), Math.min(b.getEast(), 180), Math.min(b.getNorth(), 90),
+  ];
+  $('view-status').textContent = 'Loading markings…';
+  try {
+    const items = await api.items(mapId, bbox, {
+      signal: ctl.signal,
+      onPage: (n, of) => ($('view-status').textContent = `Loading markings… ${n} of ${of}`),
+    });
+    if (ctl.signal.aborted || mapId !== state.mapId) return;
+    state.server = new Map(items.map((m) => [m.id, m]));
+    for (const m of items) state.known.set(m.id, m);
+    $('view-status').textContent = `${items.length} markings ${bbox ? 'in view' : 'in this map'}.`;
+    render();
+    document.body.dataset.loaded = String(Date.now());
+  } catch (err) {
+    if (err.name === 'AbortError') return;
+    $('view-status').textContent = `Markings could not be loaded: ${problemText(err)}`;
+  }
+}
+
+let moveTimer = null;
+map.on('moveend', () => {
+  if (!state.mapId) return;
+  const c = map.getCenter();
+  history.replaceState(null, '', `#map=${encodeURIComponent(state.mapId)}&z=${map.getZoom()}&lat=${c.lat.toFixed(7)}&lon=${c.lng.toFixed(7)}`);
+  if ((state.collection?.numberOfFeatures ?? Infinity) <= SMALL_MAP && state.server.size) return;
+  clearTimeout(moveTimer);
+  moveTimer = setTimeout(loadView, 250);
+});
+
+$('map-select').addEventListener('change', (e) => openMap(e.target.value));
+
+// ---------------------------------------------------------------- selection panel
+function renderSelection() {
+  const ids = [...state.selection].filter((id) => current(id));
+  const one = ids.length === 1 ? current(ids[0]) : null;
+  $('sel-none').hidden = ids.length > 0;
+  $('sel-many').hidden = ids.length < 2;
+  $('sel-count').textContent = String(ids.length);
+  $('sel-actions').hidden = ids.length === 0;
+  const form = $('attrs');
+  form.hidden = !one;
+  for (const b of $('sel-actions').querySelectorAll('button')) b.disabled = !canEdit();
+  if (!one) return;
+  if (form.dataset.id !== String(one.id) || form.dataset.sig !== JSON.stringify(one)) {
+    form.dataset.id = String(one.id);
+    form.dataset.sig = JSON.stringify(one);
+    $('attr-id').textContent = isLocalId(one.id) ? `${one.id} (not saved)` : one.id;
+    $('attr-source').textContent = one.source;
+    $('attr-score').textContent = one.score == null ? '–' : one.score.toFixed(3);
+    $('attr-version').textContent = one.version ?? '–';
+    form.status.value = one.status;
+    form.kind.value = one.kind ?? '';
+    form.length_m.value = round(one.length_m, 3);
+    form.width_m.value = round(one.width_m, 3);
+    form.bearing_deg.value = round(one.bearing_deg, 2);
+    form.weight.value = round(one.weight, 1);
+  }
+  for (const el of form.elements) el.disabled = !canEdit();
+}
+
+function round(v, digits) {
+  return v == null ? '' : String(Math.round(v * 10 ** digits) / 10 ** digits);
+}
+
+$('attrs').addEventListener('submit', (e) => {
+  e.preventDefault();
+  const form = e.target;
+  const id = form.dataset.id;
+  const m = current(id);
+  if (!m) return;
+  const num = (name, min) => {
+    const v = Number(form[name].value);
+    if (!Number.isFinite(v) || v < min) throw new Error(`${name} must be a number ≥ ${min}`);
+    return v;
+  };
+  try {
+    const next = {
+      ...m,
+      status: form.status.value,
+      kind: form.kind.value.trim() || null,
+      length_m: num('length_m', 0),
+      width_m: num('width_m', 0),
+      bearing_deg: ((num('bearing_deg', -360) % 180) + 180) % 180,
+      weight: num('weight', 1e-9),
+    };
+    edit('edit attributes', [{ base: base(id), cur: next }]);
+    form.dataset.sig = '';
+    render();
+  } catch (err) {
+    toast(err.message, 'error');
+  }
+});
+
+$('act-accept').addEventListener('click', () => setStatus(state.selection, 'accepted'));
+$('act-reject').addEventListener('click', () => setStatus(state.selection, 'rejected'));
+$('act-delete').addEventListener('click', () => deleteMarkings(state.selection));
+
+// ---------------------------------------------------------------- counters, undo, save
+function updateCounters() {
+  const s = state.session;
+  const n = s ? s.count : 0;
+  $('unsaved').textContent = `${n} unsaved`;
+  $('unsaved').classList.toggle('dirty', n > 0);
+  $('undo').disabled = !s?.undoStack.length || !canEdit();
+  $('redo').disabled = !s?.redoStack.length || !canEdit();
+  $('save').disabled = n === 0 || !canEdit();
+  $('discard').disabled = n === 0;
+}
+
+$('undo').addEventListener('click', undo);
+$('redo').addEventListener('click', redo);
+$('discard').addEventListener('click', () => {
+  if (!confirm(`Forget ${state.session.count} unsaved edits?`)) return;
+  state.session.clear();
+  state.conflicts.clear();
+  $('conflict').hidden = true;
+  render();
+});
+
+function openSave() {
+  if (!canEdit() || !state.session.count) return;
+  $('save-count').textContent = `${state.session.count} changed markings`;
+  $('save-dialog').showModal();
+  $('save-comment').focus();
+}
+$('save').addEventListener('click', openSave);
+$('save-dialog').addEventListener('close', () => {
+  if ($('save-dialog').returnValue === 'save') save($('save-comment').value.trim());
+});
+
+async function save(comment) {
+  const s = state.session;
+  const { body, ids } = s.toChangeset(comment);
+  $('save').disabled = true;
+  try {
+    const res = await api.saveChangeset(state.mapId, body);
+    const created = res.results.filter((r) => r.op === 'create').map((r) => r.id);
+    // The saved markings are the server's now; keep the selection on them.
+    const newIds = new Map(ids.map((id, i) => [id, res.results[i].id]));
+    state.selection = new Set([...state.selection].map((id) => newIds.get(id) ?? id));
+    s.clear();
+    state.conflicts.clear();
+    $('conflict').hidden = true;
+    $('save-comment').value = '';
+    toast(`Saved changeset ${res.changeset}: ${res.results.length} markings (${created.length} new).`);
+    state.collection = await api.collection(state.mapId);
+    await loadView();
+    loadHistory(true);
+  } catch (err) {
+    if (err instanceof ApiError && (err.status === 409 || err.status === 412)) {
+      showConflict(err.problem);
+    } else if (err instanceof ApiError && err.status === 401) {
+      toast('The token was refused: enter it again. Your edits are kept.', 'error');
+      forgetToken();
+    } else {
+      toast(`Save failed, your edits are kept: ${problemText(err)}`, 'error');
+    }
+  } finally {
+    updateCounters();
+  }
+}
+
+function showConflict(problem) {
+  const list = problem.conflicts || (problem.conflicting_ids || []).map((id) => ({ id, reason: 'version' }));
+  state.conflicts = new Map(list.map((c) => [String(c.id), c]));
+  $('conflict-text').textContent = `${list.length} of your edited markings changed on the server since you loaded them. Nothing was saved.`;
+  $('conflict-list').replaceChildren(...list.map((c) => {
+    const li = document.createElement('li');
+    const a = document.createElement('a');
+    a.href = '#';
+    a.textContent = `marking ${c.id}`;
+    a.addEventListener('click', (e) => {
+      e.preventDefault();
+      const m = current(c.id) ?? base(c.id);
+      if (m) map.setView([m.lat, m.lon], Math.max(map.getZoom(), 20));
+      state.selection = new Set([String(c.id)]);
+      render();
+    });
+    li.append(a, c.reason === 'missing' ? ': deleted by someone else'
+      : `: now at version ${c.actual_version}, you edited version ${c.expected_version}`);
+    return li;
+  }));
+  $('conflict').hidden = false;
+  render();
+  toast('Save refused: some markings changed on the server. Your edits are kept.', 'error');
+}
+
+$('conflict-rebase').addEventListener('click', async () => {
+  const ids = [...state.conflicts.keys()];
+  try {
+    const now = new Map(await Promise.all(ids.map(async (id) => [id, await api.item(state.mapId, id)])));
+    for (const [id, m] of now) if (m) state.known.set(id, m);
+    const dropped = state.session.rebase(now);
+    state.conflicts.clear();
+    $('conflict').hidden = true;
+    await loadView();
+    toast(`Reloaded ${ids.length} markings and re-applied your edits${dropped.length ? `; ${dropped.length} were deleted on the server and your edits of them dropped` : ''}. Check them and save again.`);
+  } catch (err) {
+    toast(`Reload failed: ${problemText(err)}`, 'error');
+  }
+});
+$('conflict-close').addEventListener('click', () => {
+  $('conflict').hidden = true;
+  state.conflicts.clear();
+  render();
+});
+
+// ---------------------------------------------------------------- review queue
+async function startReview() {
+  if (!state.mapId) return;
+  $('review-status').textContent = 'Loading unreviewed detections…';
+  try {
+    const items = await api.items(state.mapId, null, {
+      status: 'unreviewed',
+      pageSize: 10000,
+      onPage: (n, of) => ($('review-status').textContent = `Loading unreviewed detections… ${n} of ${of}`),
+    });
+    for (const m of items) state.known.set(m.id, m);
+    const queue = items.filter((m) => m.source === 'detected')
+      .sort((a, b) => (a.score ?? Infinity) - (b.score ?? Infinity) || Number(a.id) - Number(b.id));
+    state.review = { queue, index: -1 };
+    $('review-start').hidden = true;
+    $('review-stop').hidden = false;
+    setMode('select');
+    nextReview();
+  } catch (err) {
+    $('review-status').textContent = `Review could not start: ${problemText(err)}`;
+  }
+}
+
+function nextReview() {
+  const r = state.review;
+  if (!r) return;
+  do r.index += 1;
+  while (r.index < r.queue.length && (current(r.queue[r.index].id)?.status ?? 'gone') !== 'unreviewed');
+  if (r.index >= r.queue.length) {
+    $('review-status').textContent = `Review done: ${r.queue.length} detections in the queue.`;
+    stopReview(false);
+    return;
+  }
+  const m = current(r.queue[r.index].id);
+  state.selection = new Set([String(m.id)]);
+  map.setView([m.lat, m.lon], REVIEW_ZOOM);
+  $('review-status').textContent = `${r.index + 1} of ${r.queue.length}: marking ${m.id}, score ${m.score == null ? '–' : m.score.toFixed(3)}`;
+  render();
+}
+
+function reviewDecide(status) {
+  const r = state.review;
+  if (!r || r.index >= r.queue.length) return;
+  if (status && !setStatus([String(r.queue[r.index].id)], status)) return;
+  nextReview();
+}
+
+function stopReview(clearText = true) {
+  state.review = null;
+  $('review-start').hidden = false;
+  $('review-stop').hidden = true;
+  if (clearText) $('review-status').textContent = '';
+}
+
+$('review-start').addEventListener('click', startReview);
+$('review-stop').addEventListener('click', () => stopReview());
+
+// ---------------------------------------------------------------- history
+async function loadHistory(reset = false) {
+  if (!state.mapId) return;
+  if (reset) {
+    state.historyOffset = 0;
+    $('history-list').replaceChildren();
+  }
+  try {
+    const page = await api.changesets(state.mapId, { limit: 30, offset: state.historyOffset });
+    state.historyOffset += page.numberReturned;
+    $('history-list').append(...page.changesets.map(historyItem));
+    $('history-more').hidden = state.historyOffset >= page.numberMatched;
+  } catch (err) {
+    $('history-list').textContent = `History could not be loaded: ${problemText(err)}`;
+  }
+}
+
+function historyItem(c) {
+  const li = document.createElement('li');
+  li.dataset.changeset = c.id;
+  const when = new Date(c.at);
+  const counts = [c.created && `+${c.created}`, c.updated && `~${c.updated}`, c.deleted && `−${c.deleted}`].filter(Boolean).join(' ');
+  const head = document.createElement('div');
+  head.className = 'h-head';
+  head.innerHTML = '<b></b> <span class="who"></span> <time></time> <span class="counts"></span>';
+  head.querySelector('b').textContent = `#${c.id}`;
+  head.querySelector('.who').textContent = c.who;
+  head.querySelector('time').textContent = when.toLocaleString();
+  head.querySelector('time').dateTime = c.at;
+  head.querySelector('.counts').textContent = counts;
+  head.querySelector('.counts').title = `${c.created} created, ${c.updated} updated, ${c.deleted} deleted`;
+  const comment = document.createElement('div');
+  comment.className = 'comment';
+  comment.textContent = (c.comment || '(no comment)') + (c.reverts ? ` · reverts #${c.reverts}` : '');
+  const show = document.createElement('button');
+  show.className = 'small';
+  show.textContent = 'Show';
+  show.addEventListener('click', () => showChangeset(c.id));
+  const revert = document.createElement('button');
+  revert.className = 'small revert';
+  revert.textContent = 'Revert';
+  revert.disabled = !canEdit();
+  revert.addEventListener('click', () => revertChangeset(c));
+  li.append(head, comment, show, revert);
+  return li;
+}
+
+async function showChangeset(id) {
+  try {
+    const cs = await api.changeset(state.mapId, id);
+    const pts = cs.edits.flatMap((e) => [e.before, e.after]).filter(Boolean)
+      .filter((m) => Number.isFinite(m.lon) && Number.isFinite(m.lat)).map((m) => [m.lat, m.lon]);
+    if (pts.length) map.fitBounds(L.latLngBounds(pts), { maxZoom: 21, padding: [40, 40] });
+    state.selection = new Set(cs.edits.map((e) => e.feature_id).filter(Boolean));
+    render();
+  } catch (err) {
+    toast(`Changeset ${id} could not be loaded: ${problemText(err)}`, 'error');
+  }
+}
+
+async function revertChangeset(c) {
+  if (!canEdit()) return;
+  const comment = prompt(`Revert changeset #${c.id} (${c.comment || 'no comment'})? Comment:`, `revert #${c.id}`);
+  if (comment === null) return;
+  try {
+    const res = await api.revert(state.mapId, c.id, comment);
+    toast(`Changeset #${c.id} reverted by #${res.changeset}.`);
+    state.collection = await api.collection(state.mapId);
+    await loadView();
+    loadHistory(true);
+  } catch (err) {
+    const ids = err.problem?.conflicting_ids;
+    toast(`Revert refused: ${problemText(err)}${ids ? ` (markings ${ids.join(', ')} changed since)` : ''}`, 'error');
+  }
+}
+
+$('history-refresh').addEventListener('click', () => loadHistory(true));
+$('history-more').addEventListener('click', () => loadHistory(false));
+
+// ---------------------------------------------------------------- the token
+function applyTokenState() {
+  const has = Boolean(state.token);
+  $('readonly').hidden = has;
+  $('token-form').hidden = has;
+  $('token-forget').hidden = !has;
+  $('who').hidden = !has;
+  $('who').textContent = has ? 'editing' : '';
+  document.body.classList.toggle('readonly', !has);
+  for (const id of ['mode-add']) $(id).disabled = !has;
+  for (const b of document.querySelectorAll('#history-list .revert')) b.disabled = !has;
+  if (!has && state.mode === 'add') setMode('select');
+  updateCounters();
+  renderSelection();
+}
+
+function forgetToken() {
+  state.token = null;
+  sessionStorage.removeItem(TOKEN_KEY);
+  applyTokenState();
+}
+
+$('token-form').addEventListener('submit', async (e) => {
+  e.preventDefault();
+  const token = $('token-input').value.trim();
+  if (!token || !state.mapId) return;
+  try {
+    if (!(await api.checkToken(state.mapId, token))) {
+      toast('The server does not accept this token.', 'error');
+      return;
+    }
+  } catch (err) {
+    toast(`The token could not be checked: ${problemText(err)}`, 'error');
+    return;
+  }
+  state.token = token;
+  sessionStorage.setItem(TOKEN_KEY, token);
+  $('token-input').value = '';
+  applyTokenState();
+  toast('Token accepted: you can edit.');
+});
+$('token-forget').addEventListener('click', forgetToken);
+
+// ---------------------------------------------------------------- keys
+document.addEventListener('keydown', (e) => {
+  const t = e.target;
+  if (t instanceof HTMLInputElement || t instanceof HTMLTextAreaElement || t instanceof HTMLSelectElement) return;
+  if ($('save-dialog').open) return;
+  const k = e.key.toLowerCase();
+  const mod = e.ctrlKey || e.metaKey;
+  if (mod && k === 'z') {
+    e.preventDefault();
+    if (!canEdit()) return;
+    if (e.shiftKey) redo();
+    else undo();
+  } else if (mod && k === 'y') {
+    e.preventDefault();
+    if (canEdit()) redo();
+  } else if (mod && k === 's') {
+    e.preventDefault();
+    openSave();
+  } else if (mod || e.altKey) {
+    // leave other shortcuts to the browser
+  } else if (state.review && (k === 'a' || k === 'r' || e.key === ' ')) {
+    e.preventDefault();
+    reviewDecide(k === 'a' ? 'accepted' : k === 'r' ? 'rejected' : null);
+  } else if (k === 'a' && state.selection.size) {
+    setStatus(state.selection, 'accepted');
+  } else if (k === 'r' && state.selection.size) {
+    setStatus(state.selection, 'rejected');
+  } else if ((e.key === 'Delete' || e.key === 'Backspace') && state.selection.size) {
+    e.preventDefault();
+    deleteMarkings(state.selection);
+  } else if (k === 'n') {
+    setMode('add');
+  } else if (k === 'v') {
+    setMode('select');
+  } else if (e.key === 'Escape') {
+    if (state.gesture) endGesture(null);
+    else if (state.review) stopReview();
+    else if (state.mode === 'add') setMode('select');
+    else {
+      state.selection.clear();
+      render();
+    }
+  }
+});
+
+$('mode-select').addEventListener('click', () => setMode('select'));
+$('mode-add').addEventListener('click', () => setMode('add'));
+
+// ---------------------------------------------------------------- start
+setMode('select');
+applyTokenState();
+loadMaps().catch((err) => {
+  $('view-status').textContent = `The maps could not be loaded: ${problemText(err)}`;
+  toast(`The maps could not be loaded: ${problemText(err)}`, 'error');
+});
+
+// For scripting and end-to-end tests: the map and the editor's state, read-only by convention.
+globalThis.lanemapEditor = { map, state, layer, api };

@@ -1,0 +1,444 @@
+"""The web map editor, end to end: Debian's Chromium (headless, through Playwright) against a
+real ``lanemap serve``, checked through the HTTP API.
+
+One server and one browser serve the whole module; each test gets a map of its
+own (same markings and imagery) and a fresh browser context (empty storage).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import uuid
+
+import httpx
+import pytest
+from PIL import Image
+
+from tests._api_helpers import start_server
+from tests._editor_helpers import ARTIFACTS, create_map, launch, metres_between, render_window
+
+sync_api = pytest.importorskip("playwright.sync_api", reason="the editor tests need Playwright")  # noqa: F841
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("editor")
+    srv = start_server(f"sqlite:///{tmp / 'lanemap.sqlite'}", tmp / "data")
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture(scope="module")
+def window(tmp_path_factory):
+    return render_window(tmp_path_factory.mktemp("window"))
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = launch(p)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def fx(server, window):
+    return create_map(server, window, f"ka-{uuid.uuid4().hex[:8]}")
+
+
+class Editor:
+    """The editor page of one map, with what the tests do in it."""
+
+    def __init__(self, browser, server, fx):
+        self.server, self.fx = server, fx
+        self.context = browser.new_context(viewport={"width": 1280, "height": 800})
+        self.errors: list[str] = []
+        self.responses: list[tuple[int, str]] = []
+        self.page = self.new_page()
+
+    def new_page(self):
+        page = self.context.new_page()
+        page.on("pageerror", lambda e: self.errors.append(str(e)))
+        page.on("response", lambda r: self.responses.append((r.status, r.url)))
+        return page
+
+    def open(self, page=None):
+        self.page = page or self.page
+        self.page.goto(f"{self.server.base_url}/editor/#map={self.fx.map_id}")
+        self.wait_loaded()
+        return self
+
+    def wait_loaded(self):
+        self.page.wait_for_selector("body[data-loaded]")
+        self.page.wait_for_function("lanemapEditor.layer.size > 0")
+
+    def enter_token(self, token=None):
+        self.page.fill("#token-input", token or self.server.token)
+        self.page.click("#token-use")
+        self.page.wait_for_selector("#readonly", state="hidden")
+
+    def px(self, lon, lat):
+        """Page pixel of a lon/lat (whole pixels, as the browser's mouse events have them)."""
+        return self.page.evaluate(
+            """([lon, lat]) => { const m = lanemapEditor.map; const p = m.latLngToContainerPoint([lat, lon]);
+               const r = m.getContainer().getBoundingClientRect(); return [Math.round(r.left + p.x), Math.round(r.top + p.y)]; }""",
+            [lon, lat],
+        )
+
+    def lonlat(self, x, y):
+        """Lon/lat under a page pixel, as Leaflet reads it from a mouse event there."""
+        return self.page.evaluate(
+            "([x, y]) => { const ll = lanemapEditor.map.mouseEventToLatLng({clientX: x, clientY: y}); return [ll.lng, ll.lat]; }",
+            [x, y],
+        )
+
+    def click_marking(self, fid, **kw):
+        self.page.mouse.click(*self.px(*self.fx.lonlat(fid)), **kw)
+
+    def drag(self, a, b, steps=8):
+        m = self.page.mouse
+        m.move(*a)
+        m.down()
+        m.move(*b, steps=steps)
+        m.up()
+
+    def unsaved(self) -> int:
+        return int(self.page.text_content("#unsaved").split()[0])
+
+    def pending(self) -> dict:
+        return self.page.evaluate("Object.fromEntries(lanemapEditor.state.session.pending)")
+
+    def selection(self) -> set[str]:
+        return set(self.page.evaluate("[...lanemapEditor.state.selection]"))
+
+    def key(self, key):
+        self.page.keyboard.press(key)
+
+    def save(self, comment):
+        self.page.click("#save")
+        self.page.fill("#save-comment", comment)
+        self.page.click("#save-confirm")
+
+    def close(self):
+        self.context.close()
+        assert not self.errors, self.errors
+        assert not [r for r in self.responses if r[0] >= 500], self.responses
+
+
+@pytest.fixture
+def editor(browser, server, fx):
+    ed = Editor(browser, server, fx)
+    yield ed
+    ed.close()
+
+
+def api_get(server, path, **params):
+    r = httpx.get(f"{server.base_url}{path}", params=params, timeout=30)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def test_page_shows_imagery_and_markings_and_is_read_only_without_a_token(editor, fx, tmp_path):
+    editor.open()
+    page = editor.page
+    editor.page.wait_for_load_state("networkidle")
+    # The basemap: the map's imagery tiles came from the tile endpoint as PNGs.
+    tiles = [(s, u) for s, u in editor.responses if "/imagery/tiles/WebMercatorQuad/" in u]
+    assert sum(s == 200 for s, _ in tiles) >= 4, tiles
+    assert all(s in (200, 404) for s, _ in tiles)  # 404: outside the imagery
+    assert page.evaluate("document.querySelectorAll('.leaflet-tile-loaded').length") >= 4
+    # Every marking is drawn.
+    assert page.evaluate("lanemapEditor.layer.size") == len(fx.features)
+
+    # Drawn where they are, coloured by source: an accepted imported marking's centroid pixel is cyan.
+    shot = tmp_path / "page.png"
+    page.screenshot(path=str(shot))
+    img = Image.open(shot).convert("RGB")
+    cyan = fx.isolated(source="imported", status="accepted")[0]
+    x, y = editor.px(*fx.lonlat(cyan))
+    r, g, b = img.getpixel((round(x), round(y)))
+    assert b > 180 and g > 150 and r < 140, (r, g, b)
+
+    # Read-only: it says so, editing tools are off, and keys change nothing.
+    assert page.is_visible("#readonly")
+    assert "Read-only" in page.text_content("#readonly")
+    assert page.is_disabled("#mode-add")
+    target = fx.isolated(source="detected")[0]
+    editor.click_marking(target)
+    assert editor.selection() == {target}
+    editor.key("r")
+    editor.key("Delete")
+    assert editor.unsaved() == 0
+    assert "Read-only" in page.text_content("#toast")
+
+    # A token the server refuses is not taken.
+    page.fill("#token-input", "not-the-token")
+    page.click("#token-use")
+    page.wait_for_function("document.getElementById('toast').textContent.includes('does not accept')")
+    assert page.is_visible("#readonly")
+    assert page.evaluate("sessionStorage.getItem('lanemap.token')") is None
+    # The right one is, once for the browser session.
+    editor.enter_token()
+    assert page.evaluate("sessionStorage.getItem('lanemap.token')") == editor.server.token
+    assert page.is_enabled("#mode-add")
+
+
+def test_edits_are_saved_as_one_changeset(editor, fx, server):
+    editor.open().enter_token()
+    page = editor.page
+    before = api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"]
+
+    # Reject a detection.
+    rejected = fx.isolated(source="detected")[0]
+    editor.click_marking(rejected)
+    editor.key("r")
+    assert editor.unsaved() == 1
+
+    # Add one by drawing its two ends.
+    lon0, lat0 = fx.lonlat(fx.isolated(8.0)[0])
+    x0, y0 = editor.px(lon0, lat0)
+    a, b = (x0 + 60, y0 + 50), (x0 + 90, y0 + 70)
+    end_a, end_b = editor.lonlat(*a), editor.lonlat(*b)
+    editor.key("n")
+    editor.drag(a, b)
+    editor.key("v")
+    assert editor.unsaved() == 2
+
+    # Move one by dragging it.
+    moved = fx.isolated(source="imported")[1]
+    start = editor.px(*fx.lonlat(moved))
+    stop = (start[0] + 40, start[1] + 25)
+    d_lon = editor.lonlat(*stop)[0] - editor.lonlat(*start)[0]
+    d_lat = editor.lonlat(*stop)[1] - editor.lonlat(*start)[1]
+    editor.drag(start, stop)
+    assert editor.unsaved() == 3
+
+    # Delete one, then undo that; redo and undo again.
+    deleted = fx.isolated(source="manual")[0]
+    editor.click_marking(deleted)
+    editor.key("Delete")
+    assert editor.unsaved() == 4
+    editor.key("Control+z")
+    assert editor.unsaved() == 3
+    editor.key("Control+Shift+z")
+    assert editor.unsaved() == 4
+    editor.key("Control+z")
+    assert editor.unsaved() == 3
+    assert page.text_content("#unsaved") == "3 unsaved"
+
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "editor-unsaved.png"))
+    editor.save("editor test: reject, add, move")
+    page.wait_for_function("document.getElementById('unsaved').textContent === '0 unsaved'")
+    assert "Saved changeset" in page.text_content("#toast")
+    assert page.evaluate("localStorage.length") == 0
+
+    # The API's history holds exactly those three changes, in one changeset.
+    cs_list = api_get(server, f"/collections/{fx.map_id}/changesets")
+    assert cs_list["numberMatched"] == before + 1
+    cs = cs_list["changesets"][0]
+    assert (cs["comment"], cs["who"]) == ("editor test: reject, add, move", "api")
+    assert (cs["created"], cs["updated"], cs["deleted"]) == (1, 2, 0)
+    edits = api_get(server, f"/collections/{fx.map_id}/changesets/{cs['id']}")["edits"]
+    by_op = {}
+    for e in edits:
+        by_op.setdefault(e["op"], []).append(e)
+    assert sorted(by_op) == ["create", "update"] and len(edits) == 3
+    updates = {e["feature_id"]: e for e in by_op["update"]}
+    assert set(updates) == {rejected, moved}
+    assert (updates[rejected]["before"]["status"], updates[rejected]["after"]["status"]) == ("unreviewed", "rejected")
+
+    r = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{rejected}").json()
+    assert r["properties"]["status"] == "rejected"
+    assert r["geometry"]["coordinates"] == fx.features[rejected]["geometry"]["coordinates"]
+
+    # Positions within a centimetre (the server keeps them in its metric CRS).
+    m = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{moved}").json()
+    lon, lat = fx.lonlat(moved)
+    assert m["geometry"]["coordinates"][0] == pytest.approx(lon + d_lon, abs=1e-7)
+    assert m["geometry"]["coordinates"][1] == pytest.approx(lat + d_lat, abs=1e-7)
+    for k in ("length_m", "bearing_deg", "status", "source"):
+        assert m["properties"][k] == pytest.approx(fx.features[moved]["properties"][k])
+
+    new_id = by_op["create"][0]["feature_id"]
+    n = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{new_id}").json()
+    (nlon, nlat), p = n["geometry"]["coordinates"], n["properties"]
+    assert nlon == pytest.approx((end_a[0] + end_b[0]) / 2, abs=1e-7)
+    assert nlat == pytest.approx((end_a[1] + end_b[1]) / 2, abs=1e-7)
+    assert p["length_m"] == pytest.approx(metres_between(*end_a, *end_b), rel=1e-3)
+    de = math.radians(end_b[0] - end_a[0]) * 6378137 * math.cos(math.radians(nlat))
+    dn = math.radians(end_b[1] - end_a[1]) * 6378137
+    assert p["bearing_deg"] == pytest.approx(math.degrees(math.atan2(de, dn)) % 180, abs=0.05)
+    assert (p["source"], p["status"]) == ("manual", "accepted")
+
+    # The undone delete never reached the server.
+    assert httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{deleted}").status_code == 200
+
+    # The history panel lists the new changeset; the screenshot shows the map after the save.
+    page.wait_for_selector(f"#history-list li[data-changeset='{cs['id']}']")
+    assert "editor test: reject, add, move" in page.text_content(f"#history-list li[data-changeset='{cs['id']}']")
+    editor.click_marking(fx.isolated(source="detected")[1])
+    page.screenshot(path=str(ARTIFACTS / "editor.png"))
+
+
+def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
+    editor.open().enter_token()
+    page = editor.page
+    a, b = fx.isolated(source="detected")[:2]
+    editor.click_marking(a)
+    editor.key("r")
+    start = editor.px(*fx.lonlat(b))
+    editor.drag(start, (start[0] + 30, start[1]))
+    assert editor.unsaved() == 2
+
+    # Someone else changes marking a behind the editor's back.
+    r = httpx.patch(f"{server.base_url}/collections/{fx.map_id}/items/{a}",
+                    json={"properties": {"width_m": 0.3}}, headers=server.auth)  # fmt: skip
+    assert r.status_code == 200
+    n_before = api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"]
+
+    editor.save("conflicting")
+    page.wait_for_selector("#conflict", state="visible")
+    assert f"marking {a}" in page.text_content("#conflict-list")
+    assert f"marking {b}" not in page.text_content("#conflict-list")
+    assert editor.unsaved() == 2
+    assert page.evaluate("[...lanemapEditor.state.conflicts.keys()]") == [a]
+    stored = json.loads(page.evaluate("localStorage.getItem(Object.keys(localStorage)[0])"))
+    assert {k for k, _ in stored["pending"]} == {a, b}
+    assert api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"] == n_before
+
+    # Reload the conflicting marking, re-apply the edit on its new version, save.
+    page.click("#conflict-rebase")
+    page.wait_for_selector("#conflict", state="hidden")
+    assert editor.unsaved() == 2
+    assert editor.pending()[a]["base"]["version"] == "2"
+    editor.save("after the conflict")
+    page.wait_for_function("document.getElementById('unsaved').textContent === '0 unsaved'")
+    got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{a}").json()["properties"]
+    assert (got["status"], got["width_m"], got["version"]) == ("rejected", 0.3, 3)
+    moved = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{b}").json()
+    assert moved["geometry"]["coordinates"] != fx.features[b]["geometry"]["coordinates"]
+
+
+def test_unsaved_edits_survive_a_reload_and_a_crash(editor, fx, server):
+    editor.open().enter_token()
+    page = editor.page
+    a = fx.isolated(source="detected")[0]
+    editor.click_marking(a)
+    editor.key("r")
+    editor.key("n")
+    x, y = editor.px(*fx.lonlat(a))
+    page.mouse.click(x + 80, y + 80)
+    assert editor.unsaved() == 2
+
+    page.reload()
+    editor.wait_loaded()
+    assert editor.unsaved() == 2
+    assert editor.pending()[a]["cur"]["status"] == "rejected"
+    assert not page.is_visible("#readonly")  # the token is kept for the browser session
+    assert "Restored 2 unsaved edits" in page.text_content("#toast")
+    editor.key("Control+z")  # the undo history came back too
+    assert editor.unsaved() == 1
+
+    # A crash: the tab goes away without unloading; a new tab finds the edits (but no token).
+    page.close(run_before_unload=False)
+    editor.open(editor.new_page())
+    page = editor.page
+    assert editor.unsaved() == 1
+    assert page.is_visible("#readonly")
+    assert page.is_disabled("#save")
+
+    # Discarding forgets them for good.
+    page.once("dialog", lambda d: d.accept())
+    page.click("#discard")
+    assert editor.unsaved() == 0
+    assert page.evaluate("localStorage.length") == 0
+    assert api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"] == 1
+
+
+def test_review_queue_steps_through_detections_by_score(editor, fx):
+    editor.open().enter_token()
+    page = editor.page
+    page.click("#review-start")
+    q = fx.detected
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{q[0]}')")
+    assert page.evaluate("lanemapEditor.map.getZoom()") == 21
+    c = page.evaluate("lanemapEditor.map.getCenter()")
+    assert metres_between(c["lng"], c["lat"], *fx.lonlat(q[0])) < 0.05
+    assert f"1 of {len(q)}" in page.text_content("#review-status")
+
+    editor.key("a")
+    assert editor.selection() == {q[1]}
+    editor.key("r")
+    assert editor.selection() == {q[2]}
+    editor.key(" ")
+    assert editor.selection() == {q[3]}
+    assert f"4 of {len(q)}" in page.text_content("#review-status")
+    pend = editor.pending()
+    assert (pend[q[0]]["cur"]["status"], pend[q[1]]["cur"]["status"]) == ("accepted", "rejected")
+    assert set(pend) == {q[0], q[1]}
+    editor.key("Escape")
+    assert page.is_hidden("#review-stop")
+    editor.key("Control+z")
+    assert set(editor.pending()) == {q[0]}
+
+
+def test_box_selection_attributes_and_revert(editor, fx, server):
+    editor.open().enter_token()
+    page = editor.page
+    # Shift+drag a box: every marking whose centroid is inside is selected.
+    box = page.locator("#map").bounding_box()
+    a = (box["x"] + box["width"] * 0.3, box["y"] + box["height"] * 0.3)
+    b = (box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.6)
+    (w, n), (e, s) = editor.lonlat(*a), editor.lonlat(*b)
+    inside = {fid for fid in fx.features if w <= fx.lonlat(fid)[0] <= e and s <= fx.lonlat(fid)[1] <= n}
+    assert len(inside) >= 5
+    page.keyboard.down("Shift")
+    editor.drag(a, b)
+    page.keyboard.up("Shift")
+    assert editor.selection() == inside
+    assert page.text_content("#sel-count") == str(len(inside))
+    page.click("#act-accept")
+    n_changed = sum(fx.features[f]["properties"]["status"] != "accepted" for f in inside)
+    assert editor.unsaved() == n_changed
+
+    # Edit one marking's attributes in the form.
+    one = fx.isolated(source="imported")[0]
+    editor.click_marking(one)
+    page.fill("#attrs input[name=length_m]", "4.5")
+    page.fill("#attrs input[name=kind]", "stop_line")
+    page.click("#attrs-apply")
+    cur = editor.pending()[one]["cur"]
+    assert (cur["length_m"], cur["kind"]) == (4.5, "stop_line")
+    editor.save("accept a box, fix one")
+    page.wait_for_function("document.getElementById('unsaved').textContent === '0 unsaved'")
+    got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{one}").json()["properties"]
+    assert (got["length_m"], got["kind"]) == (4.5, "stop_line")
+
+    # Revert that changeset from the history panel.
+    cs = api_get(server, f"/collections/{fx.map_id}/changesets")["changesets"][0]
+    page.once("dialog", lambda d: d.accept("undo the box"))
+    page.click(f"#history-list li[data-changeset='{cs['id']}'] .revert")
+    page.wait_for_selector(f"#history-list li[data-changeset='{int(cs['id']) + 1}']")
+    newest = api_get(server, f"/collections/{fx.map_id}/changesets")["changesets"][0]
+    assert (newest["reverts"], newest["comment"]) == (cs["id"], "undo the box")
+    got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{one}").json()["properties"]
+    assert got["length_m"] == pytest.approx(fx.features[one]["properties"]["length_m"])
+
+
+def test_editor_is_served_without_a_cdn(server):
+    """Every file the page loads comes from the service itself."""
+    r = httpx.get(f"{server.base_url}/editor", follow_redirects=True)
+    assert r.status_code == 200 and "lanemap editor" in r.text
+    assert "http://" not in r.text and "https://" not in r.text
+    for path in ("vendor/leaflet/leaflet.js", "vendor/leaflet/leaflet.css", "vendor/leaflet/LICENSE",
+                 "main.js", "edits.js", "api.js", "layer.js", "editor.css"):  # fmt: skip
+        assert httpx.get(f"{server.base_url}/editor/{path}").status_code == 200, path
+    landing = httpx.get(f"{server.base_url}/").json()
+    assert any(link["href"].endswith("/editor/") for link in landing["links"])
