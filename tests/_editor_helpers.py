@@ -109,7 +109,8 @@ def create_map(server: ApiServer, window: Window, map_id: str) -> Fixture:
                    headers={"Content-Type": "image/tiff"})  # fmt: skip
         assert r.status_code == 201, r.text
         got = c.get(f"/collections/{map_id}/items", params={"limit": 10000}).json()["features"]
-    det = [f for f in got if f["properties"]["source"] == "detected" and f["properties"]["status"] == "unreviewed"]
+    det = [f for f in got
+           if f["properties"]["source"] == "detected" and f["properties"]["status"] == "unreviewed"]  # fmt: skip
     det.sort(key=lambda f: (f["properties"]["score"], int(f["id"])))
     return Fixture(map_id, {f["id"]: f for f in got}, [f["id"] for f in det])
 

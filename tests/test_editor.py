@@ -14,11 +14,10 @@ import uuid
 import httpx
 import pytest
 from PIL import Image
+from playwright.sync_api import sync_playwright
 
 from tests._api_helpers import start_server
 from tests._editor_helpers import ARTIFACTS, create_map, launch, metres_between, render_window
-
-sync_api = pytest.importorskip("playwright.sync_api", reason="the editor tests need Playwright")  # noqa: F841
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +35,6 @@ def window(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser():
-    from playwright.sync_api import sync_playwright
-
     with sync_playwright() as p:
         b = launch(p)
         yield b
@@ -83,15 +80,21 @@ class Editor:
     def px(self, lon, lat):
         """Page pixel of a lon/lat (whole pixels, as the browser's mouse events have them)."""
         return self.page.evaluate(
-            """([lon, lat]) => { const m = lanemapEditor.map; const p = m.latLngToContainerPoint([lat, lon]);
-               const r = m.getContainer().getBoundingClientRect(); return [Math.round(r.left + p.x), Math.round(r.top + p.y)]; }""",
+            """([lon, lat]) => {
+                 const m = lanemapEditor.map, p = m.latLngToContainerPoint([lat, lon]);
+                 const r = m.getContainer().getBoundingClientRect();
+                 return [Math.round(r.left + p.x), Math.round(r.top + p.y)];
+               }""",
             [lon, lat],
         )
 
     def lonlat(self, x, y):
         """Lon/lat under a page pixel, as Leaflet reads it from a mouse event there."""
         return self.page.evaluate(
-            "([x, y]) => { const ll = lanemapEditor.map.mouseEventToLatLng({clientX: x, clientY: y}); return [ll.lng, ll.lat]; }",
+            """([x, y]) => {
+                 const ll = lanemapEditor.map.mouseEventToLatLng({clientX: x, clientY: y});
+                 return [ll.lng, ll.lat];
+               }""",
             [x, y],
         )
 
@@ -252,7 +255,8 @@ def test_edits_are_saved_as_one_changeset(editor, fx, server):
     assert sorted(by_op) == ["create", "update"] and len(edits) == 3
     updates = {e["feature_id"]: e for e in by_op["update"]}
     assert set(updates) == {rejected, moved}
-    assert (updates[rejected]["before"]["status"], updates[rejected]["after"]["status"]) == ("unreviewed", "rejected")
+    status = updates[rejected]["before"]["status"], updates[rejected]["after"]["status"]
+    assert status == ("unreviewed", "rejected")
 
     r = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{rejected}").json()
     assert r["properties"]["status"] == "rejected"
@@ -282,7 +286,8 @@ def test_edits_are_saved_as_one_changeset(editor, fx, server):
 
     # The history panel lists the new changeset; the screenshot shows the map after the save.
     page.wait_for_selector(f"#history-list li[data-changeset='{cs['id']}']")
-    assert "editor test: reject, add, move" in page.text_content(f"#history-list li[data-changeset='{cs['id']}']")
+    item = page.text_content(f"#history-list li[data-changeset='{cs['id']}']")
+    assert "editor test: reject, add, move" in item and "api" in item
     editor.click_marking(fx.isolated(source="detected")[1])
     page.screenshot(path=str(ARTIFACTS / "editor.png"))
 
