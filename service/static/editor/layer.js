@@ -49,9 +49,9 @@ export function dashStyle(m) {
   const colour = m.status === 'rejected' ? REJECTED_COLOUR : SOURCE_COLOURS[m.source] || '#ffffff';
   return {
     color: colour,
-    weight: m.status === 'accepted' ? 5 : 3,
-    opacity: m.status === 'rejected' ? 0.85 : 1,
-    dashArray: m.status === 'rejected' ? '3 4' : null,
+    weight: m.status === 'accepted' ? 5 : m.status === 'rejected' ? 4 : 3,
+    opacity: m.status === 'rejected' ? 0.9 : 1,
+    dashArray: m.status === 'rejected' ? '5 4' : null,
     lineCap: 'butt',
   };
 }

@@ -236,7 +236,7 @@ map.on('mousedown', (e) => {
     startDash(e);
   } else if (state.mode === 'select' && ev.shiftKey) {
     const rect = L.rectangle(L.latLngBounds(e.latlng, e.latlng), { color: '#fff', weight: 1, dashArray: '4 3', fillOpacity: 0.08, interactive: false }).addTo(map);
-    state.gesture = { kind: 'box', a: e.latlng, rect };
+    state.gesture = { kind: 'box', a: e.latlng, p0: e.containerPoint, rect };
     map.dragging.disable();
   }
 });
@@ -261,7 +261,9 @@ function endGesture(e) {
   const g = state.gesture;
   if (!g) return;
   state.gesture = null;
-  state.afterGesture = g.kind !== 'move' || g.moved;
+  // A box hardly drawn is a Shift+click: the click that follows toggles the marking.
+  const tiny = g.kind === 'box' && (!e || e.containerPoint.distanceTo(g.p0) < 4);
+  state.afterGesture = g.kind === 'move' ? g.moved : !tiny;
   map.dragging.enable();
   if (g.kind === 'move') {
     if (g.moved && e) {
@@ -273,7 +275,7 @@ function endGesture(e) {
     render();
   } else if (g.kind === 'box') {
     g.rect.remove();
-    if (!e) return;
+    if (!e || tiny) return;
     // Not the rectangle's bounds: the map throttles mousemove, the last one may be missing.
     const bounds = L.latLngBounds(g.a, e.latlng);
     const ids = visibleMarkings().filter((m) => bounds.contains([m.lat, m.lon])).map((m) => String(m.id));
