@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 from playwright.sync_api import sync_playwright
 
-from tests._api_helpers import start_server
+from tests._api_helpers import feature, start_server
 from tests._editor_helpers import ARTIFACTS, create_map, launch, metres_between, render_window
 
 
@@ -459,6 +459,46 @@ def test_box_selection_attributes_and_revert(editor, fx, server):
     assert (newest["reverts"], newest["comment"]) == (cs["id"], "undo the box")
     got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{one}").json()["properties"]
     assert got["length_m"] == pytest.approx(fx.features[one]["properties"]["length_m"])
+
+
+def test_maps_are_picked_from_the_list(editor, fx, server):
+    other = server.new_map(prefix="tiny")
+    r = httpx.post(f"{server.base_url}/collections/{other}/import", headers=server.auth,
+                   json={"type": "FeatureCollection", "features": [feature(8.4 + i * 1e-4, 49.0, length_m=3.0)
+                                                                   for i in range(3)]})  # fmt: skip
+    assert r.status_code == 201
+    editor.open()
+    page = editor.page
+    assert page.evaluate("lanemapEditor.layer.size") == len(fx.features)
+    page.select_option("#map-select", other)
+    page.wait_for_function("lanemapEditor.layer.size === 3")
+    assert f"map={other}" in page.evaluate("location.hash")
+    assert page.text_content("#history-list").count("import") == 1
+    # The address keeps map and view: a reload comes back to them.
+    page.reload()
+    page.wait_for_function("lanemapEditor.layer.size === 3")
+    assert page.input_value("#map-select") == other
+
+
+def test_a_server_that_wants_a_token_for_reads(browser, window, tmp_path):
+    srv = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                       env={"LANEMAP_READ_TOKEN_REQUIRED": "1"})  # fmt: skip
+    try:
+        fx = create_map(srv, window, "locked")
+        ed = Editor(browser, srv, fx)
+        page = ed.page
+        page.goto(f"{srv.base_url}/editor/")
+        page.wait_for_function("document.getElementById('view-status').textContent.includes('token')")
+        assert page.evaluate("lanemapEditor.layer.size") == 0
+        ed.enter_token()
+        ed.wait_loaded()
+        assert page.evaluate("lanemapEditor.layer.size") == len(fx.features)
+        # Tiles are fetched with the token too.
+        page.wait_for_function("document.querySelectorAll('.leaflet-tile-loaded').length >= 4")
+        assert any(st == 200 and "/imagery/tiles/" in u for st, u in ed.responses)
+        ed.close()
+    finally:
+        srv.stop()
 
 
 def test_editor_is_served_without_a_cdn(server):

@@ -24,10 +24,16 @@ export class Api {
     return new URL(path.replace(/^\//, ''), this.root);
   }
 
-  async request(method, path, { body, auth = false, signal, token } = {}) {
+  /** The headers every request sends: the token too when there is one (a server may want it for reads). */
+  headers(token) {
     const headers = { Accept: 'application/json, application/geo+json, application/problem+json' };
-    const bearer = token ?? (auth ? this.token() : null);
+    const bearer = token ?? this.token();
     if (bearer) headers.Authorization = `Bearer ${bearer}`;
+    return headers;
+  }
+
+  async request(method, path, { body, signal, token } = {}) {
+    const headers = this.headers(token);
     if (body !== undefined) headers['Content-Type'] = 'application/json';
     const url = path instanceof URL ? path : this.url(path);
     const res = await fetch(url, { method, headers, body: body === undefined ? undefined : JSON.stringify(body), signal });
@@ -86,7 +92,7 @@ export class Api {
   }
 
   saveChangeset(mapId, body) {
-    return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`, { body, auth: true });
+    return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`, { body });
   }
 
   changesets(mapId, { limit = 30, offset = 0 } = {}) {
@@ -99,15 +105,20 @@ export class Api {
 
   revert(mapId, id, comment) {
     return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets/${encodeURIComponent(id)}/revert`,
-      { body: { comment }, auth: true });
+      { body: { comment } });
   }
 
   /**
    * Whether the server takes `token` for writes, without writing anything: an empty
    * changeset is refused as unauthorized (401) before it is refused as invalid (422).
+   * With no map yet (a server that wants a token for reads), the list of maps tells.
    */
   async checkToken(mapId, token) {
     try {
+      if (!mapId) {
+        await this.request('GET', 'collections', { token });
+        return true;
+      }
       await this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`,
         { body: { comment: '', changes: [] }, token });
     } catch (err) {

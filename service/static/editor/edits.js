@@ -50,6 +50,7 @@ export class EditSession {
     this.undoStack = [];
     this.redoStack = [];
     this.nextLocal = 1;
+    this.persistFailed = false;
     this.listeners = new Set();
     this.restored = this.load();
   }
@@ -193,23 +194,26 @@ export class EditSession {
     return { body: { comment, changes }, ids };
   }
 
+  /** Keep the edits in storage; `persistFailed` tells when even the edits alone did not fit. */
   persist() {
     if (!this.storage) return;
+    if (!this.pending.size && !this.undoStack.length && !this.redoStack.length) {
+      this.storage.removeItem(this.key);
+      this.persistFailed = false;
+      return;
+    }
+    const data = { v: 1, savedAt: new Date().toISOString(), pending: [...this.pending], nextLocal: this.nextLocal };
     try {
-      if (!this.pending.size && !this.undoStack.length && !this.redoStack.length) {
-        this.storage.removeItem(this.key);
-        return;
+      this.storage.setItem(this.key, JSON.stringify({ ...data, undo: this.undoStack, redo: this.redoStack }));
+      this.persistFailed = false;
+    } catch {
+      try {
+        this.storage.setItem(this.key, JSON.stringify({ ...data, undo: [], redo: [] })); // the edits matter most
+        this.persistFailed = false;
+      } catch (err) {
+        console.warn('unsaved edits could not be kept in localStorage', err);
+        this.persistFailed = true;
       }
-      this.storage.setItem(this.key, JSON.stringify({
-        v: 1,
-        savedAt: new Date().toISOString(),
-        pending: [...this.pending],
-        undo: this.undoStack,
-        redo: this.redoStack,
-        nextLocal: this.nextLocal,
-      }));
-    } catch (err) {
-      console.warn('unsaved edits could not be kept in localStorage', err);
     }
   }
 

@@ -47,6 +47,27 @@ const map = L.map('map', {
 map.attributionControl.setPrefix('<a href="https://leafletjs.com">Leaflet</a>');
 let imagery = null;
 
+/** Imagery tiles fetched with the token when there is one (a server may want it for reads too). */
+const ImageryLayer = L.TileLayer.extend({
+  createTile(coords, done) {
+    const img = document.createElement('img');
+    img.alt = '';
+    img.setAttribute('role', 'presentation');
+    fetch(this.getTileUrl(coords), { headers: api.headers() })
+      .then((r) => (r.ok ? r.blob() : Promise.reject(new Error(`tile: HTTP ${r.status}`))))
+      .then((blob) => {
+        img.onload = () => {
+          URL.revokeObjectURL(img.src);
+          done(null, img);
+        };
+        img.onerror = (err) => done(err, img);
+        img.src = URL.createObjectURL(blob);
+      })
+      .catch((err) => done(err, img));
+    return img;
+  },
+});
+
 const layer = new MarkingLayer(map, { onDown: onMarkingDown, onClick: onMarkingClick });
 
 function canEdit() {
@@ -350,7 +371,7 @@ async function openMap(mapId, fromHash = false) {
   updateCounters();
 
   if (imagery) imagery.remove();
-  imagery = L.tileLayer(api.tileUrl(mapId), {
+  imagery = new ImageryLayer(api.tileUrl(mapId), {
     maxZoom: 23, maxNativeZoom: 22, minZoom: 10, tileSize: 256, attribution: `imagery of ${mapId}`,
   }).addTo(map);
 
@@ -489,6 +510,7 @@ function updateCounters() {
   $('redo').disabled = !s?.redoStack.length || !canEdit();
   $('save').disabled = n === 0 || !canEdit();
   $('discard').disabled = n === 0;
+  if (s?.persistFailed) toast('The browser has no room to keep your unsaved edits over a reload: save soon.', 'error');
 }
 
 $('undo').addEventListener('click', undo);
@@ -750,7 +772,7 @@ function forgetToken() {
 $('token-form').addEventListener('submit', async (e) => {
   e.preventDefault();
   const token = $('token-input').value.trim();
-  if (!token || !state.mapId) return;
+  if (!token) return;
   try {
     if (!(await api.checkToken(state.mapId, token))) {
       toast('The server does not accept this token.', 'error');
@@ -765,6 +787,7 @@ $('token-form').addEventListener('submit', async (e) => {
   $('token-input').value = '';
   applyTokenState();
   toast('Token accepted: you can edit.');
+  if (!state.mapId) start();
 });
 $('token-forget').addEventListener('click', forgetToken);
 
@@ -819,10 +842,16 @@ $('mode-add').addEventListener('click', () => setMode('add'));
 // ---------------------------------------------------------------- start
 setMode('select');
 applyTokenState();
-loadMaps().catch((err) => {
-  $('view-status').textContent = `The maps could not be loaded: ${problemText(err)}`;
-  toast(`The maps could not be loaded: ${problemText(err)}`, 'error');
-});
+function start() {
+  return loadMaps().catch((err) => {
+    const text = err instanceof ApiError && err.status === 401
+      ? 'This server wants the API token even to read: enter it above.'
+      : `The maps could not be loaded: ${problemText(err)}`;
+    $('view-status').textContent = text;
+    toast(text, 'error');
+  });
+}
+start();
 
 // For scripting and end-to-end tests: the map and the editor's state, read-only by convention.
 globalThis.lanemapEditor = { map, state, layer, api };
