@@ -473,7 +473,9 @@ def test_maps_are_picked_from_the_list(editor, fx, server):
     page.select_option("#map-select", other)
     page.wait_for_function("lanemapEditor.layer.size === 3")
     assert f"map={other}" in page.evaluate("location.hash")
-    assert page.text_content("#history-list").count("import") == 1
+    cs = api_get(server, f"/collections/{other}/changesets")["changesets"]
+    page.wait_for_selector(f"#history-list li[data-changeset='{cs[0]['id']}']")
+    assert page.locator("#history-list li").count() == len(cs) == 1
     # The address keeps map and view: a reload comes back to them.
     page.reload()
     page.wait_for_function("lanemapEditor.layer.size === 3")

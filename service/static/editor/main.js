@@ -8,7 +8,7 @@ const L = globalThis.L;
 const $ = (id) => document.getElementById(id);
 
 /** Below this zoom a large map's markings are not loaded (too many to be useful on screen). */
-const MIN_LOAD_ZOOM = 16;
+const MIN_LOAD_ZOOM = 17;
 /** A map with at most this many markings is drawn at any zoom. */
 const SMALL_MAP = 20000;
 const REVIEW_ZOOM = 21;
@@ -31,6 +31,7 @@ const state = {
   gesture: null, // a drag, box or dash being drawn
   afterGesture: false, // the click that ends a drag is not a click
   loadAbort: null,
+  loadedBounds: null, // the box whose markings are loaded (null: none, or the whole map)
   historyOffset: 0,
 };
 
@@ -363,6 +364,7 @@ async function openMap(mapId, fromHash = false) {
   state.selection.clear();
   state.conflicts.clear();
   $('conflict').hidden = true;
+  $('history-list').replaceChildren();
   state.session = new EditSession(`lanemap.edits.${location.host}.${mapId}`);
   state.session.onChange(updateCounters);
   // Unsaved edits are known markings too (they may lie outside the first view).
@@ -394,6 +396,7 @@ async function loadView() {
   state.loadAbort?.abort();
   if (map.getZoom() < MIN_LOAD_ZOOM && total > SMALL_MAP) {
     state.server.clear();
+    state.loadedBounds = null;
     $('view-status').textContent = `Zoom in to see the markings (${total} in this map).`;
     render();
     return;
@@ -412,6 +415,7 @@ async function loadView() {
     });
     if (ctl.signal.aborted || mapId !== state.mapId) return;
     state.server = new Map(items.map((m) => [m.id, m]));
+    state.loadedBounds = bbox ? b : null;
     for (const m of items) state.known.set(m.id, m);
     $('view-status').textContent = `${items.length} markings ${bbox ? 'in view' : 'in this map'}.`;
     render();
@@ -428,11 +432,25 @@ map.on('moveend', () => {
   const c = map.getCenter();
   history.replaceState(null, '', `#map=${encodeURIComponent(state.mapId)}&z=${map.getZoom()}&lat=${c.lat.toFixed(7)}&lon=${c.lng.toFixed(7)}`);
   if ((state.collection?.numberOfFeatures ?? Infinity) <= SMALL_MAP && state.server.size) return;
+  // Panning within the loaded (padded) box needs no reload.
+  if (state.loadedBounds && map.getZoom() >= MIN_LOAD_ZOOM && state.loadedBounds.contains(map.getBounds())) return;
   clearTimeout(moveTimer);
   moveTimer = setTimeout(loadView, 250);
 });
 
 $('map-select').addEventListener('change', (e) => openMap(e.target.value));
+
+// An address typed or pasted in (or Back): go to its map and view.
+window.addEventListener('hashchange', () => {
+  const h = new URLSearchParams(location.hash.slice(1));
+  const id = h.get('map');
+  if (id && id !== state.mapId && [...$('map-select').options].some((o) => o.value === id)) {
+    $('map-select').value = id;
+    openMap(id, true);
+  } else if (h.has('z')) {
+    map.setView([+h.get('lat'), +h.get('lon')], +h.get('z'));
+  }
+});
 
 // ---------------------------------------------------------------- selection panel
 function renderSelection() {
@@ -671,13 +689,13 @@ $('review-stop').addEventListener('click', () => stopReview());
 // ---------------------------------------------------------------- history
 async function loadHistory(reset = false) {
   if (!state.mapId) return;
-  if (reset) {
-    state.historyOffset = 0;
-    $('history-list').replaceChildren();
-  }
+  const mapId = state.mapId;
+  const offset = reset ? 0 : state.historyOffset;
   try {
-    const page = await api.changesets(state.mapId, { limit: 30, offset: state.historyOffset });
-    state.historyOffset += page.numberReturned;
+    const page = await api.changesets(mapId, { limit: 30, offset });
+    if (mapId !== state.mapId) return; // another map was opened meanwhile
+    if (reset) $('history-list').replaceChildren();
+    state.historyOffset = offset + page.numberReturned;
     $('history-list').append(...page.changesets.map(historyItem));
     $('history-more').hidden = state.historyOffset >= page.numberMatched;
   } catch (err) {
