@@ -341,6 +341,12 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     page.wait_for_selector("#conflict", state="hidden")
     assert editor.unsaved() == 2
     assert editor.pending()[a]["base"]["version"] == "2"
+    # Escape in the save dialog saves nothing (even after an earlier "Save changeset").
+    page.click("#save")
+    page.keyboard.press("Escape")
+    page.wait_for_timeout(200)
+    assert not page.evaluate("document.getElementById('save-dialog').open")
+    assert api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"] == n_before
     editor.save("after the conflict")
     page.wait_for_function("document.getElementById('unsaved').textContent === '0 unsaved'")
     got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{a}").json()["properties"]

@@ -543,7 +543,9 @@ $('discard').addEventListener('click', () => {
 
 function openSave() {
   if (!canEdit() || !state.session.count) return;
-  $('save-count').textContent = `${state.session.count} changed markings`;
+  const n = state.session.count;
+  $('save-count').textContent = `${n} changed marking${n === 1 ? '' : 's'}`;
+  $('save-dialog').returnValue = ''; // Esc keeps the last value: it must not mean "save"
   $('save-dialog').showModal();
   $('save-comment').focus();
 }
