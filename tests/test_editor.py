@@ -318,7 +318,10 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     editor.key("r")
     start = editor.px(*fx.lonlat(b))
     editor.drag(start, (start[0] + 30, start[1]))
-    assert editor.unsaved() == 2
+    c = fx.isolated(source="imported")[0]
+    editor.click_marking(c)
+    editor.key("Delete")
+    assert editor.unsaved() == 3
 
     # Someone else changes marking a behind the editor's back.
     r = httpx.patch(f"{server.base_url}/collections/{fx.map_id}/items/{a}",
@@ -330,16 +333,16 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     page.wait_for_selector("#conflict", state="visible")
     assert f"marking {a}" in page.text_content("#conflict-list")
     assert f"marking {b}" not in page.text_content("#conflict-list")
-    assert editor.unsaved() == 2
+    assert editor.unsaved() == 3
     assert page.evaluate("[...lanemapEditor.state.conflicts.keys()]") == [a]
     stored = json.loads(page.evaluate("localStorage.getItem(Object.keys(localStorage)[0])"))
-    assert {k for k, _ in stored["pending"]} == {a, b}
+    assert {k for k, _ in stored["pending"]} == {a, b, c}
     assert api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"] == n_before
 
     # Reload the conflicting marking, re-apply the edit on its new version, save.
     page.click("#conflict-rebase")
     page.wait_for_selector("#conflict", state="hidden")
-    assert editor.unsaved() == 2
+    assert editor.unsaved() == 3
     assert editor.pending()[a]["base"]["version"] == "2"
     # Escape in the save dialog saves nothing (even after an earlier "Save changeset").
     page.click("#save")
@@ -353,6 +356,9 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     assert (got["status"], got["width_m"], got["version"]) == ("rejected", 0.3, 3)
     moved = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{b}").json()
     assert moved["geometry"]["coordinates"] != fx.features[b]["geometry"]["coordinates"]
+    assert httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{c}").status_code == 404
+    cs = api_get(server, f"/collections/{fx.map_id}/changesets")["changesets"][0]
+    assert (cs["comment"], cs["created"], cs["updated"], cs["deleted"]) == ("after the conflict", 0, 2, 1)
 
 
 def test_unsaved_edits_survive_a_reload_and_a_crash(editor, fx, server):

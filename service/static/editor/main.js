@@ -18,7 +18,6 @@ const api = new Api(new URL('../', document.baseURI), () => state.token);
 
 const state = {
   token: sessionStorage.getItem(TOKEN_KEY),
-  who: null,
   mapId: null,
   collection: null,
   session: null,
