@@ -482,8 +482,11 @@ def test_maps_are_picked_from_the_list(editor, fx, server):
     editor.open()
     page = editor.page
     assert page.evaluate("lanemapEditor.layer.size") == len(fx.features)
+    assert page.is_hidden("#no-imagery")
     page.select_option("#map-select", other)
     page.wait_for_function("lanemapEditor.layer.size === 3")
+    assert page.is_visible("#no-imagery")
+    assert not [u for _, u in editor.responses if f"/collections/{other}/imagery/tiles/" in u]
     assert f"map={other}" in page.evaluate("location.hash")
     cs = api_get(server, f"/collections/{other}/changesets")["changesets"]
     page.wait_for_selector(f"#history-list li[data-changeset='{cs[0]['id']}']")

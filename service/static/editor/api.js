@@ -56,6 +56,10 @@ export class Api {
     return this.request('GET', `collections/${encodeURIComponent(mapId)}`);
   }
 
+  imagery(mapId) {
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}/imagery`).then((d) => d.imagery);
+  }
+
   tileUrl(mapId) {
     return `${this.url(`collections/${encodeURIComponent(mapId)}/imagery/tiles/WebMercatorQuad`)}/{z}/{x}/{y}.png`;
   }

@@ -372,9 +372,14 @@ async function openMap(mapId, fromHash = false) {
   updateCounters();
 
   if (imagery) imagery.remove();
-  imagery = new ImageryLayer(api.tileUrl(mapId), {
-    maxZoom: 23, maxNativeZoom: 22, minZoom: 10, tileSize: 256, attribution: `imagery of ${mapId}`,
-  }).addTo(map);
+  imagery = null;
+  const images = await api.imagery(mapId).catch(() => null);
+  if (images?.length !== 0) { // unknown (the listing failed): try the tiles anyway
+    imagery = new ImageryLayer(api.tileUrl(mapId), {
+      maxZoom: 23, maxNativeZoom: 22, minZoom: 10, tileSize: 256, attribution: `imagery of ${mapId}`,
+    }).addTo(map);
+  }
+  $('no-imagery').hidden = images?.length !== 0;
 
   const h = new URLSearchParams(location.hash.slice(1));
   const bbox = state.collection.extent?.spatial?.bbox?.[0];
