@@ -518,6 +518,54 @@ def test_a_server_that_wants_a_token_for_reads(browser, window, tmp_path):
         srv.stop()
 
 
+def test_edit_session_logic(browser, server):
+    """The editor's local edit model (edits.js) on its own: what gets saved, undo, rebase."""
+    page = browser.new_page()
+    page.goto(f"{server.base_url}/conformance")
+    out = page.evaluate(
+        """async () => {
+             const { EditSession } = await import('/editor/edits.js');
+             const s = new EditSession('k', null);
+             const m = (id, extra) => ({ id, lon: 8.4, lat: 49.0, weight: 10, length_m: 3, width_m: 0.15,
+                                         bearing_deg: 10, score: 0.4, kind: 'dash', source: 'detected',
+                                         status: 'unreviewed', version: '1', ...extra });
+             const a = m('1'), b = m('2'), c = m('3');
+             const r = {};
+             s.apply('reject', [{ base: a, cur: { ...a, status: 'rejected' } }]);
+             s.apply('move', [{ base: b, cur: { ...b, lon: 8.5 } }]);
+             s.apply('move back', [{ base: b, cur: { ...b } }]);       // back where it was: no edit left
+             r.afterMoveBack = s.count;
+             const n = { ...m(s.newLocalId()), version: null, source: 'manual' };
+             s.apply('add', [{ base: null, cur: n }]);
+             s.apply('delete new', [{ base: { id: n.id }, cur: null }]);  // added and deleted: nothing
+             s.apply('delete', [{ base: c, cur: null }]);
+             r.count = s.count;
+             r.body = s.toChangeset('c').body;
+             s.undo(); s.undo();                                       // the delete, then 'delete new'
+             r.afterUndo = [...s.pending.keys()].sort();
+             s.redo();
+             r.afterRedo = [...s.pending.keys()];
+             // Someone else widened marking 1 (version 2) and deleted marking 3.
+             s.redo();
+             r.dropped = s.rebase(new Map([['1', { ...a, width_m: 0.3, version: '2' }], ['3', null]]));
+             r.rebased = s.toChangeset('again').body.changes;
+             return r;
+           }"""
+    )
+    page.close()
+    assert out["afterMoveBack"] == 1
+    assert out["count"] == 2
+    assert out["body"] == {"comment": "c", "changes": [
+        {"op": "update", "id": "1", "version": "1", "patch": {"properties": {"status": "rejected"}}},
+        {"op": "delete", "id": "3", "version": "1"},
+    ]}  # fmt: skip
+    assert out["afterUndo"] == ["1", "new-1"] and out["afterRedo"] == ["1"]
+    assert out["dropped"] == ["3"]
+    assert out["rebased"] == [
+        {"op": "update", "id": "1", "version": "2", "patch": {"properties": {"status": "rejected"}}},
+    ]
+
+
 def test_editor_is_served_without_a_cdn(server):
     """Every file the page loads comes from the service itself."""
     r = httpx.get(f"{server.base_url}/editor", follow_redirects=True)
