@@ -8,6 +8,13 @@ to the job row, so job state lives in the database. Cancelling marks the job
 ``dismissed`` and ends its process. When a server starts,
 :func:`recover_jobs` resumes the builds a previous server left unfinished
 (a build resumes tile by tile).
+
+With a Dask scheduler configured (``LANEMAP_DASK_SCHEDULER``) the job's
+process plans the tiles and stores their markings, and the tiles themselves
+run on the Dask cluster: each task carries an image path and a tile's
+windows, never an open dataset, so the workers must see the imagery folder
+at the same path as the server (a shared volume). A worker lost mid-build
+costs only its tasks, which the scheduler runs again elsewhere.
 """
 
 from __future__ import annotations
@@ -72,8 +79,21 @@ def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> None:
-    """Body of a worker process: run the build of job ``job_id`` to its end."""
+def run_build_job(db_url: str, job_id: int, server_pid: int | None = None,
+                  dask_address: str | None = None, dask_timeout_s: float = 20.0) -> None:  # fmt: skip
+    """Body of a worker process: run the build of job ``job_id`` to its end.
+
+    Parameters
+    ----------
+    db_url : str
+    job_id : int
+    server_pid : int, optional
+        End when this process (the server) is gone.
+    dask_address : str, optional
+        Run the tiles on this Dask scheduler instead of in this process.
+    dask_timeout_s : float
+        How long to try to reach the scheduler, seconds.
+    """
     logging.basicConfig(level=logging.INFO, format="%(levelname)s build job %(process)d: %(message)s")
     if server_pid is not None:
         _exit_with_parent(server_pid)
@@ -95,7 +115,8 @@ def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> No
     try:
         params = params_from_job(job.params)
         result = build_map(store, job.map_id, images, params, workers=1, progress=False, resume=True,
-                           on_tile=on_tile, **kwargs)  # fmt: skip
+                           on_tile=on_tile, dask_address=dask_address or None,
+                           dask_timeout_s=dask_timeout_s, **kwargs)  # fmt: skip
     except _Cancelled:
         store.update_job(job_id, status="dismissed", error="cancelled")
         return
@@ -116,11 +137,27 @@ def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> No
 
 
 class JobRunner:
-    """Runs build jobs in spawned processes, at most ``workers`` at a time."""
+    """Runs build jobs in spawned processes, at most ``workers`` at a time.
 
-    def __init__(self, store: Store, data_dir: Path, workers: int = 1):
+    Parameters
+    ----------
+    store : Store
+    data_dir : Path
+        The server's data folder (uploaded imagery lives in ``imagery/``).
+    workers : int
+        Build jobs running at the same time.
+    dask_address : str, optional
+        Dask scheduler the jobs run their tiles on; None: in the job's process.
+    dask_timeout_s : float
+        How long a job tries to reach the scheduler, seconds.
+    """
+
+    def __init__(self, store: Store, data_dir: Path, workers: int = 1, *,
+                 dask_address: str | None = None, dask_timeout_s: float = 20.0):  # fmt: skip
         self.store = store
         self.data_dir = Path(data_dir)
+        self.dask_address = dask_address or None
+        self.dask_timeout_s = dask_timeout_s
         self._slots = threading.Semaphore(max(1, int(workers)))
         self._procs: dict[int, Any] = {}
         self._lock = threading.Lock()
@@ -193,7 +230,9 @@ class JobRunner:
             except UnknownJobError:
                 return
             proc = mp.get_context("spawn").Process(
-                target=run_build_job, args=(self.store.url, job_id, os.getpid()), name=f"lanemap-build-{job_id}"
+                target=run_build_job,
+                args=(self.store.url, job_id, os.getpid(), self.dask_address, self.dask_timeout_s),
+                name=f"lanemap-build-{job_id}",
             )
             with self._lock:
                 proc.start()
