@@ -43,9 +43,19 @@ def imagery_json(i: ImageryInfo, request: Request) -> dict[str, Any]:
     }
 
 
-#: GDAL's messages when writing (not reading) a file fails; its exception does not
-#: carry the errno, and the only cause left once the folder exists is the storage.
-_WRITE_FAILED = re.compile(r"write error|seek error|no space left|file too large|disk quota|free disk space", re.I)
+#: GDAL's messages when writing (not reading) a file fails ("Write error at scanline",
+#: "IO error writing tag data", "Seek error"...): its exception carries no errno, and
+#: with the folder in place the only cause left is the storage.
+_WRITE_FAILED = re.compile(r"writ|seek error|no space left|file too large|disk quota|free disk space", re.I)
+
+
+def _storage_short(folder: Path, need: int) -> bool:
+    """Whether ``folder``'s file system has less than ``need`` bytes free."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < need
 
 
 class StorageFullError(OSError):
@@ -83,7 +93,7 @@ def convert_to_cog(src: Path, dst: Path, map_crs: str | None) -> Any:
         raise
     except Exception as exc:  # GDAL cannot read all of it (truncated, damaged), or cannot write
         dst.unlink(missing_ok=True)
-        if _WRITE_FAILED.search(str(exc)):
+        if _WRITE_FAILED.search(str(exc)) or _storage_short(dst.parent, 2 * src.stat().st_size):
             log.error("writing %s failed: %s", dst, exc)
             raise StorageFullError(28, "No space left on device or file size limit reached") from None
         raise ImageryError(f"upload: the GeoTIFF cannot be read in full ({exc})") from None
