@@ -119,6 +119,17 @@ class DaskProcesses:
         with Client(self.address, timeout="10s") as c:
             return len(c.scheduler_info(n_workers=-1)["workers"])
 
+    def tasks_done(self, prefix: str) -> int:
+        """How many tasks of function ``prefix`` the cluster has finished so far."""
+        from distributed import Client
+
+        def count(dask_scheduler, prefix=prefix):
+            tp = dask_scheduler.task_prefixes.get(prefix)
+            return 0 if tp is None else int(tp.state_counts.get("memory", 0))
+
+        with Client(self.address, timeout="10s") as c:
+            return c.run_on_scheduler(count)
+
     def kill_worker(self, i: int) -> None:
         """SIGKILL worker ``i`` and its nanny, as a crashed machine would go."""
         with contextlib.suppress(ProcessLookupError):
