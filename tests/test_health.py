@@ -3,6 +3,7 @@ and the Docker image's HEALTHCHECK command run against it."""
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 import sqlite3
@@ -24,13 +25,9 @@ def healthcheck_command(port: int) -> list[str]:
     text = (REPO / "docker" / "Dockerfile").read_text()
     m = re.search(r"^HEALTHCHECK\b.*?\bCMD\s+(.+?)(?<!\\)$", text, re.M | re.S)
     assert m, "the Dockerfile has no HEALTHCHECK ... CMD"
-    cmd = m.group(1).replace("\\\n", " ")
+    cmd = m.group(1).replace("\\\n", " ").strip()
     assert "/health" in cmd
-    args = shlex.split(cmd)
-    if args[0].startswith("["):  # exec form
-        import json
-
-        args = json.loads(m.group(1))
+    args = json.loads(cmd) if cmd.startswith("[") else shlex.split(cmd)
     assert args[0] in ("python", "python3"), args
     return [sys.executable, *[a.replace(":8000/", f":{port}/") for a in args[1:]]]
 
