@@ -115,6 +115,24 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(tmp_path):
     assert back and back[-1][2] in (200, 201)
 
 
+def test_a_database_that_never_answers_fails_within_the_connect_timeout():
+    """A PostgreSQL host that accepts TCP and then stays silent (a hung server, a
+    firewall) fails in seconds, not after the operating system's TCP timeout."""
+    import socket
+
+    from mapbuilder import store as st
+
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)  # the kernel completes the handshake; nobody ever answers
+        port = silent.getsockname()[1]
+        for query, limit in (("?connect_timeout=1", 1.0), ("", st.PG_CONNECT_TIMEOUT_S)):
+            t0 = time.monotonic()
+            with pytest.raises(st.StoreUnavailableError, match="timeout"):
+                st.Store(f"postgresql://postgres@127.0.0.1:{port}/lanemap{query}")
+            assert limit * 0.9 <= time.monotonic() - t0 < limit + 5
+
+
 # --------------------------------------------------------------------------- kill -9 mid-changeset
 
 
