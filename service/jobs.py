@@ -166,38 +166,73 @@ class JobRunner:
         self._submitted: set[int] = set()
         self._stop_event = threading.Event()
         self._lock_fh = None
+        self._needs_recover = False
         self.owner = False
         self.poll_s = 1.0
+        #: How often a standing-by process tries to take over the runner, seconds.
+        self.standby_s = 2.0
 
     def start(self) -> None:
         """Become the job runner of this data folder, if no other server process is.
 
         One process per data folder runs builds (a file lock decides); it also
         picks up jobs other processes accepted, and resumes interrupted ones.
+        The others stand by and take over when the runner's process ends.
         """
         self._stopping = False
+        self._stop_event.clear()
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self._lock_fh = open(self.data_dir / "job-runner.lock", "a+")
-        try:
-            import fcntl
-
-            fcntl.flock(self._lock_fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self._lock_fh.close()
-            self._lock_fh = None
-            log.info("another server process runs the build jobs of %s", self.data_dir)
+        if self._try_lock():
+            self._become_runner()
             return
+        log.info("another server process runs the build jobs of %s; standing by", self.data_dir)
+        self._standby = threading.Thread(target=self._stand_by, name="build-job-standby", daemon=True)
+        self._standby.start()
+
+    def _try_lock(self) -> bool:
+        import fcntl
+
+        fh = open(self.data_dir / "job-runner.lock", "a+")
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            return False
+        self._lock_fh = fh
+        return True
+
+    def _stand_by(self) -> None:
+        while not self._stop_event.wait(self.standby_s):
+            if self._try_lock():
+                log.warning("the build job runner of %s is gone: this process takes over", self.data_dir)
+                self._become_runner()
+                return
+
+    def _become_runner(self) -> None:
         self.owner = True
-        resume, failed = recover_jobs(self.store, self.data_dir)
+        self._recover()
+        self._poller = threading.Thread(target=self._poll, name="build-job-poller", daemon=True)
+        self._poller.start()
+
+    def _recover(self) -> bool:
+        """Resume the builds left unfinished; False (retried by the poller) if the database is down."""
+        try:
+            resume, _failed = recover_jobs(self.store, self.data_dir)
+        except Exception:  # a database that is down now: try again at the next poll
+            log.warning("cannot look for interrupted builds yet", exc_info=True)
+            self._needs_recover = True
+            return False
+        self._needs_recover = False
         for job_id in resume:
             log.info("resuming build job %d", job_id)
             self.submit(job_id)
-        self._poller = threading.Thread(target=self._poll, name="build-job-poller", daemon=True)
-        self._poller.start()
+        return True
 
     def _poll(self) -> None:
         root = (self.data_dir / "imagery").resolve()
         while not self._stop_event.wait(self.poll_s):
+            if self._needs_recover and not self._recover():
+                continue
             try:
                 for job in self.store.find_jobs(kind="build", status="accepted"):
                     if job.id in self._submitted:

@@ -168,3 +168,45 @@ def test_a_worker_killed_mid_build_costs_nothing(topology):
         assert ref_job["status"] == "successful"
         reference = _marking_set(_markings(b, other))
     assert got == reference
+
+
+def _runner_pid(data_dir: Path) -> int:
+    """The process holding the build-job lock of ``data_dir`` (from /proc/locks)."""
+    inode = (data_dir / "job-runner.lock").stat().st_ino
+    for line in Path("/proc/locks").read_text().splitlines():
+        parts = line.split()  # "1: FLOCK  ADVISORY  WRITE <pid> <major>:<minor>:<inode> 0 EOF"
+        if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5].rsplit(":", 1)[-1] == str(inode):
+            return int(parts[4])
+    raise AssertionError("no process holds the build-job lock")
+
+
+def test_the_build_survives_its_server_killed_and_resumes_on_the_other(topology):
+    from mapbuilder.store import Store
+
+    a, b = topology.a, topology.b
+    reference = getattr(topology, "reference", None)
+    map_id = a.new_map()
+    imagery_id = _upload(a, map_id, topology.image)
+    owner_pid = _runner_pid(a.data_dir)
+    runner, other = (a, b) if owner_pid == a.proc.pid else (b, a)
+    assert owner_pid == runner.proc.pid
+    job_id = _start_build(other, map_id, imagery_id)  # recorded by one server, run by the other
+    store = Store(a.db_url)
+    try:
+        total = 50  # 120 m x 60 m at 10 cm in 128 px tiles
+        done = wait_for(lambda: len(store.done_tiles(int(job_id))) or None, 60, period=0.01,
+                        what="the first tiles of the build")  # fmt: skip
+        runner.kill_hard()  # the server and its build process, as a crash would
+        assert 0 < done < total, done
+        # The surviving server takes the runner over and resumes the job where it stopped.
+        job = _wait_job(other, job_id, timeout=90)
+        assert job["status"] == "successful", (job, other.log()[-3000:])
+        assert len(store.done_tiles(int(job_id))) == total
+    finally:
+        store.close()
+    feats = _markings(other, map_id)
+    got = _marking_set(feats)
+    assert len(set(got)) == len(got) == len(feats), "a marking was stored twice"
+    if reference is not None:
+        assert got == reference
+    assert "takes over" in other.log()
