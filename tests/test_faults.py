@@ -329,7 +329,8 @@ def test_upload_to_an_unwritable_folder_is_a_clear_500_and_leaves_no_file(tmp_pa
         map_id = server.new_map()
         if os.geteuid() == 0:
             # Root writes through file modes: make the folder a read-only mount instead.
-            assert can_mount(), "running as root, the test needs mount to make a folder unwritable"
+            if not can_mount():
+                pytest.skip("root without mount: no folder can be made unwritable to this server")
             ctx = tmpfs(imagery, LIMIT, read_only=True)
         else:
             imagery.chmod(0o555)

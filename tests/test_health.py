@@ -9,12 +9,14 @@ import shlex
 import sqlite3
 import subprocess
 import sys
+import time
 from importlib import metadata
+from pathlib import Path
 
 import httpx
 import pytest
 
-from mapbuilder import migrate
+from mapbuilder import migrate, synth
 from tests._api_helpers import REPO, free_port, shared_server, start_server
 
 PROBLEM = "application/problem+json"
@@ -53,13 +55,29 @@ def test_health_needs_no_token_and_fails_on_a_foreign_schema(tmp_path):
     db = tmp_path / "db.sqlite"
     dead_scheduler = f"tcp://127.0.0.1:{free_port()}"
     server = start_server(f"sqlite:///{db}", tmp_path / "data",
-                          env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_DASK_SCHEDULER": dead_scheduler})  # fmt: skip
+                          env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_DASK_SCHEDULER": dead_scheduler,
+                               "LANEMAP_DASK_TIMEOUT_S": "2"})  # fmt: skip
     try:
         assert httpx.get(f"{server.base_url}/collections").status_code == 401
         r = httpx.get(f"{server.base_url}/health")
         assert r.status_code == 200, r.text
         # The scheduler is reported, not judged: reads and edits do not need it.
         assert r.json()["dask_scheduler"] == {"address": dead_scheduler, "reachable": False}
+        # A build needs the cluster: its job fails and says why; the server stays healthy.
+        with server.client(headers=server.auth) as c:
+            map_id = server.new_map()
+            img = synth.render(synth.procedural_scene(size_m=(20.0, 20.0), origin=(456000.0, 5430000.0), seed=3),
+                               tmp_path / "s.tif", 0.1, seed=3).path  # fmt: skip
+            up = c.post(f"/collections/{map_id}/imagery", content=Path(img).read_bytes(),
+                        headers={"Content-Type": "image/tiff"})  # fmt: skip
+            assert up.status_code == 201, up.text
+            job = c.post(f"/collections/{map_id}/builds", json={"imagery": up.json()["id"]}).json()
+            deadline = time.monotonic() + 60
+            while job["status"] in ("accepted", "running") and time.monotonic() < deadline:
+                time.sleep(0.3)
+                job = c.get(f"/jobs/{job['jobID']}").json()
+        assert job["status"] == "failed" and "Dask scheduler" in job["message"], job
+        assert httpx.get(f"{server.base_url}/health").status_code == 200
         check = healthcheck_command(int(server.base_url.rsplit(":", 1)[1]))
         assert subprocess.run(check, capture_output=True, timeout=30).returncode == 0
 
