@@ -33,7 +33,8 @@ def _is_problem(r: httpx.Response, status: int) -> bool:
 # --------------------------------------------------------------------------- database outage
 
 
-def test_postgres_down_under_requests_is_503_and_recovers_by_itself(tmp_path):
+@pytest.mark.parametrize("mode", ["fast", "immediate"])  # a clean restart, and a crash
+def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_path):
     pg = PrivatePostgres()
     pg.start()
     server = None
@@ -73,7 +74,7 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(tmp_path):
             t.start()
         wait_for(lambda: sum(s[0] == "up" for s in seen) >= 20, 30, what="requests before the outage")
         phase[0] = "stopping"
-        pg.stop("fast")
+        pg.stop(mode)
         phase[0] = "down"
         n0 = len(seen)
         wait_for(lambda: len(seen) - n0 >= 60, 30, what="requests during the outage")
@@ -193,7 +194,7 @@ def test_server_killed_inside_a_changeset_leaves_none_of_it(kind, tmp_path):
     server = start_server(db_url, tmp_path / "data")
     try:
         map_id = server.new_map()
-        n = 2000
+        n = 1000
         fc = {"type": "FeatureCollection",
               "features": [feature(LON + (i % 50) * 2e-5, LAT + (i // 50) * 2e-5, kind="dash") for i in range(n)]}
         with server.client(headers=server.auth) as c:
