@@ -9,6 +9,7 @@ version needs; otherwise 503 problem+json with ``Retry-After``.
 from __future__ import annotations
 
 import asyncio
+import functools
 import socket
 import time
 from dataclasses import asdict, dataclass
@@ -65,9 +66,14 @@ class DatabaseHealth:
     error: str | None = None
 
 
+@functools.lru_cache(maxsize=4)
+def _head_revision(url: str) -> str:
+    return migrate.head_revision(url)
+
+
 def probe_database(store: Store, timeout_s: float) -> DatabaseHealth:
     """Run ``SELECT 1`` and read the schema revision, bounded by ``timeout_s`` on PostgreSQL."""
-    expected = migrate.head_revision(store.url)
+    expected = _head_revision(store.url)
     t0 = time.perf_counter()
     try:
         with store.engine.connect() as conn:
@@ -119,5 +125,5 @@ async def health(request: Request, ctx: Context = Depends(get_ctx)):
     if db.ok:
         return JSONResponse({"status": "ok", **body}, headers=headers)
     headers["Retry-After"] = str(RETRY_AFTER_S)
-    slug = "store-unavailable" if db.revision is None else "schema-mismatch"
+    slug = "store-unavailable" if db.latency_ms is None else "schema-mismatch"
     return problem_response(request, 503, f"database: {db.error}", slug, headers=headers, **body)

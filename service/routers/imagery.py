@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import os
@@ -95,7 +96,7 @@ def convert_to_cog(src: Path, dst: Path, map_crs: str | None) -> Any:
         dst.unlink(missing_ok=True)
         if _WRITE_FAILED.search(str(exc)) or _storage_short(dst.parent, 2 * src.stat().st_size):
             log.error("writing %s failed: %s", dst, exc)
-            raise StorageFullError(28, "No space left on device or file size limit reached") from None
+            raise StorageFullError(errno.ENOSPC, "No space left on device or file size limit reached") from None
         raise ImageryError(f"upload: the GeoTIFF cannot be read in full ({exc})") from None
     return info
 
