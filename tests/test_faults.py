@@ -134,6 +134,21 @@ def test_a_database_that_never_answers_fails_within_the_connect_timeout():
             assert limit * 0.9 <= time.monotonic() - t0 < limit + 5
 
 
+def test_serve_with_the_database_down_exits_with_one_clear_line(tmp_path):
+    import subprocess
+    import sys
+
+    from tests._api_helpers import free_port
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
+    env.update(LANEMAP_DATABASE_URL=f"postgresql://postgres@127.0.0.1:{free_port()}/lanemap",
+               LANEMAP_DATA_DIR=str(tmp_path / "data"), LANEMAP_API_TOKENS="t")  # fmt: skip
+    out = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", str(free_port())],
+                         capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    assert out.returncode != 0
+    assert out.stderr.startswith("error: database unavailable") and "Traceback" not in out.stderr, out.stderr
+
+
 # --------------------------------------------------------------------------- kill -9 mid-changeset
 
 
