@@ -119,16 +119,21 @@ class DaskProcesses:
         with Client(self.address, timeout="10s") as c:
             return len(c.scheduler_info(n_workers=-1)["workers"])
 
-    def tasks_done(self, prefix: str) -> int:
-        """How many tasks of function ``prefix`` the cluster has finished so far."""
+    def task_counts(self, prefix: str) -> dict[str, int]:
+        """How many tasks of function ``prefix`` entered each state on the scheduler so far
+        (``processing`` more often than ``memory``: some ran again after a worker was lost)."""
         from distributed import Client
 
         def count(dask_scheduler, prefix=prefix):
             tp = dask_scheduler.task_prefixes.get(prefix)
-            return 0 if tp is None else int(tp.state_counts.get("memory", 0))
+            return {} if tp is None else {k: int(v) for k, v in tp.state_counts.items()}
 
         with Client(self.address, timeout="10s") as c:
             return c.run_on_scheduler(count)
+
+    def tasks_done(self, prefix: str) -> int:
+        """How many tasks of function ``prefix`` the cluster has finished so far."""
+        return self.task_counts(prefix).get("memory", 0)
 
     def kill_worker(self, i: int) -> None:
         """SIGKILL worker ``i`` and its nanny, as a crashed machine would go."""

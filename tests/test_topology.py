@@ -150,6 +150,7 @@ def test_a_worker_killed_mid_build_costs_nothing(topology):
     reference = _reference(topology)
     map_id = a.new_map()
     imagery_id = _upload(a, map_id, topology.image)
+    before = dask.task_counts("process_tiles")
     with Client(dask.address, timeout="10s") as client:
         names = {addr: w["name"] for addr, w in client.scheduler_info(n_workers=-1)["workers"].items()}
         job_id = _start_build(a, map_id, imagery_id)
@@ -170,6 +171,12 @@ def test_a_worker_killed_mid_build_costs_nothing(topology):
     job = _wait_job(b, job_id)
     assert job["status"] == "successful", (job, dask.log()[-3000:])
     assert time.monotonic() - t0 < 60
+    after = dask.task_counts("process_tiles")
+    delta = {k: after.get(k, 0) - before.get(k, 0) for k in after}
+    # The worker died with tiles in hand: the scheduler released them and ran them again
+    # elsewhere, and each run of tiles finished exactly once.
+    assert delta.get("released", 0) >= 1, delta
+    assert delta["memory"] == delta["processing"] - delta["released"], delta
     feats = _markings(b, map_id)
     got = _marking_set(feats)
     assert len({f["id"] for f in feats}) == len(feats)
