@@ -19,8 +19,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import httpx
-
 from tests._api_helpers import free_port
 
 
@@ -246,8 +244,3 @@ def wait_for(predicate, timeout: float, period: float = 0.2, what: str = "condit
         time.sleep(period)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
-
-def get_json(url: str, **kw) -> dict:
-    r = httpx.get(url, timeout=kw.pop("timeout", 30), **kw)
-    r.raise_for_status()
-    return r.json()

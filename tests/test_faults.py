@@ -38,6 +38,7 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
     pg = PrivatePostgres()
     pg.start()
     server = None
+    stop = threading.Event()
     try:
         server = start_server(pg.url, tmp_path / "data")
         map_id = server.new_map()
@@ -46,7 +47,6 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
 
         phase = ["up"]
         seen: list[tuple[str, str, int, str, str | None, dict | None]] = []
-        stop = threading.Event()
         reads = [f"/collections/{map_id}/items?limit=5", f"/collections/{map_id}/items/{fid}",
                  f"/collections/{map_id}", f"/collections/{map_id}/history", "/jobs", "/health"]  # fmt: skip
 
@@ -94,9 +94,7 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
         # The same server process answered all along: it was never restarted.
         assert server.proc.poll() is None
     finally:
-        stop_all = locals().get("stop")
-        if stop_all is not None:
-            stop_all.set()
+        stop.set()
         if server is not None:
             server.stop()
         pg.destroy()
