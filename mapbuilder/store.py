@@ -39,6 +39,8 @@ log = logging.getLogger(__name__)
 
 MAP_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 JOB_STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
+#: Seconds to wait for a PostgreSQL connection unless the URL sets ``connect_timeout``.
+PG_CONNECT_TIMEOUT_S = 10
 #: Distance within which a person's decision suppresses a rebuilt detection, metres.
 SUPPRESS_RADIUS_M = 0.5
 
@@ -407,7 +409,13 @@ class Store:
 
             return engine
         if parsed.get_backend_name() == "postgresql":
-            return create_engine(url, pool_pre_ping=True)
+            # pre-ping: a connection the server dropped (restart, failover) is replaced
+            # before use instead of failing a request. connect_timeout: an unreachable
+            # host fails a request in seconds, not after the OS's TCP timeout.
+            connect_args = {}
+            if "connect_timeout" not in parsed.query:
+                connect_args["connect_timeout"] = PG_CONNECT_TIMEOUT_S
+            return create_engine(url, pool_pre_ping=True, connect_args=connect_args)
         raise StoreError(f"unsupported database {parsed.get_backend_name()!r}: use sqlite or postgresql")
 
     @contextmanager

@@ -75,7 +75,9 @@ def create_app(
 
     ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens)
     if run_jobs:
-        ctx.jobs = JobRunner(store, data_dir, workers=settings.build_workers)
+        ctx.jobs = JobRunner(store, data_dir, workers=settings.build_workers,
+                             dask_address=settings.dask_scheduler or None,
+                             dask_timeout_s=settings.dask_timeout_s)  # fmt: skip
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -100,14 +102,15 @@ def create_app(
             {"name": "Imagery", "description": "Imagery upload and basemap tiles"},
             {"name": "Jobs", "description": "Map builds (OGC API Processes job status)"},
             {"name": "Localization", "description": "Vehicle pose from observed markings"},
+            {"name": "Health", "description": "Database reachable, schema revision, version"},
         ],
     )
     app.state.ctx = ctx
     problems.install(app)
 
-    from .routers import changesets, collections, imagery, jobs, landing, localize
+    from .routers import changesets, collections, health, imagery, jobs, landing, localize
 
-    for module in (landing, collections, changesets, imagery, jobs, localize):
+    for module in (landing, collections, changesets, imagery, jobs, localize, health):
         app.include_router(module.router)
 
     if EDITOR_DIR.is_dir():

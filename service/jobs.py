@@ -8,6 +8,13 @@ to the job row, so job state lives in the database. Cancelling marks the job
 ``dismissed`` and ends its process. When a server starts,
 :func:`recover_jobs` resumes the builds a previous server left unfinished
 (a build resumes tile by tile).
+
+With a Dask scheduler configured (``LANEMAP_DASK_SCHEDULER``) the job's
+process plans the tiles and stores their markings, and the tiles themselves
+run on the Dask cluster: each task carries an image path and a tile's
+windows, never an open dataset, so the workers must see the imagery folder
+at the same path as the server (a shared volume). A worker lost mid-build
+costs only its tasks, which the scheduler runs again elsewhere.
 """
 
 from __future__ import annotations
@@ -72,8 +79,21 @@ def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> None:
-    """Body of a worker process: run the build of job ``job_id`` to its end."""
+def run_build_job(db_url: str, job_id: int, server_pid: int | None = None,
+                  dask_address: str | None = None, dask_timeout_s: float = 20.0) -> None:  # fmt: skip
+    """Body of a worker process: run the build of job ``job_id`` to its end.
+
+    Parameters
+    ----------
+    db_url : str
+    job_id : int
+    server_pid : int, optional
+        End when this process (the server) is gone.
+    dask_address : str, optional
+        Run the tiles on this Dask scheduler instead of in this process.
+    dask_timeout_s : float
+        How long to try to reach the scheduler, seconds.
+    """
     logging.basicConfig(level=logging.INFO, format="%(levelname)s build job %(process)d: %(message)s")
     if server_pid is not None:
         _exit_with_parent(server_pid)
@@ -95,7 +115,8 @@ def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> No
     try:
         params = params_from_job(job.params)
         result = build_map(store, job.map_id, images, params, workers=1, progress=False, resume=True,
-                           on_tile=on_tile, **kwargs)  # fmt: skip
+                           on_tile=on_tile, dask_address=dask_address or None,
+                           dask_timeout_s=dask_timeout_s, **kwargs)  # fmt: skip
     except _Cancelled:
         store.update_job(job_id, status="dismissed", error="cancelled")
         return
@@ -116,11 +137,27 @@ def run_build_job(db_url: str, job_id: int, server_pid: int | None = None) -> No
 
 
 class JobRunner:
-    """Runs build jobs in spawned processes, at most ``workers`` at a time."""
+    """Runs build jobs in spawned processes, at most ``workers`` at a time.
 
-    def __init__(self, store: Store, data_dir: Path, workers: int = 1):
+    Parameters
+    ----------
+    store : Store
+    data_dir : Path
+        The server's data folder (uploaded imagery lives in ``imagery/``).
+    workers : int
+        Build jobs running at the same time.
+    dask_address : str, optional
+        Dask scheduler the jobs run their tiles on; None: in the job's process.
+    dask_timeout_s : float
+        How long a job tries to reach the scheduler, seconds.
+    """
+
+    def __init__(self, store: Store, data_dir: Path, workers: int = 1, *,
+                 dask_address: str | None = None, dask_timeout_s: float = 20.0):  # fmt: skip
         self.store = store
         self.data_dir = Path(data_dir)
+        self.dask_address = dask_address or None
+        self.dask_timeout_s = dask_timeout_s
         self._slots = threading.Semaphore(max(1, int(workers)))
         self._procs: dict[int, Any] = {}
         self._lock = threading.Lock()
@@ -129,38 +166,73 @@ class JobRunner:
         self._submitted: set[int] = set()
         self._stop_event = threading.Event()
         self._lock_fh = None
+        self._needs_recover = False
         self.owner = False
         self.poll_s = 1.0
+        #: How often a standing-by process tries to take over the runner, seconds.
+        self.standby_s = 2.0
 
     def start(self) -> None:
         """Become the job runner of this data folder, if no other server process is.
 
         One process per data folder runs builds (a file lock decides); it also
         picks up jobs other processes accepted, and resumes interrupted ones.
+        The others stand by and take over when the runner's process ends.
         """
         self._stopping = False
+        self._stop_event.clear()
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self._lock_fh = open(self.data_dir / "job-runner.lock", "a+")
-        try:
-            import fcntl
-
-            fcntl.flock(self._lock_fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self._lock_fh.close()
-            self._lock_fh = None
-            log.info("another server process runs the build jobs of %s", self.data_dir)
+        if self._try_lock():
+            self._become_runner()
             return
+        log.info("another server process runs the build jobs of %s; standing by", self.data_dir)
+        self._standby = threading.Thread(target=self._stand_by, name="build-job-standby", daemon=True)
+        self._standby.start()
+
+    def _try_lock(self) -> bool:
+        import fcntl
+
+        fh = open(self.data_dir / "job-runner.lock", "a+")
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            return False
+        self._lock_fh = fh
+        return True
+
+    def _stand_by(self) -> None:
+        while not self._stop_event.wait(self.standby_s):
+            if self._try_lock():
+                log.warning("the build job runner of %s is gone: this process takes over", self.data_dir)
+                self._become_runner()
+                return
+
+    def _become_runner(self) -> None:
         self.owner = True
-        resume, failed = recover_jobs(self.store, self.data_dir)
+        self._recover()
+        self._poller = threading.Thread(target=self._poll, name="build-job-poller", daemon=True)
+        self._poller.start()
+
+    def _recover(self) -> bool:
+        """Resume the builds left unfinished; False (retried by the poller) if the database is down."""
+        try:
+            resume, _failed = recover_jobs(self.store, self.data_dir)
+        except Exception:  # a database that is down now: try again at the next poll
+            log.warning("cannot look for interrupted builds yet", exc_info=True)
+            self._needs_recover = True
+            return False
+        self._needs_recover = False
         for job_id in resume:
             log.info("resuming build job %d", job_id)
             self.submit(job_id)
-        self._poller = threading.Thread(target=self._poll, name="build-job-poller", daemon=True)
-        self._poller.start()
+        return True
 
     def _poll(self) -> None:
         root = (self.data_dir / "imagery").resolve()
         while not self._stop_event.wait(self.poll_s):
+            if self._needs_recover and not self._recover():
+                continue
             try:
                 for job in self.store.find_jobs(kind="build", status="accepted"):
                     if job.id in self._submitted:
@@ -193,7 +265,9 @@ class JobRunner:
             except UnknownJobError:
                 return
             proc = mp.get_context("spawn").Process(
-                target=run_build_job, args=(self.store.url, job_id, os.getpid()), name=f"lanemap-build-{job_id}"
+                target=run_build_job,
+                args=(self.store.url, job_id, os.getpid(), self.dask_address, self.dask_timeout_s),
+                name=f"lanemap-build-{job_id}",
             )
             with self._lock:
                 proc.start()

@@ -6,6 +6,7 @@ module only decides the HTTP status for each kind of error.
 
 from __future__ import annotations
 
+import errno
 import logging
 from http import HTTPStatus
 from typing import Any
@@ -13,7 +14,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from sqlalchemy.exc import IntegrityError, OperationalError
+from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from mapbuilder import store as st
@@ -37,17 +38,21 @@ class Problem(Exception):
         Last part of the ``type`` URI; default from the status.
     headers : dict, optional
         Extra response headers (``WWW-Authenticate``, ``Allow``...).
+    title : str, optional
+        Title of the problem type; default the status phrase.
     **extra
         Extension members of the problem object.
     """
 
     def __init__(self, status: int, detail: str, slug: str | None = None,
-                 headers: dict[str, str] | None = None, **extra: Any):  # fmt: skip
+                 headers: dict[str, str] | None = None, title: str | None = None,
+                 **extra: Any):  # fmt: skip
         super().__init__(detail)
         self.status = status
         self.detail = detail
         self.slug = slug or _slug(status)
         self.headers = headers or {}
+        self.title = title
         self.extra = extra
 
 
@@ -66,10 +71,11 @@ def _title(status: int) -> str:
 
 
 def problem_response(request: Request | None, status: int, detail: str, slug: str | None = None,
-                     headers: dict[str, str] | None = None, **extra: Any) -> JSONResponse:  # fmt: skip
+                     headers: dict[str, str] | None = None, title: str | None = None,
+                     **extra: Any) -> JSONResponse:  # fmt: skip
     body: dict[str, Any] = {
         "type": TYPE_PREFIX + (slug or _slug(status)),
-        "title": _title(status),
+        "title": title or _title(status),
         "status": status,
         "detail": detail,
     }
@@ -110,6 +116,41 @@ _register_optional("mapbuilder.raster", "ImageryError", 422, "invalid-imagery")
 _register_optional("localizer.errors", "LocalizationInputError", 422, "invalid-localization-input")
 
 
+#: Seconds a client should wait before retrying while the database is unavailable.
+RETRY_AFTER_S = 5
+#: errno values that mean the disk (or the process's file size limit) is full.
+FULL_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
+#: errno values that mean a folder of the server cannot be written.
+UNWRITABLE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+def unavailable(request: Request | None, detail: str | None = None) -> JSONResponse:
+    """503 for a database that cannot be reached; the client may retry."""
+    return problem_response(request, 503, detail or "the database is busy or unavailable; retry later",
+                            "store-unavailable", headers={"Retry-After": str(RETRY_AFTER_S)},
+                            title="Database unavailable")  # fmt: skip
+
+
+def storage_problem(exc: OSError, what: str) -> Problem | None:
+    """The problem for a failed write of the server's files, or None if it is no storage error.
+
+    A full disk (ENOSPC, EDQUOT) or a file size limit (EFBIG) is 507; a folder
+    the server may not write (EACCES, EPERM, EROFS) is 500 with its own type:
+    both are the operator's to fix, neither is the client's fault.
+    """
+    if exc.errno in FULL_ERRNOS:
+        return Problem(507, f"{what}: the server's storage is full ({exc.strerror})", "insufficient-storage",
+                       title="Insufficient storage")  # fmt: skip
+    if exc.errno in UNWRITABLE_ERRNOS:
+        return Problem(500, f"{what}: the server cannot write its storage folder ({exc.strerror})",
+                       "storage-not-writable", title="Storage not writable")  # fmt: skip
+    return None
+
+
+def _is_disconnect(exc: DBAPIError) -> bool:
+    return bool(exc.connection_invalidated) or isinstance(exc, (OperationalError, InterfaceError))
+
+
 def status_of(exc: BaseException) -> tuple[int, str]:
     for cls, status, slug in ERROR_STATUS:
         if isinstance(exc, cls):
@@ -147,7 +188,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem):
-        return problem_response(request, exc.status, exc.detail, exc.slug, exc.headers, **exc.extra)
+        return problem_response(request, exc.status, exc.detail, exc.slug, exc.headers, exc.title, **exc.extra)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
@@ -178,11 +219,29 @@ def install(app: FastAPI) -> None:
         log.info("integrity error on %s %s: %s", request.method, request.url.path, exc.orig)
         return problem_response(request, 409, "the change conflicts with data already stored", "conflict")
 
-    @app.exception_handler(OperationalError)
-    async def _operational(request: Request, exc: OperationalError):
-        log.warning("database error on %s %s: %s", request.method, request.url.path, exc.orig)
-        return problem_response(request, 503, "the database is busy or unavailable; retry later",
-                                "store-unavailable", headers={"Retry-After": "5"})
+    @app.exception_handler(st.StoreUnavailableError)
+    async def _store_unavailable(request: Request, exc: st.StoreUnavailableError):
+        log.warning("database unavailable on %s %s: %s", request.method, request.url.path, exc)
+        return unavailable(request)
+
+    @app.exception_handler(DBAPIError)
+    async def _dbapi(request: Request, exc: DBAPIError):
+        # A lost or refused connection (the server restarting, a network cut) or a
+        # busy SQLite file is temporary: 503, and the pool reconnects by itself.
+        if _is_disconnect(exc):
+            log.warning("database error on %s %s: %s", request.method, request.url.path, exc.orig)
+            return unavailable(request)
+        log.exception("database error on %s %s", request.method, request.url.path)
+        return problem_response(request, 500, "internal error; the server log has the details")
+
+    @app.exception_handler(OSError)
+    async def _os_error(request: Request, exc: OSError):
+        problem = storage_problem(exc, "storage")
+        if problem is None:
+            log.exception("unhandled error on %s %s", request.method, request.url.path)
+            return problem_response(request, 500, "internal error; the server log has the details")
+        log.error("storage error on %s %s: %s", request.method, request.url.path, exc)
+        return problem_response(request, problem.status, problem.detail, problem.slug, title=problem.title)
 
     @app.exception_handler(ValueError)
     async def _value(request: Request, exc: ValueError):

@@ -48,6 +48,15 @@ class ServiceSettings(BaseSettings):
         Most observations one localization request may carry.
     build_workers : int
         Build jobs that run at the same time (each in its own process).
+    dask_scheduler : str
+        ``LANEMAP_DASK_SCHEDULER``: address of a Dask distributed scheduler
+        (``tcp://host:8786``). Set: build jobs run their tiles on that cluster
+        (its workers must read the imagery at the same paths as the server).
+        Empty: in local worker processes.
+    dask_timeout_s : float
+        How long a build tries to reach the scheduler, seconds.
+    health_timeout_s : float
+        How long ``/health`` waits for the database, seconds.
     """
 
     model_config = SettingsConfigDict(env_prefix="LANEMAP_", extra="ignore")
@@ -61,6 +70,9 @@ class ServiceSettings(BaseSettings):
     items_max_limit: int = 10_000
     max_observations: int = 500
     build_workers: int = 1
+    dask_scheduler: str = ""
+    dask_timeout_s: float = 20.0
+    health_timeout_s: float = 2.0
 
     def cors_origin_list(self) -> list[str]:
         return [o.strip() for o in self.cors_origins.split(",") if o.strip()]

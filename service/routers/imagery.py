@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import os
+import re
 import threading
 import uuid
 from pathlib import Path
@@ -19,7 +21,7 @@ from starlette.requests import ClientDisconnect
 from mapbuilder.store import ImageryInfo
 
 from ..deps import Context, get_ctx, require_read, require_write
-from ..problems import Problem
+from ..problems import Problem, storage_problem
 from ._common import JSON, base_url, link, parse_id
 
 log = logging.getLogger(__name__)
@@ -43,8 +45,35 @@ def imagery_json(i: ImageryInfo, request: Request) -> dict[str, Any]:
     }
 
 
+#: GDAL's messages when writing (not reading) a file fails ("Write error at scanline",
+#: "IO error writing tag data", "Seek error"...): its exception carries no errno, and
+#: with the folder in place the only cause left is the storage.
+_WRITE_FAILED = re.compile(r"writ|seek error|no space left|file too large|disk quota|free disk space", re.I)
+
+
+def _storage_short(folder: Path, need: int) -> bool:
+    """Whether ``folder``'s file system has less than ``need`` bytes free."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < need
+
+
+class StorageFullError(OSError):
+    """The converted image could not be written: the disk or a size limit is full."""
+
+
 def convert_to_cog(src: Path, dst: Path, map_crs: str | None) -> Any:
-    """Check a GeoTIFF's georeferencing and write it as a Cloud Optimized GeoTIFF with overviews."""
+    """Check a GeoTIFF's georeferencing and write it as a Cloud Optimized GeoTIFF with overviews.
+
+    Raises
+    ------
+    ImageryError
+        The upload is no usable GeoTIFF (nothing is written).
+    StorageFullError
+        Writing the COG failed for lack of space (the partial file is removed).
+    """
     import rasterio
     from rasterio.shutil import copy as rio_copy
 
@@ -61,8 +90,14 @@ def convert_to_cog(src: Path, dst: Path, map_crs: str | None) -> Any:
                  OVERVIEWS="AUTO", BIGTIFF="IF_SAFER")  # fmt: skip
         with rasterio.open(dst) as ds:
             ds.read(1, window=((0, min(16, ds.height)), (0, min(16, ds.width))))
-    except Exception as exc:  # GDAL cannot read all of it: a truncated or damaged file
+    except OSError:
         dst.unlink(missing_ok=True)
+        raise
+    except Exception as exc:  # GDAL cannot read all of it (truncated, damaged), or cannot write
+        dst.unlink(missing_ok=True)
+        if _WRITE_FAILED.search(str(exc)) or _storage_short(dst.parent, 2 * src.stat().st_size):
+            log.error("writing %s failed: %s", dst, exc)
+            raise StorageFullError(errno.ENOSPC, "No space left on device or file size limit reached") from None
         raise ImageryError(f"upload: the GeoTIFF cannot be read in full ({exc})") from None
     return info
 
@@ -95,30 +130,51 @@ async def upload_imagery(
     info = await run_in_threadpool(ctx.store.get_map, mapId)
     folder = ctx.data_dir / "imagery" / mapId
     tmp_dir = ctx.data_dir / "imagery" / ".incoming"
-    await run_in_threadpool(tmp_dir.mkdir, parents=True, exist_ok=True)
     token = uuid.uuid4().hex
     tmp = tmp_dir / f"{token}.tif"
+    dst = folder / f"{token}.cog.tif"
     size = 0
     try:
+        await run_in_threadpool(tmp_dir.mkdir, parents=True, exist_ok=True)
+        write_error: OSError | None = None
         with open(tmp, "wb") as fh:
             try:
                 async for chunk in request.stream():
                     size += len(chunk)
                     if size > limit:
                         raise Problem(413, f"upload exceeds the limit of {limit} bytes", "too-large")
-                    fh.write(chunk)
+                    if write_error is None:
+                        try:
+                            fh.write(chunk)
+                        except OSError as exc:
+                            # Read the rest (to the limit) so that the client gets the answer
+                            # instead of a reset connection; free the space at once.
+                            write_error = exc
+                            tmp.unlink(missing_ok=True)
             except ClientDisconnect:
                 log.info("upload to %s aborted by the client after %d bytes", mapId, size)
                 raise Problem(400, "the upload was interrupted", "truncated-upload") from None
+            if write_error is not None:
+                raise write_error
         if declared is not None and size != int(declared):
             raise Problem(400, f"upload is truncated: {size} of {declared} bytes arrived", "truncated-upload")
         if size == 0:
             raise Problem(422, "body: the upload is empty; send a GeoTIFF", "invalid-imagery")
         await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
-        dst = folder / f"{token}.cog.tif"
         raster = await run_in_threadpool(convert_to_cog, tmp, dst, info.crs)
+    except OSError as exc:
+        # Nothing half-written stays: the partial upload and COG are removed below.
+        dst.unlink(missing_ok=True)
+        problem = storage_problem(exc, "upload")
+        if problem is None:
+            raise
+        log.error("upload to %s failed after %d bytes: %s", mapId, size, exc)
+        raise problem from None
     finally:
-        tmp.unlink(missing_ok=True)
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:  # an unwritable folder holds no partial file either
+            log.warning("could not remove %s", tmp)
     grid = raster.grid
     try:
         imagery_id = await run_in_threadpool(
