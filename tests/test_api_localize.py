@@ -146,3 +146,16 @@ def test_localize_needs_a_map_with_markings(api):
     r = httpx.post(f"{api.base_url}/collections/{empty}/localize", content=nan,
                    headers={"Content-Type": "application/json"})  # fmt: skip
     assert_problem(r, 400, "NaN")
+
+
+def test_server_timing_splits_the_localizer_from_the_request(api, kmap):
+    """``Server-Timing`` tells load tests how long the map index and the localizer took."""
+    map_id, feats = kmap
+    p, lon, lat, heading, obs = scene(feats, 400)
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize",
+                   json={"gps": gps_near(p, heading), "observations": obs}, timeout=60)  # fmt: skip
+    assert r.status_code == 200
+    parts = dict(part.strip().split(";dur=") for part in r.headers["server-timing"].split(","))
+    assert set(parts) == {"index", "localize"}
+    assert 0 < float(parts["localize"]) < r.elapsed.total_seconds() * 1000
+    assert float(parts["index"]) >= 0
