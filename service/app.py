@@ -104,6 +104,9 @@ def create_app(
     )
     app.state.ctx = ctx
     problems.install(app)
+    from .openapi import document_problems
+
+    document_problems(app)
 
     from .routers import changesets, collections, imagery, jobs, landing, localize
 
