@@ -30,6 +30,8 @@ class Context:
     jobs: Any = None  # service.jobs.JobRunner
     indexes: dict[str, tuple[int, Any]] = field(default_factory=dict)
     index_lock: threading.Lock = field(default_factory=threading.Lock)
+    #: localizations admitted and not yet answered (changed on the event loop only)
+    localize_pending: int = 0
 
 
 def get_ctx(request: Request) -> Context:

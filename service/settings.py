@@ -13,6 +13,7 @@ import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
+from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from mapbuilder.settings import Settings as StoreSettings
@@ -46,6 +47,11 @@ class ServiceSettings(BaseSettings):
         Page sizes of ``/collections/{mapId}/items``.
     max_observations : int
         Most observations one localization request may carry.
+    localize_max_pending : int
+        Localizations one server process takes on at once, running or waiting
+        for a thread; beyond that it answers 503 with ``Retry-After`` at once
+        instead of queueing (a vehicle is better served by a quick refusal
+        than by a pose seconds old). 0: no limit.
     build_workers : int
         Build jobs that run at the same time (each in its own process).
     """
@@ -60,6 +66,7 @@ class ServiceSettings(BaseSettings):
     items_default_limit: int = 100
     items_max_limit: int = 10_000
     max_observations: int = 500
+    localize_max_pending: int = Field(32, ge=0)
     build_workers: int = 1
 
     def cors_origin_list(self) -> list[str]:
