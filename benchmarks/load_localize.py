@@ -15,11 +15,15 @@ For each server configuration (``--workers 1 2``) the script starts
 map index), and then runs each concurrency level (``--levels``) as a closed
 loop: ``c`` clients, each on its own keep-alive connection, send the next
 request as soon as the previous answer arrives, for ``--duration`` seconds.
-Per level it prints throughput, p50/p90/p99 latency, errors (anything but
-200, or no answer within ``--timeout``), the median time the localizer itself
-took (the server's ``Server-Timing`` header), the load generator's own CPU use
-and the load average; it marks the first level with errors and the level
-where throughput stops growing (saturation).
+Per level it prints throughput, p50/p90/p99 latency of the answered
+localizations, errors (timeouts, resets, any status but 200 and 503), the
+503s of the server's load shedding (``LANEMAP_LOCALIZE_MAX_PENDING``; the
+client then waits ``Retry-After`` as a vehicle would), the median time the
+localizer itself took and the time a request waited for a worker thread (the
+server's ``Server-Timing`` header), the load generator's own CPU use, the CPU
+seconds of each server process (how evenly ``--workers`` share the load) and
+the load average; it marks the first level with errors, the first with
+shedding, and the level where throughput stops growing (saturation).
 
 The load generator is an asyncio ``httpx`` client in this process. It shares
 the 2 cores with the server; its own CPU share is printed so that it can be
@@ -112,10 +116,14 @@ class Level:
     seconds: float = 0.0
     latencies_ms: list[float] = field(default_factory=list)
     localize_ms: list[float] = field(default_factory=list)
+    queue_ms: list[float] = field(default_factory=list)
+    shed: int = 0
     statuses: dict[str, int] = field(default_factory=dict)
     errors: int = 0
     error_kinds: dict[str, int] = field(default_factory=dict)
     client_cpu: float = 0.0
+    #: CPU seconds each server process used during the level, largest first
+    server_cpu: list[float] = field(default_factory=list)
     load: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
@@ -130,15 +138,15 @@ class Level:
         return float(np.percentile(self.latencies_ms, q)) if self.latencies_ms else float("nan")
 
 
-def _server_timing(header: str | None) -> float | None:
+def _server_timing(header: str | None) -> dict[str, float]:
+    out = {}
     for part in (header or "").split(","):
         name, _, params = part.strip().partition(";")
-        if name == "localize":
-            for p in params.split(";"):
-                k, _, v = p.strip().partition("=")
-                if k == "dur":
-                    return float(v)
-    return None
+        for p in params.split(";"):
+            k, _, v = p.strip().partition("=")
+            if k == "dur":
+                out[name] = float(v)
+    return out
 
 
 async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float, timeout: float) -> Level:
@@ -164,6 +172,12 @@ async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float,
                     lvl.error_kinds[name] = lvl.error_kinds.get(name, 0) + 1
                     continue
                 dt = (time.perf_counter() - t0) * 1000.0
+                if r.status_code == 503:
+                    # shed by the server: a well-behaved client waits as told
+                    lvl.shed += 1
+                    wait = float(r.headers.get("retry-after", "1"))
+                    await asyncio.sleep(max(0.0, min(wait, stop - time.perf_counter())))
+                    continue
                 if r.status_code != 200:
                     lvl.errors += 1
                     lvl.error_kinds[str(r.status_code)] = lvl.error_kinds.get(str(r.status_code), 0) + 1
@@ -171,9 +185,10 @@ async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float,
                 lvl.latencies_ms.append(dt)
                 st = r.json()["status"]
                 lvl.statuses[st] = lvl.statuses.get(st, 0) + 1
-                loc = _server_timing(r.headers.get("server-timing"))
-                if loc is not None:
-                    lvl.localize_ms.append(loc)
+                timing = _server_timing(r.headers.get("server-timing"))
+                if "localize" in timing:
+                    lvl.localize_ms.append(timing["localize"])
+                    lvl.queue_ms.append(timing.get("queue", 0.0))
 
         cpu0, t0 = time.process_time(), time.perf_counter()
         await asyncio.gather(*(worker(k) for k in range(c)))
@@ -183,6 +198,24 @@ async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float,
     return lvl
 
 
+def _cpu_by_process(pid: int) -> dict[int, float]:
+    """User + system CPU seconds of a process and each of its descendants."""
+    import psutil
+
+    out = {}
+    try:
+        root = psutil.Process(pid)
+        for p in [root, *root.children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+                out[p.pid] = t.user + t.system
+            except psutil.Error:
+                pass
+    except psutil.Error:
+        pass
+    return out
+
+
 def warm_up(base_url: str, bodies: list[bytes], workers: int) -> None:
     """Every server process builds its map index before timing starts."""
     asyncio.run(run_level(base_url, bodies, max(4, 4 * workers), 3.0 + workers, 60.0))
@@ -190,9 +223,10 @@ def warm_up(base_url: str, bodies: list[bytes], workers: int) -> None:
 
 def print_levels(levels: list[Level], workers: int) -> None:
     print(f"\n  {'clients':>7s} {'req/s':>7s} {'p50 ms':>7s} {'p90 ms':>7s} {'p99 ms':>7s} {'errors':>6s} "
-          f"{'localizer p50 ms':>16s} {'client CPU':>10s} {'load 1m':>7s}  notes")  # fmt: skip
+          f"{'503 shed':>8s} {'localizer p50 ms':>16s} {'thread wait p50':>15s} {'client CPU':>10s} "
+          f"{'server CPU s':>12s} {'load 1m':>7s}  notes")  # fmt: skip
     best = 0.0
-    first_error = None
+    first_error = first_shed = None
     saturated = None
     for k, lv in enumerate(levels):
         notes = []
@@ -201,20 +235,28 @@ def print_levels(levels: list[Level], workers: int) -> None:
             notes.append(f"ERRORS START {lv.error_kinds}")
         elif lv.errors:
             notes.append(str(lv.error_kinds))
+        if lv.shed and first_shed is None:
+            first_shed = lv.concurrency
+            notes.append("503 load shedding starts")
         if k and saturated is None and lv.rps < 1.05 * max(x.rps for x in levels[:k]):
             saturated = lv.concurrency
             notes.append("saturated (throughput no longer grows)")
-        if lv.pct(99) <= TARGET_P99_MS and not lv.errors:
+        if lv.pct(99) <= TARGET_P99_MS and not lv.errors and not lv.shed:
             best = max(best, lv.rps)
         loc = float(np.median(lv.localize_ms)) if lv.localize_ms else float("nan")
+        wait = float(np.median(lv.queue_ms)) if lv.queue_ms else float("nan")
         print(f"  {lv.concurrency:7d} {lv.rps:7.1f} {lv.pct(50):7.1f} {lv.pct(90):7.1f} {lv.pct(99):7.1f} "
-              f"{lv.errors:6d} {loc:16.1f} {100 * lv.client_cpu:9.0f}% {lv.load[0]:7.2f}  {'; '.join(notes)}")  # fmt: skip
+              f"{lv.errors:6d} {lv.shed:8d} {loc:16.1f} {wait:15.1f} {100 * lv.client_cpu:9.0f}% "
+              f"{'+'.join(f'{x:.1f}' for x in lv.server_cpu[:workers]):>12s} "
+              f"{lv.load[0]:7.2f}  {'; '.join(notes)}")  # fmt: skip
     statuses: dict[str, int] = {}
     for lv in levels:
         for s, n in lv.statuses.items():
             statuses[s] = statuses.get(s, 0) + n
     print(f"  answers: {statuses}")
-    print(f"  errors: {'none at any level' if first_error is None else f'from {first_error} clients on'}")
+    print(f"  errors (timeouts, resets, 4xx/5xx other than 503): "
+          f"{'none at any level' if first_error is None else f'from {first_error} clients on'}; "
+          f"503 load shedding: {'never' if first_shed is None else f'from {first_shed} clients on'}")
     verdict = "MET" if best >= TARGET_RPS else "NOT MET"
     print(f"  best throughput with p99 <= {TARGET_P99_MS:.0f} ms and no errors: {best:.1f} req/s "
           f"(target {TARGET_RPS:.0f}: {verdict}); peak {max(lv.rps for lv in levels):.1f} req/s "
@@ -270,8 +312,11 @@ def main() -> None:
             warm_up(server.base_url, bodies, workers)
             levels = []
             for c in args.levels:
+                before = _cpu_by_process(server.proc.pid)
                 levels.append(asyncio.run(run_level(server.base_url, bodies, c, args.duration, args.timeout)))
                 lv = levels[-1]
+                after = _cpu_by_process(server.proc.pid)
+                lv.server_cpu = sorted((after[p] - before.get(p, 0.0) for p in after), reverse=True)
                 print(f"    {c} clients: {lv.rps:.1f} req/s, p99 {lv.pct(99):.1f} ms, {lv.errors} errors",
                       file=sys.stderr, flush=True)  # fmt: skip
             print_levels(levels, workers)
