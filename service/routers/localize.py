@@ -7,9 +7,9 @@ import math
 import time
 from typing import Literal
 
+import anyio
 import numpy as np
 from fastapi import APIRouter, Depends
-from fastapi.concurrency import run_in_threadpool
 from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
@@ -25,6 +25,11 @@ router = APIRouter(tags=["Localization"], dependencies=[Depends(require_read)])
 
 #: Largest |x|, |y| of an observation, metres (a camera sees tens of metres).
 MAX_RANGE_M = 1000.0
+#: Localizations computed at once per server process. They are CPU-bound Python:
+#: more threads only share the GIL, and starve the event loop that parses
+#: requests and sends answers (measured: answers took seconds at 64 clients).
+#: Cores are used by running several server processes (``--workers``).
+LOCALIZE_THREADS = 1
 
 
 class GpsIn(BaseModel):
@@ -103,9 +108,12 @@ async def localize_vehicle(
     if cap and ctx.localize_pending >= cap:
         raise Problem(503, f"the server is busy: {ctx.localize_pending} localizations are pending; "
                       "retry shortly", "busy", headers={"Retry-After": "1"})  # fmt: skip
+    if ctx.localize_limiter is None:
+        ctx.localize_limiter = anyio.CapacityLimiter(LOCALIZE_THREADS)
     ctx.localize_pending += 1
     try:
-        return await run_in_threadpool(_localize, ctx, mapId, body, time.perf_counter())
+        return await anyio.to_thread.run_sync(_localize, ctx, mapId, body, time.perf_counter(),
+                                              limiter=ctx.localize_limiter)  # fmt: skip
     finally:
         ctx.localize_pending -= 1
 
