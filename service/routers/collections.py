@@ -361,8 +361,7 @@ def create_item(
     info = ctx.store.get_map(mapId)
     m = marking_from_feature(feature, info.crs, default_source="manual")
     res = _single(ctx, mapId, Change("create", marking=m), who, False)
-    created = ctx.store.get_marking(mapId, res.results[0]["id"])
-    return _feature_response(created, request, mapId, 201, location=True)
+    return _feature_response(res.markings[res.results[0]["id"]], request, mapId, 201, location=True)
 
 
 @router.put(
@@ -391,12 +390,12 @@ def replace_item(
         return _feature_response(current, request, mapId)
     version = expected if expected is not None else current.version
     try:
-        _single(ctx, mapId, Change("update", id=marking_id, version=version, fields=fields), who,
-                expected is not None)  # fmt: skip
+        res = _single(ctx, mapId, Change("update", id=marking_id, version=version, fields=fields), who,
+                      expected is not None)  # fmt: skip
     except ConflictError:
         raise Problem(409, f"feature {marking_id} changed while it was being replaced; retry",
                       "conflict", conflicting_ids=[str(marking_id)]) from None  # fmt: skip
-    return _feature_response(ctx.store.get_marking(mapId, marking_id), request, mapId)
+    return _feature_response(res.markings[marking_id], request, mapId)
 
 
 @router.patch(
@@ -426,11 +425,12 @@ def patch_item(
         if not fields:
             return _feature_response(current, request, mapId)
         try:
-            _single(ctx, mapId, Change("update", id=marking_id, version=current.version, fields=fields),
-                    who, expected is not None)  # fmt: skip
+            res = _single(ctx, mapId, Change("update", id=marking_id, version=current.version, fields=fields),
+                          who, expected is not None)  # fmt: skip
         except ConflictError:
             continue  # changed between our read and write: merge again on the new version
-        return _feature_response(ctx.store.get_marking(mapId, marking_id), request, mapId)
+        # The answer (body and ETag) is this write's result; a re-read could show a later one.
+        return _feature_response(res.markings[marking_id], request, mapId)
     raise Problem(409, f"feature {marking_id} keeps changing; retry", "conflict",
                   conflicting_ids=[str(marking_id)])  # fmt: skip
 
