@@ -202,6 +202,9 @@ class Change:
 class ChangesetResult:
     changeset_id: int
     results: list[dict[str, Any]]  # {"op", "id", "version"} per change, in order
+    #: The markings as this changeset wrote them (created and updated ones), by id. A later
+    #: read may already show another writer's change; answers about this write use these.
+    markings: dict[int, Marking] = field(default_factory=dict)
 
 
 @dataclass
@@ -839,7 +842,7 @@ class Store:
                     reverts=reverts,
                 )
             ).inserted_primary_key[0]  # fmt: skip
-            results, xs, ys, log_rows = [], [], [], []
+            results, xs, ys, log_rows, written = [], [], [], [], {}
             for i, c in enumerate(changes):
                 try:
                     res, before, after = self._apply_one(conn, map_id, crs, c, current, now)
@@ -847,6 +850,8 @@ class Store:
                     raise InvalidMarkingError(f"change {i} ({c.op}): {exc}") from None
                 results.append(res)
                 if after is not None:
+                    written[res["id"]] = _marking_from_json(after)
+                    written[res["id"]].id, written[res["id"]].version = res["id"], res["version"]
                     xs.append(after["x"])
                     ys.append(after["y"])
                 log_rows.append(
@@ -857,7 +862,7 @@ class Store:
                 )  # fmt: skip
             conn.execute(insert(edits), log_rows)
             self._touch_map(conn, map_id, xs, ys)
-        return ChangesetResult(changeset_id=cs_id, results=results)
+        return ChangesetResult(changeset_id=cs_id, results=results, markings=written)
 
     def _apply_one(self, conn, map_id, crs, c: Change, current, now):
         if c.op == "create":

@@ -107,6 +107,9 @@ def create_app(
     )
     app.state.ctx = ctx
     problems.install(app)
+    from .openapi import document_problems
+
+    document_problems(app)
 
     from .routers import changesets, collections, health, imagery, jobs, landing, localize
 

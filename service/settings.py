@@ -13,6 +13,7 @@ import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
+from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from mapbuilder.settings import Settings as StoreSettings
@@ -46,6 +47,12 @@ class ServiceSettings(BaseSettings):
         Page sizes of ``/collections/{mapId}/items``.
     max_observations : int
         Most observations one localization request may carry.
+    localize_max_pending : int
+        Localizations one server process takes on at once, running or waiting
+        for a thread; beyond that it answers 503 with ``Retry-After`` at once
+        instead of queueing (a vehicle is better served by a quick refusal
+        than by a pose seconds old). At about 20 ms per localization, 8 pending
+        mean up to about 160 ms of waiting per process. 0: no limit.
     build_workers : int
         Build jobs that run at the same time (each in its own process).
     dask_scheduler : str
@@ -69,6 +76,7 @@ class ServiceSettings(BaseSettings):
     items_default_limit: int = 100
     items_max_limit: int = 10_000
     max_observations: int = 500
+    localize_max_pending: int = Field(8, ge=0)
     build_workers: int = 1
     dask_scheduler: str = ""
     dask_timeout_s: float = 20.0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -123,22 +124,55 @@ def test_limits_read_tokens_and_cors(strict):
     assert c.get("/collections", headers=strict.auth).status_code == 200  # still serving
 
 
-def test_schemathesis_finds_no_server_error(api, tmp_path):
-    """Property-based requests from the OpenAPI document: no 5xx anywhere."""
+#: Every response must be documented: status, content type, headers and body schema.
+SCHEMATHESIS_CHECKS = ("not_a_server_error,status_code_conformance,content_type_conformance,"
+                       "response_headers_conformance,response_schema_conformance")
+
+
+def tiny_geotiff(path, crs: str = "EPSG:25832") -> bytes:
+    """A 64 x 64 RGB GeoTIFF at 10 cm near the Karlsruhe test features."""
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+
+    with rasterio.open(path, "w", driver="GTiff", width=64, height=64, count=3, dtype="uint8", crs=crs,
+                       transform=from_origin(457900.0, 5428000.0, 0.1, 0.1)) as ds:  # fmt: skip
+        ds.write(np.random.default_rng(0).integers(0, 255, (3, 64, 64), dtype=np.uint8))
+    return path.read_bytes()
+
+
+def test_schemathesis_finds_no_server_error_or_undocumented_answer(api, tmp_path):
+    """Property-based requests over every operation of the OpenAPI document, with a write token.
+
+    Every identifier in a path names a real object of one map (features, a
+    changeset, an edit, imagery, a build job), so that reads and writes get past
+    404 to the code behind them. No answer may be a 5xx, and every answer must
+    match the document: status code, content type, headers and body schema.
+    """
     map_id = api.new_map()
     with api.client(headers=api.auth) as c:
         fid = c.post(f"/collections/{map_id}/items", json=feature(8.428, 49.0071)).json()["id"]
-        c.post(f"/collections/{map_id}/items", json=feature(8.4281, 49.0071))
+        other = c.post(f"/collections/{map_id}/items", json=feature(8.4281, 49.0071)).json()["id"]
+        cs = c.post(f"/collections/{map_id}/changesets", json={"comment": "fuzz", "changes": [
+            {"op": "update", "id": other, "patch": {"properties": {"status": "accepted"}}}]})  # fmt: skip
+        assert cs.status_code == 201, cs.text
+        edit = c.get(f"/collections/{map_id}/history", params={"limit": 1}).json()["edits"][0]["id"]
+        img = c.post(f"/collections/{map_id}/imagery", content=tiny_geotiff(tmp_path / "tiny.tif"),
+                     headers={"Content-Type": "image/tiff"})  # fmt: skip
+        assert img.status_code == 201, img.text
+        job = c.post(f"/collections/{map_id}/builds", json={"imagery": img.json()["id"]})
+        assert job.status_code == 202, job.text
     config = tmp_path / "schemathesis.toml"
     config.write_text(
         f'[parameters]\n"path.mapId" = "{map_id}"\n"path.featureId" = "{fid}"\n'
-        '"path.changesetId" = "1"\n"path.editId" = "1"\n"path.jobId" = "1"\n'
+        f'"path.changesetId" = "{cs.json()["changeset"]}"\n"path.editId" = "{edit}"\n'
+        f'"path.imageryId" = "{img.json()["id"]}"\n"path.jobId" = "{job.json()["jobID"]}"\n'
         '\n[[operations]]\ninclude-path = "/collections/{mapId}"\ninclude-method = "DELETE"\n'
         'parameters = { "path.mapId" = "not-this-one" }\n'
     )
     cmd = [
         sys.executable, "-m", "schemathesis.cli", "--config-file", str(config), "run",
-        f"{api.base_url}/openapi.json", "--checks", "not_a_server_error", "--max-examples", "25",
+        f"{api.base_url}/openapi.json", "--checks", SCHEMATHESIS_CHECKS, "--max-examples", "20",
         "--seed", "20261122", "--workers", "2", "--no-color", "--request-timeout", "30",
         "-H", f"Authorization: Bearer {api.token}",
     ]  # fmt: skip
@@ -146,5 +180,29 @@ def test_schemathesis_finds_no_server_error(api, tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=400, cwd=tmp_path, env=env)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-6000:]
+    selected = re.search(r"Selected: (\d+)/(\d+)", out)
+    assert selected and selected[1] == selected[2], out[-3000:]  # every operation of the document
+    assert re.search(rf"Tested: {selected[1]}\b", out), out[-3000:]
     assert "passed" in out and "Server error" not in out
     assert "Traceback" not in api.log()
+
+
+def test_openapi_documents_problem_answers(api):
+    """Errors are documented as problem+json, with the statuses each operation can answer."""
+    spec = httpx.get(f"{api.base_url}/openapi.json").json()
+    assert "HTTPValidationError" not in spec["components"]["schemas"]
+    ops = [(path, m, op) for path, item in spec["paths"].items() for m, op in item.items()]
+    assert len(ops) >= 30
+    for path, method, op in ops:
+        codes = set(op["responses"])
+        assert {"400", "401", "404", "422", "503"} <= codes, (method, path)
+        for code in codes - {"200", "201", "202", "204"}:
+            assert list(op["responses"][code]["content"]) == [PROBLEM], (method, path, code)
+    patch = spec["paths"]["/collections/{mapId}/items/{featureId}"]["patch"]["responses"]
+    assert {"409", "412", "413", "415"} <= set(patch)
+    assert "application/geo+json" in patch["200"]["content"]
+    assert "412" not in spec["paths"]["/collections/{mapId}/changesets"]["post"]["responses"]
+    # and the document tells the truth: a validation error is such a problem
+    r = httpx.get(f"{api.base_url}/collections/x/history", params={"limit": 0})
+    assert r.status_code == 422 and r.headers["content-type"] == PROBLEM
+    assert {"type", "title", "status", "detail"} <= set(r.json())

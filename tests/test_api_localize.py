@@ -146,3 +146,60 @@ def test_localize_needs_a_map_with_markings(api):
     r = httpx.post(f"{api.base_url}/collections/{empty}/localize", content=nan,
                    headers={"Content-Type": "application/json"})  # fmt: skip
     assert_problem(r, 400, "NaN")
+
+
+def test_server_timing_splits_the_localizer_from_the_request(api, kmap):
+    """``Server-Timing`` tells load tests how long the map index and the localizer took."""
+    map_id, feats = kmap
+    p, lon, lat, heading, obs = scene(feats, 400)
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize",
+                   json={"gps": gps_near(p, heading), "observations": obs}, timeout=60)  # fmt: skip
+    assert r.status_code == 200
+    parts = dict(part.strip().split(";dur=") for part in r.headers["server-timing"].split(","))
+    assert set(parts) == {"queue", "index", "localize"}
+    assert 0 < float(parts["localize"]) < r.elapsed.total_seconds() * 1000
+    assert float(parts["index"]) >= 0 and float(parts["queue"]) >= 0
+
+
+def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: F811
+    """Beyond LANEMAP_LOCALIZE_MAX_PENDING a server answers 503 problems at once, then recovers."""
+    import threading
+
+    from tests._api_helpers import start_server
+
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                          env={"LANEMAP_LOCALIZE_MAX_PENDING": "1"})  # fmt: skip
+    try:
+        map_id = server.new_map()
+        r = httpx.post(f"{server.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=server.auth,
+                       timeout=60)  # fmt: skip
+        assert r.status_code == 201
+        feats = httpx.get(f"{server.base_url}/collections/{map_id}/items?limit=10000").json()["features"]
+        p, lon, lat, heading, obs = scene(feats, 400)
+        # a wide prior makes each localization long enough to overlap the others
+        body = {"gps": {**gps_near(p, heading), "position_sigma_m": 30.0, "heading_sigma_deg": 45.0},
+                "observations": obs}  # fmt: skip
+        url = f"{server.base_url}/collections/{map_id}/localize"
+        answers: list[httpx.Response] = []
+        barrier = threading.Barrier(8)
+
+        def one():
+            barrier.wait()
+            answers.append(httpx.post(url, json=body, timeout=60))
+
+        threads = [threading.Thread(target=one) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        codes = sorted(a.status_code for a in answers)
+        assert 200 in codes and 503 in codes and set(codes) == {200, 503}, codes
+        busy = next(a for a in answers if a.status_code == 503)
+        assert_problem(busy, 503, "busy")
+        assert busy.headers["retry-after"] == "1"
+        # nothing stays counted: one at a time is always served
+        for _ in range(3):
+            assert httpx.post(url, json=body, timeout=60).status_code == 200
+        assert "Traceback" not in server.log()
+    finally:
+        server.stop()

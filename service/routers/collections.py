@@ -288,13 +288,15 @@ def get_item(request: Request, mapId: str = MapId, featureId: str = FeatureId, c
     return _feature_response(m, request, mapId)
 
 
-@router.options("/collections/{mapId}/items", tags=["Features"], summary="Methods allowed on the items")
+@router.options("/collections/{mapId}/items", tags=["Features"], summary="Methods allowed on the items",
+                status_code=204)  # fmt: skip
 def options_items(mapId: str = MapId, ctx: Context = Depends(get_ctx)):
     ctx.store.get_map(mapId)
     return Response(status_code=204, headers={"Allow": COLLECTION_ALLOW})
 
 
-@router.options("/collections/{mapId}/items/{featureId}", tags=["Features"], summary="Methods allowed on a marking")
+@router.options("/collections/{mapId}/items/{featureId}", tags=["Features"], summary="Methods allowed on a marking",
+                status_code=204)  # fmt: skip
 def options_item(mapId: str = MapId, featureId: str = FeatureId, ctx: Context = Depends(get_ctx)):
     ctx.store.get_marking(mapId, parse_id(featureId))
     return Response(status_code=204, headers={"Allow": ITEM_ALLOW})
@@ -310,6 +312,10 @@ _PATCH_BODY = {"requestBody": {"required": True, "content": {
                                      "example": {"properties": {"status": "accepted"}}},
     JSON: {"schema": {"type": "object"}},
 }}}  # fmt: skip
+
+
+#: A marking written by PUT/PATCH/POST is answered as a GeoJSON Feature with its ETag.
+_FEATURE_OUT = {"content": {GEOJSON: {}}, "headers": {"ETag": {"schema": {"type": "string"}}}}
 
 
 def _single(ctx: Context, map_id: str, change: Change, who: str, if_match: bool):
@@ -343,7 +349,7 @@ def _expected_version(ctx: Context, map_id: str, marking_id: int, header: str | 
 
 @router.post(
     "/collections/{mapId}/items", tags=["Features"], summary="Add a marking", status_code=201,
-    openapi_extra=_FEATURE_BODY,
+    openapi_extra=_FEATURE_BODY, responses={201: _FEATURE_OUT},
 )  # fmt: skip
 def create_item(
     request: Request,
@@ -355,13 +361,12 @@ def create_item(
     info = ctx.store.get_map(mapId)
     m = marking_from_feature(feature, info.crs, default_source="manual")
     res = _single(ctx, mapId, Change("create", marking=m), who, False)
-    created = ctx.store.get_marking(mapId, res.results[0]["id"])
-    return _feature_response(created, request, mapId, 201, location=True)
+    return _feature_response(res.markings[res.results[0]["id"]], request, mapId, 201, location=True)
 
 
 @router.put(
     "/collections/{mapId}/items/{featureId}", tags=["Features"], summary="Replace a marking",
-    openapi_extra=_FEATURE_BODY,
+    openapi_extra=_FEATURE_BODY, responses={200: _FEATURE_OUT},
 )  # fmt: skip
 def replace_item(
     request: Request,
@@ -385,18 +390,18 @@ def replace_item(
         return _feature_response(current, request, mapId)
     version = expected if expected is not None else current.version
     try:
-        _single(ctx, mapId, Change("update", id=marking_id, version=version, fields=fields), who,
-                expected is not None)  # fmt: skip
+        res = _single(ctx, mapId, Change("update", id=marking_id, version=version, fields=fields), who,
+                      expected is not None)  # fmt: skip
     except ConflictError:
         raise Problem(409, f"feature {marking_id} changed while it was being replaced; retry",
                       "conflict", conflicting_ids=[str(marking_id)]) from None  # fmt: skip
-    return _feature_response(ctx.store.get_marking(mapId, marking_id), request, mapId)
+    return _feature_response(res.markings[marking_id], request, mapId)
 
 
 @router.patch(
     "/collections/{mapId}/items/{featureId}", tags=["Features"],
     summary="Change a marking with a JSON merge patch (RFC 7396) of its feature",
-    openapi_extra=_PATCH_BODY,
+    openapi_extra=_PATCH_BODY, responses={200: _FEATURE_OUT},
 )  # fmt: skip
 def patch_item(
     request: Request,
@@ -420,11 +425,12 @@ def patch_item(
         if not fields:
             return _feature_response(current, request, mapId)
         try:
-            _single(ctx, mapId, Change("update", id=marking_id, version=current.version, fields=fields),
-                    who, expected is not None)  # fmt: skip
+            res = _single(ctx, mapId, Change("update", id=marking_id, version=current.version, fields=fields),
+                          who, expected is not None)  # fmt: skip
         except ConflictError:
             continue  # changed between our read and write: merge again on the new version
-        return _feature_response(ctx.store.get_marking(mapId, marking_id), request, mapId)
+        # The answer (body and ETag) is this write's result; a re-read could show a later one.
+        return _feature_response(res.markings[marking_id], request, mapId)
     raise Problem(409, f"feature {marking_id} keeps changing; retry", "conflict",
                   conflicting_ids=[str(marking_id)])  # fmt: skip
 
