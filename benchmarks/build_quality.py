@@ -213,19 +213,26 @@ def main() -> None:
     ap.add_argument("--link", type=float, default=ClusterParams.link_m)
     ap.add_argument("--threshold-low", type=float, default=ClusterParams.threshold_low)
     ap.add_argument("--join-gap", type=float, default=ClusterParams.join_gap_m)
+    ap.add_argument("--verify-threshold", type=float, default=ClusterParams.verify_threshold)
+    ap.add_argument("--verify", action="store_true",
+                    help="check clusters with the cluster verifier (ClusterParams.verify)")
+    ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
+    ap.add_argument("--usgs-only", action="store_true")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
                             min_area_m2=args.min_area, link_m=args.link,
-                            threshold_low=args.threshold_low, join_gap_m=args.join_gap)
-    params = BuildParams(model=args.model, cluster=cluster)
+                            threshold_low=args.threshold_low, join_gap_m=args.join_gap,
+                            verify=args.verify, verify_threshold=args.verify_threshold)
+    params = BuildParams(model=args.model, cluster=cluster, verifier=args.verifier)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}
     errors, cross, per_scene = [], [], []
     t_build = 0.0
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(f"sqlite:///{tmp}/quality.sqlite")
-        for i, (name, scene) in enumerate(heldout_scenes(args.n, args.size, args.seed)):
+        for i, (name, scene) in enumerate(heldout_scenes(0 if args.usgs_only else args.n,
+                                                         args.size, args.seed)):
             tif = Path(tmp) / f"{name}.tif"
             r = render(scene, tif, 0.1, seed=args.seed + 100 + i,
                        jpeg_quality=85 if i % 2 else None)

@@ -75,12 +75,16 @@ class BuildParams:
         picklable to run in worker processes).
     cluster : ClusterParams
         Thresholding, clustering, splitting and filtering.
+    verifier : str or None
+        ONNX cluster verifier (:class:`mapbuilder.classify.ClusterVerifier`);
+        None uses the one shipped with lanemap. Used when ``cluster.verify``.
     """
 
     tile_px: int = 1024
     halo_m: float = 4.0
     model: Any = None
     cluster: ClusterParams = field(default_factory=ClusterParams)
+    verifier: str | None = None
 
     def __post_init__(self):
         if self.tile_px < 64:
@@ -95,6 +99,11 @@ class BuildParams:
             if not path.is_file():
                 raise BuildError(f"model file not found: {path}")
             object.__setattr__(self, "model", str(path.resolve()))
+        if self.verifier is not None:
+            path = Path(self.verifier)
+            if not path.is_file():
+                raise BuildError(f"verifier file not found: {path}")
+            object.__setattr__(self, "verifier", str(path.resolve()))
 
     def halo_px(self, resolution_m: float) -> int:
         return int(math.ceil(self.halo_m / resolution_m))
@@ -109,6 +118,7 @@ class BuildParams:
             "halo_m": self.halo_m,
             "model": model,
             "cluster": asdict(self.cluster),
+            "verifier": self.verifier if self.cluster.verify else None,
         }
 
 
@@ -123,6 +133,7 @@ class TileTask:
     read: tuple[int, int, int, int]
     model: Any
     cluster: ClusterParams
+    verifier: str | None = None
 
     @property
     def megapixels(self) -> float:
@@ -246,6 +257,15 @@ def _model(spec):
     return model
 
 
+def _verifier(cluster: ClusterParams, path: str | None):
+    """The cluster verifier of a build, or None when verification is off."""
+    if not cluster.verify:
+        return None
+    from .classify import load_verifier
+
+    return load_verifier(path)
+
+
 def _check_model(spec) -> None:
     """Load a model file once and let it go: the workers load their own."""
     if spec is not None and not isinstance(spec, (str, os.PathLike)):
@@ -294,17 +314,22 @@ def detect_window(
     resolution_m: float,
     model,
     cluster: ClusterParams | None = None,
+    verifier: str | None = None,
 ) -> tuple[Clusters, np.ndarray]:
-    """Classify and cluster one window already in memory.
+    """Classify, cluster and verify one window already in memory.
 
     Returns the measured clusters (grid bearings, window pixel coordinates)
-    and the probability image.
+    and the probability image. ``verifier`` is a verifier file (None: the
+    default one), used when ``cluster.verify``.
     """
+    cluster = cluster or ClusterParams()
     if valid.any():
         prob = np.asarray(model.predict(rgb, valid, resolution_m), dtype=np.float32)
     else:
         prob = np.zeros(valid.shape, np.float32)
-    return detect_markings(prob, valid, transform, cluster or ClusterParams()), prob
+    clusters = detect_markings(prob, valid, transform, cluster, rgb=rgb,
+                               verifier=_verifier(cluster, verifier))
+    return clusters, prob
 
 
 def process_tile(task: TileTask) -> TileResult:
@@ -328,7 +353,8 @@ def process_tile(task: TileTask) -> TileResult:
         prob = np.zeros(valid.shape, np.float32)
     t2 = time.perf_counter()
     transform = window_transform(window, task.grid.affine)
-    clusters = detect_markings(prob, valid, transform, task.cluster)
+    clusters = detect_markings(prob, valid, transform, task.cluster, rgb=rgb,
+                               verifier=_verifier(task.cluster, task.verifier))
     c0, r0, w, h = task.core
     col = clusters.col + task.read[0]
     row = clusters.row + task.read[1]
@@ -365,6 +391,7 @@ def plan_image(path: str | Path, storage_crs: str, params: BuildParams) -> Image
             read=t.read,
             model=params.model,
             cluster=params.cluster,
+            verifier=params.verifier,
         )
         for t in tiles
     ]
@@ -598,6 +625,7 @@ def build_map(
         _model(params.model)
     else:
         _check_model(params.model)
+    _verifier(params.cluster, params.verifier)
     crs = _ensure_map(store, map_id, paths[0], title)
     plans = [plan_image(p, crs, params) for p in paths]
     for plan in plans:
