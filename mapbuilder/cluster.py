@@ -498,33 +498,37 @@ def join_collinear(
     diff = np.abs(c.bearing_deg[a] - c.bearing_deg[b]) % 180.0
     ok = np.minimum(diff, 180.0 - diff) <= angle_deg
     i, j, a, b = i[ok], j[ok], a[ok], b[ok]
-    parent = np.arange(len(c))
-
-    def find(k):
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for ei, ej, ca, cb in zip(i, j, a, b):
-        pa, pb = ends[ei], ends[ej]
-        # Each end must face the other cluster: it is the end nearer to it.
-        far_a = ends[ei + len(idx) if ei < len(idx) else ei - len(idx)]
-        far_b = ends[ej + len(idx) if ej < len(idx) else ej - len(idx)]
-        gap = np.hypot(*(pa - pb))
-        if np.hypot(*(far_a - pb)) < gap or np.hypot(*(far_b - pa)) < gap:
-            continue
-        ua = (pa - far_a) / max(np.hypot(*(pa - far_a)), 1e-9)
-        ub = (pb - far_b) / max(np.hypot(*(pb - far_b)), 1e-9)
-        d = pb - pa
-        along = float(d @ ua)
-        side_a = abs(float(d @ np.array([-ua[1], ua[0]])))
-        side_b = abs(float(d @ np.array([-ub[1], ub[0]])))
-        if -offset_m <= along <= gap_m and side_a <= offset_m and side_b <= offset_m:
-            parent[find(ca)] = find(cb)
-    roots = np.array([find(k) for k in range(len(c))])
-    if np.all(roots == np.arange(len(c))):
+    if len(i) == 0:
         return lab
+    # Each end must face the other cluster: it is the end nearer to it.
+    m = len(idx)
+    pa, pb = ends[i], ends[j]
+    far_a = ends[np.where(i < m, i + m, i - m)]
+    far_b = ends[np.where(j < m, j + m, j - m)]
+    gap = np.hypot(*(pa - pb).T)
+    facing = (np.hypot(*(far_a - pb).T) >= gap) & (np.hypot(*(far_b - pa).T) >= gap)
+    ua = pa - far_a
+    ua /= np.maximum(np.hypot(*ua.T), 1e-9)[:, None]
+    ub = pb - far_b
+    ub /= np.maximum(np.hypot(*ub.T), 1e-9)[:, None]
+    d = pb - pa
+    along = d[:, 0] * ua[:, 0] + d[:, 1] * ua[:, 1]
+    side_a = np.abs(d[:, 1] * ua[:, 0] - d[:, 0] * ua[:, 1])
+    side_b = np.abs(d[:, 1] * ub[:, 0] - d[:, 0] * ub[:, 1])
+    join = facing & (along >= -offset_m) & (along <= gap_m) & (side_a <= offset_m) \
+        & (side_b <= offset_m)
+    if not join.any():
+        return lab
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(c)
+    graph = coo_matrix((np.ones(int(join.sum()), np.int8), (a[join], b[join])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    # every cluster takes the label of the first cluster of its group
+    first = np.full(comp.max() + 1, n, np.int64)
+    np.minimum.at(first, comp, np.arange(n))
+    roots = first[comp]
     lut = np.zeros(int(lab.max()) + 1, np.int64)
     lut[ids] = ids[roots]
     return lut[lab]
