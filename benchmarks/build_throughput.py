@@ -128,7 +128,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mpx", type=float, default=400.0, help="image size, megapixels")
     ap.add_argument("--workers", type=int, default=os.cpu_count())
-    ap.add_argument("--tile-size", type=int, default=1024)
+    ap.add_argument("--tile-size", type=int, default=BuildParams.tile_px)
     ap.add_argument("--model", default=None, help="ONNX model (default: shipped model)")
     args = ap.parse_args()
 

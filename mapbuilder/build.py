@@ -63,7 +63,9 @@ class BuildParams:
     Attributes
     ----------
     tile_px : int
-        Core size of a tile, pixels.
+        Core size of a tile, pixels. 2048 rather than 1024 cuts the share of
+        halo pixels read and classified twice from 16 % to 8 % (4 m halo at
+        10 cm); a worker then peaks at about 0.4 GB.
     halo_m : float
         Halo read around every core, metres. It must exceed the longest piece
         a marking is cut into (``cluster.max_length_m * cluster.split_factor``)
@@ -80,7 +82,7 @@ class BuildParams:
         None uses the one shipped with lanemap. Used when ``cluster.verify``.
     """
 
-    tile_px: int = 1024
+    tile_px: int = 2048
     halo_m: float = 4.0
     model: Any = None
     cluster: ClusterParams = field(default_factory=ClusterParams)
@@ -656,8 +658,9 @@ def build_map(
     todo = [t for t in all_tasks if t.key not in done]
     skipped = len(all_tasks) - len(todo)
     n_exec = 1 if inline else max(1, workers)
-    # Runs long enough to share decoded blocks, short enough to keep every worker busy.
-    runs = group_runs(todo, max(1, min(MAX_RUN, len(todo) // (4 * n_exec))))
+    # Runs long enough to share decoded blocks, short enough to keep every worker
+    # busy to the end (at least 16 runs a worker: the last run is the idle tail).
+    runs = group_runs(todo, max(1, min(MAX_RUN, len(todo) // (16 * n_exec))))
     if dask_address:
         results = _run_dask(runs, dask_address, dask_timeout_s)
     elif inline or len(runs) <= 1:

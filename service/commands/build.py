@@ -29,7 +29,7 @@ def build(
     dask: Optional[str] = typer.Option(
         None, "--dask", help="Run tiles on this Dask scheduler (e.g. tcp://host:8786)."
     ),
-    tile_px: int = typer.Option(1024, "--tile-size", help="Tile core size, pixels."),
+    tile_px: int = typer.Option(2048, "--tile-size", help="Tile core size, pixels."),
     halo_m: float = typer.Option(4.0, "--halo", help="Halo around each tile, metres."),
     threshold: float = typer.Option(0.5, help="Marking probability threshold."),
     piece_m: float = typer.Option(
