@@ -152,6 +152,8 @@ class TileResult:
     seconds: float
     #: Seconds spent reading, classifying, and clustering + measuring.
     timings: dict[str, float] = field(default_factory=dict)
+    #: CPU seconds of the worker process on this tile (all its threads).
+    cpu_seconds: float = 0.0
 
 
 @dataclass
@@ -178,6 +180,9 @@ class BuildResult:
     resumed : bool
     timings : dict
         Seconds summed over this run's tiles: ``read``, ``classify``, ``cluster``.
+    cpu_seconds : float
+        CPU seconds the workers spent on this run's tiles; unlike wall time,
+        it hardly depends on what else the machine is running.
     """
 
     map_id: str
@@ -191,6 +196,7 @@ class BuildResult:
     seconds: float
     resumed: bool
     timings: dict[str, float] = field(default_factory=dict)
+    cpu_seconds: float = 0.0
 
     @property
     def mpx_per_s(self) -> float:
@@ -342,6 +348,7 @@ def process_tile(task: TileTask) -> TileResult:
     the core.
     """
     t0 = time.perf_counter()
+    c0 = time.process_time()
     _limit_gdal_cache()
     reader = _reader(task.path, task.grid)
     window = Window(*task.read)
@@ -364,7 +371,8 @@ def process_tile(task: TileTask) -> TileResult:
     markings = clusters_to_markings(clusters.take(own), task.grid.crs, task.key)
     t3 = time.perf_counter()
     timings = {"read": t1 - t0, "classify": t2 - t1, "cluster": t3 - t2}
-    return TileResult(task.key, markings, task.megapixels, t3 - t0, timings)
+    return TileResult(task.key, markings, task.megapixels, t3 - t0, timings,
+                      time.process_time() - c0)
 
 
 # --------------------------------------------------------------------------- planning
@@ -669,6 +677,7 @@ def build_map(
         results = _run_pool(runs, min(workers, len(runs)))
 
     n_markings = 0
+    cpu = 0.0
     timings: dict[str, float] = {}
     mpx = 0.0
     n_run = 0
@@ -687,6 +696,7 @@ def build_map(
             for result in results:
                 n_markings += store.replace_detected(map_id, result.key, result.markings, job_id)
                 mpx += result.megapixels
+                cpu += result.cpu_seconds
                 for k, v in result.timings.items():
                     timings[k] = timings.get(k, 0.0) + v
                 n_run += 1
@@ -720,6 +730,7 @@ def build_map(
         seconds=time.perf_counter() - t0,
         resumed=skipped > 0,
         timings=timings,
+        cpu_seconds=cpu,
     )
     log.info("%s", result.summary())
     return result
