@@ -348,7 +348,7 @@ def process_tile(task: TileTask) -> TileResult:
     the core.
     """
     t0 = time.perf_counter()
-    c0 = time.process_time()
+    cpu0 = time.process_time()
     _limit_gdal_cache()
     reader = _reader(task.path, task.grid)
     window = Window(*task.read)
@@ -372,7 +372,7 @@ def process_tile(task: TileTask) -> TileResult:
     t3 = time.perf_counter()
     timings = {"read": t1 - t0, "classify": t2 - t1, "cluster": t3 - t2}
     return TileResult(task.key, markings, task.megapixels, t3 - t0, timings,
-                      time.process_time() - c0)
+                      time.process_time() - cpu0)
 
 
 # --------------------------------------------------------------------------- planning

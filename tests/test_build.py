@@ -475,3 +475,13 @@ def test_verifier_drops_a_kerb_and_keeps_a_two_sided_line(tmp_path, sidewalk):
     # ... the verifier, seeing the sidewalk on one side, does not; the line stays whole
     assert kerb_checked == 0
     assert line_checked == line_plain
+
+
+def test_build_reports_worker_cpu_seconds(border_scene, tmp_path):
+    store = Store(f"sqlite:///{tmp_path / 'cpu.sqlite'}")
+    r = build_map(store, "m", [border_scene.path], BuildParams(tile_px=128, model=pipeline_model()),
+                  workers=1, progress=False)
+    # CPU seconds of the tiles: positive, and never more than their wall time plus a margin
+    # for threads (one here)
+    assert 0 < r.cpu_seconds <= 1.5 * sum(r.timings.values()) + 0.5
+    store.close()
