@@ -551,6 +551,17 @@ def fit_verifier(X: np.ndarray, y: np.ndarray, seed: int = 0, max_iter: int = 20
                  max_depth: int = 4):
     """Fit the cluster verifier: gradient-boosted trees on the context features.
 
+    Parameters
+    ----------
+    X : (N, F) float
+        :data:`mapbuilder.cluster.CONTEXT_FEATURES` of clusters.
+    y : (N,) bool
+        True for paint (:func:`cluster_labels`).
+    max_iter : int
+        Number of trees.
+    max_depth : int
+        Depth of each tree.
+
     Raises
     ------
     TrainingError
