@@ -19,11 +19,13 @@ the store and compared with the renderer's truth:
 
 The USGS crop (15 cm, real) is built in its three variants (plain, alpha,
 nodata): the figures are the detections on the stall lines and elsewhere.
-Overlays of detections on the imagery go to ``benchmarks/out/``.
+Overlays of detections on the imagery and the figures go to
+``benchmarks/out/build_quality*.{png,json}`` (``build_quality_verified*`` with
+``--verify``, which turns the cluster verifier on).
 
 Usage::
 
-    .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx]
+    .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx] [--verify]
 """
 
 from __future__ import annotations
@@ -171,7 +173,7 @@ def overlay(path_png: Path, image: Path, det, kinds, missed, title: str, window=
     plt.close(fig)
 
 
-def run_usgs(store: Store, params: BuildParams, workers: int) -> dict:
+def run_usgs(store: Store, params: BuildParams, workers: int, tag: str = "") -> dict:
     out = {}
     sx = np.array(USGS_STALLS_X)
     for name, path in USGS_VARIANTS.items():
@@ -193,7 +195,7 @@ def run_usgs(store: Store, params: BuildParams, workers: int) -> dict:
         }
         if name == "plain":
             kinds = np.array(["tp" if m in on_stall else "fp" for m in det], object)
-            overlay(OUT / "build_quality_usgs.png", path, det, kinds, [],
+            overlay(OUT / f"build_quality{tag}_usgs.png", path, det, kinds, [],
                     f"USGS crop 15 cm: {len(on_stall)} detections on stall lines, "
                     f"{len(det) - len(on_stall)} elsewhere")
     return out
@@ -213,19 +215,27 @@ def main() -> None:
     ap.add_argument("--link", type=float, default=ClusterParams.link_m)
     ap.add_argument("--threshold-low", type=float, default=ClusterParams.threshold_low)
     ap.add_argument("--join-gap", type=float, default=ClusterParams.join_gap_m)
+    ap.add_argument("--verify-threshold", type=float, default=ClusterParams.verify_threshold)
+    ap.add_argument("--verify", action="store_true",
+                    help="check clusters with the cluster verifier (ClusterParams.verify)")
+    ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
+    ap.add_argument("--usgs-only", action="store_true")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
+    tag = "_verified" if args.verify else ""
     cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
                             min_area_m2=args.min_area, link_m=args.link,
-                            threshold_low=args.threshold_low, join_gap_m=args.join_gap)
-    params = BuildParams(model=args.model, cluster=cluster)
+                            threshold_low=args.threshold_low, join_gap_m=args.join_gap,
+                            verify=args.verify, verify_threshold=args.verify_threshold)
+    params = BuildParams(model=args.model, cluster=cluster, verifier=args.verifier)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}
     errors, cross, per_scene = [], [], []
     t_build = 0.0
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(f"sqlite:///{tmp}/quality.sqlite")
-        for i, (name, scene) in enumerate(heldout_scenes(args.n, args.size, args.seed)):
+        for i, (name, scene) in enumerate(heldout_scenes(0 if args.usgs_only else args.n,
+                                                         args.size, args.seed)):
             tif = Path(tmp) / f"{name}.tif"
             r = render(scene, tif, 0.1, seed=args.seed + 100 + i,
                        jpeg_quality=85 if i % 2 else None)
@@ -245,13 +255,14 @@ def main() -> None:
             per_scene.append((name, s["n_det"], s["n_truth"], round(p, 3), round(rc, 3)))
             print(f"{name:>18}: {s['n_det']:4d} detections, {s['n_truth']:4d} true, "
                   f"precision {p:.3f}, recall {rc:.3f}")
-            overlay(OUT / f"build_quality_{name}.png", tif, s["_det"], s["_det_kind"],
+            overlay(OUT / f"build_quality{tag}_{name}.png", tif, s["_det"], s["_det_kind"],
                     s["_missed"], f"{name}, 10 cm")
-        usgs = run_usgs(store, params, args.workers)
+        usgs = run_usgs(store, params, args.workers, tag)
         store.close()
     errors, cross = np.array(errors), np.array(cross)
     figures = {
         "first_seed": args.seed,
+        "verify": args.verify,
         "cluster": vars(cluster) if hasattr(cluster, "__dict__") else str(cluster),
         "scenes": args.n,
         "scene_side_m": args.size,
@@ -273,7 +284,7 @@ def main() -> None:
     for name, u in usgs.items():
         print(f"  usgs {name:>6}: {u['stall_lines_found']} stall lines "
               f"({u['on_stall_lines']} detections), {u['elsewhere']} detections elsewhere")
-    (OUT / "build_quality.json").write_text(json.dumps(figures, indent=2))
+    (OUT / f"build_quality{tag}.json").write_text(json.dumps(figures, indent=2))
 
 
 if __name__ == "__main__":

@@ -9,7 +9,10 @@ procedural scene, then measures on the same file:
 
 It prints Mpx/s of both, their ratio, the markings found, the peak resident
 memory of the whole process tree during the build (parent + workers), and
-the machine load. Usage::
+the machine load. On a machine shared with other work the wall time depends
+on that work; the CPU seconds of the workers' tiles and of the parent do
+much less, and ``mpx_per_s_on_2_idle_cores`` is what they come to on two
+cores of its own (the parent's time included). Usage::
 
     .venv/bin/python benchmarks/build_throughput.py --mpx 400
 """
@@ -79,19 +82,20 @@ def make_mosaic(path: Path, mpx: float, resolution_m: float = 0.1) -> Path:
     return path
 
 
-def plain_read(path: Path, params: BuildParams) -> tuple[float, float]:
-    """Seconds and Mpx of reading every tile window (core + halo) once, one process."""
+def plain_read(path: Path, params: BuildParams) -> tuple[float, float, float]:
+    """Seconds, Mpx and CPU seconds of reading every tile window (core + halo) once, one process."""
     info = inspect_imagery(path)
     grid = info.grid
     tiles = tile_grid(grid.width, grid.height, params.tile_px, params.halo_px(grid.resolution_m))
     reader = make_reader(path, grid)
     t0 = time.perf_counter()
+    c0 = time.process_time()
     total = 0
     for t in tiles:
         rgb, valid = reader.read(t.read_window)
         total += int(valid.sum() > 0)
     reader.close()
-    return time.perf_counter() - t0, grid.width * grid.height / 1e6
+    return time.perf_counter() - t0, grid.width * grid.height / 1e6, time.process_time() - c0
 
 
 class TreeRSS:
@@ -128,7 +132,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mpx", type=float, default=400.0, help="image size, megapixels")
     ap.add_argument("--workers", type=int, default=os.cpu_count())
-    ap.add_argument("--tile-size", type=int, default=1024)
+    ap.add_argument("--tile-size", type=int, default=BuildParams.tile_px)
     ap.add_argument("--model", default=None, help="ONNX model (default: shipped model)")
     args = ap.parse_args()
 
@@ -142,11 +146,13 @@ def main() -> None:
     # In a child process, so that its memory does not count against the build.
     ctx = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx) as pool:
-        read_s, mpx = pool.submit(plain_read, image, params).result()
+        read_s, mpx, read_cpu = pool.submit(plain_read, image, params).result()
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(f"sqlite:///{tmp}/bench.sqlite")
         with TreeRSS() as rss:
+            pc0 = time.process_time()
             result = build_map(store, "bench", [image], params, workers=args.workers)
+            parent_cpu = time.process_time() - pc0
         store.close()
     load_after = os.getloadavg()
     figures = {
@@ -155,9 +161,17 @@ def main() -> None:
         "workers": args.workers,
         "plain_read_s": round(read_s, 2),
         "plain_read_mpx_per_s": round(mpx / read_s, 1),
+        "plain_read_cpu_s": round(read_cpu, 2),
         "build_s": round(result.seconds, 2),
         "build_mpx_per_s": round(result.mpx_per_s, 2),
         "build_to_read_time_ratio": round(result.seconds / read_s, 1),
+        # CPU time does not grow with the load of other work the way wall time does
+        "tile_cpu_s": round(result.cpu_seconds, 1),
+        "tile_cpu_s_per_mpx": round(result.cpu_seconds / mpx, 4),
+        "parent_cpu_s": round(parent_cpu, 1),
+        # all the CPU the build used (workers' tiles + the parent's store writes) over two cores
+        "mpx_per_s_on_2_idle_cores": round(
+            2 * mpx / max(result.cpu_seconds + parent_cpu, 1e-9), 2),
         "markings": result.markings,
         "tile_cpu_share": {k: round(v / max(sum(result.timings.values()), 1e-9), 3)
                            for k, v in result.timings.items()},

@@ -24,6 +24,9 @@ log = logging.getLogger(__name__)
 #: File name of the default model inside ``mapbuilder/data``.
 DEFAULT_MODEL = "marking_svm.onnx"
 
+#: File name of the default cluster verifier inside ``mapbuilder/data``.
+DEFAULT_VERIFIER = "cluster_verifier.onnx"
+
 
 class ModelError(ValueError):
     """A model file that cannot be loaded or does not fit lanemap's features."""
@@ -32,6 +35,93 @@ class ModelError(ValueError):
 def default_model_path() -> Path:
     """Path of the default model shipped with the package."""
     return Path(str(resources.files("mapbuilder") / "data" / DEFAULT_MODEL))
+
+
+def default_verifier_path() -> Path:
+    """Path of the default cluster verifier shipped with the package."""
+    return Path(str(resources.files("mapbuilder") / "data" / DEFAULT_VERIFIER))
+
+
+def _session(path: Path, threads: int):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), sess_options=opts,
+                                    providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        raise ModelError(f"cannot load model {path}: {exc}") from exc
+
+
+class ClusterVerifier:
+    """Accepts or rejects whole clusters from their shape and road-surface context.
+
+    The pixel classifier sees a few decimetres around a pixel; a kerb, the
+    rim of a white car roof and a painted line all look like thin bright
+    stripes there. The verifier sees a whole cluster: how straight it is and
+    what lies on either side along its length
+    (:func:`mapbuilder.cluster.context_features`).
+
+    Parameters
+    ----------
+    path : path
+        ONNX classifier taking ``features`` (N, F) float32 over
+        :data:`mapbuilder.cluster.CONTEXT_FEATURES` and returning class
+        probabilities (N, 2).
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1):
+        from .cluster import CONTEXT_FEATURES, CONTEXT_VERSION
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ModelError(f"verifier file {self.path} does not exist")
+        self._session = _session(self.path, threads)
+        meta = self._session.get_modelmeta().custom_metadata_map
+        self.metadata = dict(meta)
+        version = meta.get("lanemap.context_version")
+        if version != CONTEXT_VERSION:
+            raise ModelError(
+                f"verifier {self.path} was made for context features v{version}, "
+                f"this lanemap computes v{CONTEXT_VERSION}")
+        inputs = self._session.get_inputs()
+        if len(inputs) != 1 or inputs[0].shape[-1] not in (len(CONTEXT_FEATURES), None, "None"):
+            raise ModelError(f"verifier {self.path} must take one (N, {len(CONTEXT_FEATURES)}) input")
+        self._input = inputs[0].name
+        outs = self._session.get_outputs()
+        prob = [o for o in outs if "prob" in o.name.lower()]
+        self._output = (prob[0] if prob else outs[-1]).name
+
+    def __repr__(self) -> str:
+        return f"ClusterVerifier({str(self.path)!r})"
+
+    def predict(self, feats: np.ndarray) -> np.ndarray:
+        """P(paint) per cluster, (N,) float32."""
+        if len(feats) == 0:
+            return np.zeros(0, np.float32)
+        out = self._session.run([self._output],
+                                {self._input: np.ascontiguousarray(feats, np.float32)})[0]
+        out = np.asarray(out)
+        return (out[:, 1] if out.ndim == 2 else out).astype(np.float32)
+
+
+_verifiers: dict[str, ClusterVerifier] = {}
+
+
+def load_verifier(path: str | Path | None = None) -> ClusterVerifier:
+    """Load a cluster verifier (cached per process); None loads the default one."""
+    p = default_verifier_path() if path is None else Path(path)
+    key = str(p.resolve())
+    v = _verifiers.get(key)
+    if v is None:
+        v = ClusterVerifier(p)
+        _verifiers[key] = v
+    return v
 
 
 class MarkingModel:
@@ -46,21 +136,10 @@ class MarkingModel:
     """
 
     def __init__(self, path: str | Path, threads: int = 1):
-        import onnxruntime as ort
-
         self.path = Path(path)
         if not self.path.is_file():
             raise ModelError(f"model file {self.path} does not exist")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.log_severity_level = 3
-        try:
-            self._session = ort.InferenceSession(
-                str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:
-            raise ModelError(f"cannot load model {self.path}: {exc}") from exc
+        self._session = _session(self.path, threads)
         meta = self._session.get_modelmeta().custom_metadata_map
         self.metadata = dict(meta)
         version = meta.get("lanemap.feature_version")

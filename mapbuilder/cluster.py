@@ -67,6 +67,15 @@ class ClusterParams:
         Largest difference of direction of clusters to join, degrees.
     join_offset_m : float
         Largest sideways offset of a facing end from the other cluster's axis, metres.
+    verify : bool
+        Check every cluster that passes the shape filter with the cluster
+        verifier (:func:`context_features` into a small classifier), when
+        the image window and a verifier are given to :func:`detect_markings`.
+        Off by default: on held-out renders it lifts precision from 0.64 to
+        0.90 (kerbs, car outlines) but costs recall, and on the real USGS crop
+        it rejects short stall-line fragments between parked cars.
+    verify_threshold : float
+        Verifier probability a cluster needs to be kept.
     """
 
     threshold: float = 0.5
@@ -82,6 +91,8 @@ class ClusterParams:
     join_gap_m: float = 0.6
     join_angle_deg: float = 12.0
     join_offset_m: float = 0.12
+    verify: bool = False
+    verify_threshold: float = 0.5
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -120,6 +131,10 @@ class Clusters:
         End points of the major axis; (x1 - x0, y1 - y0) points along ``bearing_deg``.
     score : ndarray of float64
         Mean probability of the cluster's pixels.
+    spread_m : ndarray of float64
+        Width the pixels' spread across the major axis implies (sqrt(12) times
+        its standard deviation), metres: about ``width_m`` for a straight
+        stripe, more for a bent, forked or ring-shaped cluster.
     """
 
     x: np.ndarray
@@ -135,6 +150,7 @@ class Clusters:
     x1: np.ndarray
     y1: np.ndarray
     score: np.ndarray
+    spread_m: np.ndarray
 
     def __len__(self) -> int:
         return len(self.x)
@@ -240,6 +256,12 @@ def _moments(lab: np.ndarray, x: np.ndarray, y: np.ndarray, k: int):
     return n, mx, my, dx, dy, ux, uy
 
 
+def _minor_var(lab, dx, dy, ux, uy, n, k):
+    """Variance of the pixels across each cluster's major axis."""
+    across = dy * ux[lab] - dx * uy[lab]
+    return np.bincount(lab, across * across, k) / np.maximum(n, 1.0)
+
+
 def _extent(lab, s, k):
     smin = np.full(k, np.inf)
     smax = np.full(k, -np.inf)
@@ -260,6 +282,7 @@ def _measure(rows, cols, lab, score, transform: Affine) -> Clusters:
     mean_score = np.bincount(lab, score.astype(float), k) / d
     mcol = np.bincount(lab, cols + 0.5, k) / d
     mrow = np.bincount(lab, rows + 0.5, k) / d
+    var_minor = _minor_var(lab, dx, dy, ux, uy, n, k)
 
     keep = n > 0
     keep[0] = False
@@ -281,6 +304,7 @@ def _measure(rows, cols, lab, score, transform: Affine) -> Clusters:
         x1=mx + ux * smax,
         y1=my + uy * smax,
         score=mean_score[keep],
+        spread_m=np.sqrt(12.0 * var_minor[keep] + res * res),
     )
 
 
@@ -474,36 +498,187 @@ def join_collinear(
     diff = np.abs(c.bearing_deg[a] - c.bearing_deg[b]) % 180.0
     ok = np.minimum(diff, 180.0 - diff) <= angle_deg
     i, j, a, b = i[ok], j[ok], a[ok], b[ok]
-    parent = np.arange(len(c))
-
-    def find(k):
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for ei, ej, ca, cb in zip(i, j, a, b):
-        pa, pb = ends[ei], ends[ej]
-        # Each end must face the other cluster: it is the end nearer to it.
-        far_a = ends[ei + len(idx) if ei < len(idx) else ei - len(idx)]
-        far_b = ends[ej + len(idx) if ej < len(idx) else ej - len(idx)]
-        gap = np.hypot(*(pa - pb))
-        if np.hypot(*(far_a - pb)) < gap or np.hypot(*(far_b - pa)) < gap:
-            continue
-        ua = (pa - far_a) / max(np.hypot(*(pa - far_a)), 1e-9)
-        ub = (pb - far_b) / max(np.hypot(*(pb - far_b)), 1e-9)
-        d = pb - pa
-        along = float(d @ ua)
-        side_a = abs(float(d @ np.array([-ua[1], ua[0]])))
-        side_b = abs(float(d @ np.array([-ub[1], ub[0]])))
-        if -offset_m <= along <= gap_m and side_a <= offset_m and side_b <= offset_m:
-            parent[find(ca)] = find(cb)
-    roots = np.array([find(k) for k in range(len(c))])
-    if np.all(roots == np.arange(len(c))):
+    if len(i) == 0:
         return lab
+    # Each end must face the other cluster: it is the end nearer to it.
+    m = len(idx)
+    pa, pb = ends[i], ends[j]
+    far_a = ends[np.where(i < m, i + m, i - m)]
+    far_b = ends[np.where(j < m, j + m, j - m)]
+    gap = np.hypot(*(pa - pb).T)
+    facing = (np.hypot(*(far_a - pb).T) >= gap) & (np.hypot(*(far_b - pa).T) >= gap)
+    ua = pa - far_a
+    ua /= np.maximum(np.hypot(*ua.T), 1e-9)[:, None]
+    ub = pb - far_b
+    ub /= np.maximum(np.hypot(*ub.T), 1e-9)[:, None]
+    d = pb - pa
+    along = d[:, 0] * ua[:, 0] + d[:, 1] * ua[:, 1]
+    side_a = np.abs(d[:, 1] * ua[:, 0] - d[:, 0] * ua[:, 1])
+    side_b = np.abs(d[:, 1] * ub[:, 0] - d[:, 0] * ub[:, 1])
+    join = facing & (along >= -offset_m) & (along <= gap_m) & (side_a <= offset_m) \
+        & (side_b <= offset_m)
+    if not join.any():
+        return lab
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(c)
+    graph = coo_matrix((np.ones(int(join.sum()), np.int8), (a[join], b[join])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    # every cluster takes the label of the first cluster of its group
+    first = np.full(comp.max() + 1, n, np.int64)
+    np.minimum.at(first, comp, np.arange(n))
+    roots = first[comp]
     lut = np.zeros(int(lab.max()) + 1, np.int64)
     lut[ids] = ids[roots]
     return lut[lab]
+
+
+#: Names of the per-cluster context features of :func:`context_features`, in order.
+CONTEXT_FEATURES: tuple[str, ...] = (
+    "score",
+    "width",
+    "log_length",
+    "spread_ratio",
+    "brightness",
+    "saturation",
+    "contrast_near",
+    "contrast_near_min",
+    "side_difference_near",
+    "contrast_far",
+    "side_difference_far",
+    "side_saturation_near",
+    "side_saturation_difference",
+    "side_saturation_far",
+    "side_texture",
+    "axis_brightness_spread",
+)
+
+#: Version of the context features; stored in verifier files and checked on load.
+CONTEXT_VERSION = "1"
+
+#: Distances of the side samples beyond a cluster's half width, metres. The
+#: near one stays on the road surface between an edge line and its kerb
+#: (0.25 m apart); the far one reaches past a kerb onto the sidewalk or grass.
+SIDE_NEAR_M = 0.12
+SIDE_FAR_M = 0.4
+#: Samples along each cluster.
+N_ALONG = 9
+
+
+def context_features(
+    clusters: Clusters,
+    rgb: np.ndarray,
+    valid: np.ndarray | None,
+    transform: Affine,
+) -> np.ndarray:
+    """Shape and road-surface context of each cluster, for the cluster verifier.
+
+    Paint is a thin, straight stripe on road surface that is darker than the
+    paint and alike on both sides. A kerb has road on one side and sidewalk,
+    grass or soil on the other; the outline of a car roof or windscreen is
+    bent and lies on car paint. Each cluster is sampled along its axis
+    (:data:`N_ALONG` points over its middle 80 %) and on both sides at
+    :data:`SIDE_NEAR_M` and :data:`SIDE_FAR_M` beyond its half width;
+    medians along the cluster make the side values robust to a car or a
+    shadow over part of one side.
+
+    Parameters
+    ----------
+    clusters : Clusters
+        Measured clusters, in the CRS of ``transform``.
+    rgb : (H, W, 3) uint8
+        The image window the clusters were found in.
+    valid : (H, W) bool or None
+        False at nodata pixels (samples there are ignored).
+    transform : Affine
+        Pixel (col, row) of the window to CRS metres.
+
+    Returns
+    -------
+    (N, F) float32
+        Features named by :data:`CONTEXT_FEATURES`. Brightness is the channel
+        mean (0–1), saturation max − min channel (0–1); lengths in metres.
+    """
+    n = len(clusters)
+    nf = len(CONTEXT_FEATURES)
+    if n == 0:
+        return np.zeros((0, nf), np.float32)
+    h, w = rgb.shape[:2]
+    ok = np.ones((h, w), bool) if valid is None else np.asarray(valid, bool)
+    inv = ~transform
+    ux = (clusters.x1 - clusters.x0) / np.maximum(clusters.length_m, 1e-9)
+    uy = (clusters.y1 - clusters.y0) / np.maximum(clusters.length_m, 1e-9)
+    nx, ny = -uy, ux
+    t = (np.arange(N_ALONG) + 0.5) / N_ALONG * 0.8 + 0.1  # middle 80 %
+    px = clusters.x0[:, None] + (clusters.x1 - clusters.x0)[:, None] * t[None]
+    py = clusters.y0[:, None] + (clusters.y1 - clusters.y0)[:, None] * t[None]
+
+    def at(off: np.ndarray):
+        x = px + nx[:, None] * off[:, None]
+        y = py + ny[:, None] * off[:, None]
+        col = inv.a * x + inv.b * y + inv.c
+        row = inv.d * x + inv.e * y + inv.f
+        return row.ravel(), col.ravel()
+
+    pix = rgb.reshape(-1, 3)
+    lum_img = None
+    sat_img = None
+
+    def lum_sat(rows, cols):
+        nonlocal lum_img, sat_img
+        r = np.clip(np.floor(rows).astype(np.intp), 0, h - 1)
+        c = np.clip(np.floor(cols).astype(np.intp), 0, w - 1)
+        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+        v = pix[r * w + c].astype(np.float32)
+        lum = v.mean(axis=1) / 255.0
+        sat = (v.max(axis=1) - v.min(axis=1)) / 255.0
+        bad = ~inside | ~ok[r, c]
+        lum[bad] = np.nan
+        sat[bad] = np.nan
+        return lum.reshape(n, N_ALONG), sat.reshape(n, N_ALONG)
+
+    half = clusters.width_m / 2
+    axis_l, axis_s = lum_sat(*at(np.zeros(n)))
+    sides = {}
+    for name, d in (("near", SIDE_NEAR_M), ("far", SIDE_FAR_M)):
+        for sgn in (1, -1):
+            sides[name, sgn] = lum_sat(*at(sgn * (half + d)))
+
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians of masked samples
+        med = {k: (np.nanmedian(v[0], axis=1), np.nanmedian(v[1], axis=1))
+               for k, v in sides.items()}
+        lin = np.nanmedian(axis_l, axis=1)
+        sin_ = np.nanmedian(axis_s, axis=1)
+        tex = np.fmax(np.nanstd(sides["near", 1][0], axis=1),
+                      np.nanstd(sides["near", -1][0], axis=1))
+        q = np.nanpercentile(axis_l, [20, 80], axis=1)
+    a_l, a_s = med["near", 1]
+    b_l, b_s = med["near", -1]
+    fa_l, fa_s = med["far", 1]
+    fb_l, fb_s = med["far", -1]
+    f = np.empty((n, nf), np.float32)
+    f[:, 0] = clusters.score
+    f[:, 1] = clusters.width_m
+    f[:, 2] = np.log(np.maximum(clusters.length_m, 1e-3))
+    f[:, 3] = clusters.spread_m / np.maximum(clusters.width_m, 1e-3)
+    f[:, 4] = lin
+    f[:, 5] = sin_
+    f[:, 6] = lin - np.fmax(a_l, b_l)
+    f[:, 7] = lin - np.fmin(a_l, b_l)
+    f[:, 8] = np.abs(a_l - b_l)
+    f[:, 9] = lin - np.fmax(fa_l, fb_l)
+    f[:, 10] = np.abs(fa_l - fb_l)
+    f[:, 11] = np.fmax(a_s, b_s)
+    f[:, 12] = np.abs(a_s - b_s)
+    f[:, 13] = np.fmax(fa_s, fb_s)
+    f[:, 14] = tex
+    f[:, 15] = q[1] - q[0]
+    # a side wholly outside the image or in nodata: no evidence either way
+    return np.nan_to_num(f, nan=0.0)
 
 
 def filter_clusters(clusters: Clusters, params: ClusterParams) -> Clusters:
@@ -523,6 +698,8 @@ def detect_markings(
     valid: np.ndarray | None,
     transform: Affine,
     params: ClusterParams | None = None,
+    rgb: np.ndarray | None = None,
+    verifier=None,
 ) -> Clusters:
     """Probability image → measured, filtered markings (cluster, split, measure, filter).
 
@@ -535,6 +712,13 @@ def detect_markings(
     transform : Affine
         Pixel (col, row) of ``prob`` to CRS metres.
     params : ClusterParams, optional
+    rgb : (H, W, 3) uint8, optional
+        The image window of ``prob``; needed by the verifier.
+    verifier : object, optional
+        Has ``predict(features) -> (N,) probability`` over :data:`CONTEXT_FEATURES`
+        (:class:`mapbuilder.classify.ClusterVerifier`); with ``rgb`` and
+        ``params.verify`` it keeps the clusters it scores above
+        ``params.verify_threshold``.
     """
     params = params or ClusterParams()
     res = _resolution(transform)
@@ -559,4 +743,8 @@ def detect_markings(
     lab = _split_sparse(rows, cols, lab, transform, params.max_length_m, params.split_factor,
                         params.direction_step_deg)
     clusters = _measure(rows, cols, lab, prob.ravel()[idx], transform)
-    return filter_clusters(clusters, params)
+    clusters = filter_clusters(clusters, params)
+    if verifier is not None and rgb is not None and params.verify and len(clusters):
+        p = verifier.predict(context_features(clusters, rgb, valid, transform))
+        clusters = clusters.take(p > params.verify_threshold)
+    return clusters

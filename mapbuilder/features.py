@@ -154,6 +154,28 @@ def _box(img: np.ndarray, n: int) -> np.ndarray:
     return out * np.float32(1.0 / (n * n))
 
 
+def _box_sum_u16(img: np.ndarray, n: int) -> np.ndarray:
+    """Box sum over ``n`` x ``n`` of a uint16 image (edges repeat), uint16.
+
+    The caller keeps ``n * n * max(img)`` below 65536.
+    """
+    r = n // 2
+    out = img
+    for axis in (0, 1):
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (r, r)
+        p = np.pad(out, pad, mode="edge")
+        length = out.shape[axis]
+        sl = [slice(None), slice(None)]
+        sl[axis] = slice(0, length)
+        acc = p[tuple(sl)].copy()
+        for i in range(1, n):
+            sl[axis] = slice(i, i + length)
+            acc += p[tuple(sl)]
+        out = acc
+    return out
+
+
 def _bilinear(grid: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Bilinear interpolation of a (hs, ws, C) grid of ``k``-pixel blocks at full-resolution pixels."""
     hs, ws, nc = grid.shape
@@ -299,14 +321,22 @@ def _features(rgb, valid, resolution_m, threshold):
     mean = bg[:, 0] * third
     std = np.sqrt(np.maximum(bg[:, 1] * (third * third) - mean * mean, 0.0))
 
-    lum_f = lum.astype(np.float32)
-    sat_f = sat.astype(np.float32)
-    if not all_valid and valid.any():
-        lum_f[~valid] = lum_f[valid].mean()
-        sat_f[~valid] = sat_f[valid].mean()
     n_side = _px(SCALES_M["side_smoothing"], res)
-    side_l = _box(lum_f, n_side).ravel()
-    side_s = _box(sat_f, n_side).ravel()
+    if all_valid and n_side <= 9:
+        # Integer box sums of both maps at once: exact (as float32 sums of
+        # integers are), half the memory traffic of two float32 passes.
+        side_l = _box_sum_u16(lum, n_side).ravel()
+        side_s = _box_sum_u16(sat.astype(np.uint16), n_side).ravel()
+        side_scale = np.float32(1.0 / (n_side * n_side))
+    else:
+        lum_f = lum.astype(np.float32)
+        sat_f = sat.astype(np.float32)
+        if not all_valid and valid.any():
+            lum_f[~valid] = lum_f[valid].mean()
+            sat_f[~valid] = sat_f[valid].mean()
+        side_l = _box(lum_f, n_side).ravel()
+        side_s = _box(sat_f, n_side).ravel()
+        side_scale = np.float32(1.0)
     n_cont = _px(0.3, res)
     th_max = _sliding(_sliding(th_n, n_cont, 0, np.maximum), n_cont, 1, np.maximum).ravel()
     d_side = SCALES_M["side"] / res
@@ -326,12 +356,12 @@ def _features(rgb, valid, resolution_m, threshold):
     for t, (uy, ux) in enumerate(axes):
         oy, ox = int(round(d_side * uy)), int(round(d_side * ux))
         ia, ib = at(oy, ox), at(-oy, -ox)
-        la, lb = side_l[ia], side_l[ib]
+        la, lb = side_l[ia] * side_scale, side_l[ib] * side_scale
         c = L - np.maximum(la, lb) * third
         better = c > best
         best[better] = c[better]
         asym[better] = np.abs(la[better] - lb[better]) * third
-        sasym[better] = np.abs(side_s[ia[better]] - side_s[ib[better]])
+        sasym[better] = np.abs(side_s[ia[better]] * side_scale - side_s[ib[better]] * side_scale)
         py, px_ = axes[perp[t]]
         oy, ox = int(round(d_cont * py)), int(round(d_cont * px_))
         ca = th_max[at(oy, ox)[better]]

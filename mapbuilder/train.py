@@ -463,3 +463,167 @@ def train_synthetic(
         "lanemap.trained_on": f"synthetic renders, seeds {seeds[0]}..{seeds[-1]}",
         "lanemap.n_pixels": len(y),
     })
+
+
+# --------------------------------------------------------------------------- cluster verifier
+
+
+def cluster_labels(clusters, label: np.ndarray, transform, min_share: float = 0.6) -> np.ndarray:
+    """Which clusters are paint: at least ``min_share`` of their axis lies on a marking.
+
+    The axis is sampled as :func:`mapbuilder.cluster.context_features` samples
+    it; the label mask is grown by one pixel so that a centroid line on the
+    blurred rim of a thin marking still counts.
+    """
+    from scipy import ndimage
+
+    from .cluster import N_ALONG
+
+    if len(clusters) == 0:
+        return np.zeros(0, bool)
+    grown = ndimage.binary_dilation(np.asarray(label, bool), iterations=1)
+    h, w = grown.shape
+    inv = ~transform
+    t = (np.arange(N_ALONG) + 0.5) / N_ALONG * 0.8 + 0.1
+    x = clusters.x0[:, None] + (clusters.x1 - clusters.x0)[:, None] * t[None]
+    y = clusters.y0[:, None] + (clusters.y1 - clusters.y0)[:, None] * t[None]
+    col = np.clip(np.floor(inv.a * x + inv.b * y + inv.c).astype(np.intp), 0, w - 1)
+    row = np.clip(np.floor(inv.d * x + inv.e * y + inv.f).astype(np.intp), 0, h - 1)
+    return grown[row, col].mean(axis=1) >= min_share
+
+
+def verifier_training_set(
+    seeds: Sequence[int],
+    model=None,
+    resolutions: Sequence[float] = (0.05, 0.075, 0.1, 0.15, 0.2),
+    size_m: float = 100.0,
+    lanelet_map=None,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Context features and paint labels of the clusters the pixel model finds in renders.
+
+    Renders scenes as :func:`synthetic_training_set` does (same seeds give the
+    same scenes), classifies each with ``model`` (default: the shipped pixel
+    model), clusters with the default :class:`~mapbuilder.cluster.ClusterParams`
+    without verification, and labels each cluster with :func:`cluster_labels`.
+
+    Returns
+    -------
+    X : (N, F) float32
+        :data:`mapbuilder.cluster.CONTEXT_FEATURES` of every cluster.
+    y : (N,) bool
+    """
+    from tqdm import tqdm
+
+    from .classify import load_model
+    from .cluster import ClusterParams, context_features, detect_markings
+    from .synth import lanelet_scene, procedural_scene, render_array
+
+    model = model or load_model()
+    params = ClusterParams(verify=False)
+    rng = np.random.default_rng(777 + int(seeds[0]) if len(seeds) else 0)
+    lanes = None
+    if lanelet_map is not None:
+        xs = np.array([c[len(c) // 2, 0] for c in lanelet_map.centerlines])
+        cut = np.median(xs)
+        lanes = [c for c, x in zip(lanelet_map.centerlines, xs) if x < cut and len(c) > 5]
+    Xs, ys = [], []
+    for i, seed in enumerate(tqdm(list(seeds), desc="render+cluster", disable=not progress)):
+        res = float(resolutions[i % len(resolutions)])
+        side = min(size_m, 1500 * res)
+        if lanes and i % 3 == 2:
+            c = lanes[int(rng.integers(len(lanes)))]
+            x, y = c[len(c) // 2]
+            scene = lanelet_scene(lanelet_map, seed=int(seed),
+                                  bounds=(x - side / 2, y - side / 2, x + side / 2, y + side / 2))
+        else:
+            scene = procedural_scene((side, side), seed=int(seed))
+        jpeg = int(rng.integers(60, 95)) if i % 2 else None
+        rgb, label, transform = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
+        prob = model.predict(rgb, None, res)
+        clusters = detect_markings(prob, None, transform, params)
+        Xs.append(context_features(clusters, rgb, None, transform))
+        ys.append(cluster_labels(clusters, label, transform))
+    return np.concatenate(Xs), np.concatenate(ys)
+
+
+def fit_verifier(X: np.ndarray, y: np.ndarray, seed: int = 0, max_iter: int = 200,
+                 max_depth: int = 4):
+    """Fit the cluster verifier: gradient-boosted trees on the context features.
+
+    Parameters
+    ----------
+    X : (N, F) float
+        :data:`mapbuilder.cluster.CONTEXT_FEATURES` of clusters.
+    y : (N,) bool
+        True for paint (:func:`cluster_labels`).
+    max_iter : int
+        Number of trees.
+    max_depth : int
+        Depth of each tree.
+
+    Raises
+    ------
+    TrainingError
+        Too few paint or non-paint clusters.
+    """
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    X = np.asarray(X, np.float32)
+    y = np.asarray(y, bool)
+    if y.sum() < 50 or (~y).sum() < 50:
+        raise TrainingError(f"too few clusters to train a verifier: {int(y.sum())} paint, "
+                            f"{int((~y).sum())} other (need 50 of each)")
+    # skl2onnx converts the classic GradientBoostingClassifier reliably
+    clf = GradientBoostingClassifier(n_estimators=max_iter, max_depth=max_depth,
+                                     learning_rate=0.1, subsample=0.8, random_state=seed)
+    return clf.fit(X, y)
+
+
+def export_verifier_onnx(clf, path: str | Path, metadata: dict | None = None) -> Path:
+    """Write a fitted verifier as ONNX (``features`` (N, F) → ``probabilities`` (N, 2))."""
+    import onnx
+    from skl2onnx import to_onnx
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from .cluster import CONTEXT_FEATURES, CONTEXT_VERSION
+
+    nf = len(CONTEXT_FEATURES)
+    onx = to_onnx(clf, initial_types=[("features", FloatTensorType([None, nf]))],
+                  options={id(clf): {"zipmap": False}}, target_opset={"": 17, "ai.onnx.ml": 3})
+    meta = {
+        "lanemap.kind": "marking-cluster-verifier",
+        "lanemap.model": "gradient-boosted trees on cluster shape and context",
+        "lanemap.context_version": CONTEXT_VERSION,
+        "lanemap.context_features": ",".join(CONTEXT_FEATURES),
+    }
+    meta.update({k: str(v) for k, v in (metadata or {}).items()})
+    for k, v in meta.items():
+        entry = onx.metadata_props.add()
+        entry.key, entry.value = k, v
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(onx, str(path))
+    return path
+
+
+def train_synthetic_verifier(
+    out: str | Path,
+    seeds: Iterable[int] = range(1000, 1160),
+    lanelet_map=None,
+    model=None,
+    progress: bool = False,
+) -> Path:
+    """Train the default cluster verifier on synthetic renders and write it as ONNX.
+
+    ``model`` is the pixel model whose clusters it learns to check (default:
+    the shipped one); retrain the verifier whenever the pixel model changes.
+    """
+    seeds = list(seeds)
+    X, y = verifier_training_set(seeds, model=model, lanelet_map=lanelet_map, progress=progress)
+    log.info("training the verifier on %d clusters (%d paint)", len(y), int(y.sum()))
+    clf = fit_verifier(X, y)
+    return export_verifier_onnx(clf, out, {
+        "lanemap.trained_on": f"synthetic renders, seeds {seeds[0]}..{seeds[-1]}",
+        "lanemap.n_clusters": len(y),
+    })

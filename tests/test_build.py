@@ -348,6 +348,9 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
         (["build", str(tmp_path / "none.tif"), "--map", "m"], "image not found"),
         (["build", str(USGS_BASE), "--map", "m", "--halo", "1"], "halo"),
         (["build", str(USGS_BASE), "--map", "m", "--model", str(bad)], "model"),
+        (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier",
+          str(tmp_path / "none.onnx")], "verifier"),
+        (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier", str(bad)], "model"),
     ]:
         res = runner.invoke(app, args)
         assert res.exit_code == 1, (args, res.output)
@@ -429,3 +432,56 @@ def test_usgs_masked_variants_give_the_same_stall_lines(usgs_builds):
             for m in usgs_builds[name]:
                 c, r = inv @ (m.x, m.y)
                 assert mask[int(r), int(c)] > 0
+
+
+def _kerb_and_line_tif(path: Path, sidewalk=(150, 150, 145)) -> Path:
+    """A real GeoTIFF: asphalt with a 0.15 m painted line (asphalt on both sides) at
+    x = 10 m, and a 0.25 m bright kerb at x = 25 m with a sidewalk beyond it."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    res, h, w = 0.1, 300, 400
+    x = np.arange(w) * res
+    img = np.empty((h, w, 3), np.float32)
+    img[:] = (72, 72, 75)
+    img[:, (x >= 10.0) & (x < 10.15)] = (205, 205, 200)
+    img[:, (x >= 25.0) & (x < 25.25)] = (200, 198, 190)
+    img[:, x >= 25.25] = sidewalk
+    img += np.random.default_rng(0).normal(0, 4, img.shape)
+    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=3, dtype="uint8",
+                       crs=CRS, transform=from_origin(X0, Y0, res, res)) as ds:
+        ds.write(np.clip(img, 0, 255).astype(np.uint8).transpose(2, 0, 1))
+    return path
+
+
+@pytest.mark.parametrize("sidewalk", [(150, 150, 145), (110, 118, 90)])
+def test_verifier_drops_a_kerb_and_keeps_a_two_sided_line(tmp_path, sidewalk):
+    from mapbuilder.cluster import ClusterParams
+
+    tif = _kerb_and_line_tif(tmp_path / "kerb.tif", sidewalk)
+    found = {}
+    for verify in (False, True):
+        store = Store(f"sqlite:///{tmp_path / f'v{verify}.sqlite'}")
+        build_map(store, "m", [tif], BuildParams(cluster=ClusterParams(verify=verify)),
+                  workers=1, progress=False)
+        ms = _all(store, "m")
+        found[verify] = (sum(abs(m.x - (X0 + 10.075)) < 0.3 for m in ms),
+                         sum(abs(m.x - (X0 + 25.125)) < 0.3 for m in ms))
+        store.close()
+    line_plain, kerb_plain = found[False]
+    line_checked, kerb_checked = found[True]
+    # the pixel classifier alone takes the kerb for paint ...
+    assert kerb_plain >= 5 and line_plain >= 8
+    # ... the verifier, seeing the sidewalk on one side, does not; the line stays whole
+    assert kerb_checked == 0
+    assert line_checked == line_plain
+
+
+def test_build_reports_worker_cpu_seconds(border_scene, tmp_path):
+    store = Store(f"sqlite:///{tmp_path / 'cpu.sqlite'}")
+    r = build_map(store, "m", [border_scene.path], BuildParams(tile_px=128, model=pipeline_model()),
+                  workers=1, progress=False)
+    # CPU seconds of the tiles: positive, and never more than their wall time plus a margin
+    # for threads (one here)
+    assert 0 < r.cpu_seconds <= 1.5 * sum(r.timings.values()) + 0.5
+    store.close()

@@ -153,3 +153,17 @@ def test_bad_model_files(tmp_path):
     junk.write_bytes(b"not an onnx model")
     with pytest.raises(ModelError, match="cannot load"):
         load_model(junk)
+
+
+def test_default_cluster_verifier_ships_and_loads(tmp_path):
+    from mapbuilder.classify import ClusterVerifier, default_verifier_path, load_verifier
+    from mapbuilder.cluster import CONTEXT_FEATURES, CONTEXT_VERSION
+
+    v = load_verifier()
+    assert v.path == default_verifier_path()
+    assert v.metadata["lanemap.context_version"] == CONTEXT_VERSION
+    p = v.predict(np.zeros((3, len(CONTEXT_FEATURES)), np.float32))
+    assert p.shape == (3,) and np.all((p >= 0) & (p <= 1))
+    assert v.predict(np.zeros((0, len(CONTEXT_FEATURES)), np.float32)).shape == (0,)
+    with pytest.raises(ModelError, match="does not exist"):
+        ClusterVerifier(tmp_path / "missing.onnx")

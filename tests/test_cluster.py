@@ -226,3 +226,63 @@ def test_hysteresis_keeps_faint_parts_attached_to_a_marking():
     assert len(hyst) == 1
     assert hyst.length_m[0] == pytest.approx(3.0, abs=0.1)
     assert hyst.x[0] == pytest.approx(X0 + 5, abs=0.02)
+
+
+def _stripe_image(res, sides):
+    """A vertical 0.15 m white stripe at x = 10 m; ``sides`` = (left, right) grey levels
+    beyond 0.05 m from it (the near surround stays asphalt on the left)."""
+    h, w = 200, 300
+    x = (np.arange(w) + 0.5) * res
+    img = np.full((h, w, 3), 70, np.uint8)
+    img[:, (x >= 10.0) & (x < 10.15)] = 210
+    img[:, x >= 10.2] = sides[1]
+    img[:, x < 9.95] = sides[0]
+    return img
+
+
+def test_context_features_tell_one_sided_from_two_sided_stripes():
+    from mapbuilder.cluster import CONTEXT_FEATURES, context_features
+
+    res = 0.05
+    t = _grid(res)
+    prob = np.zeros((200, 300), np.float32)
+    x = (np.arange(300) + 0.5) * res
+    prob[:, (x >= 10.0) & (x < 10.15)] = 0.9
+    c = detect_markings(prob, None, t)
+    assert len(c) >= 1
+    f = dict(zip(CONTEXT_FEATURES, context_features(c, _stripe_image(res, (70, 70)), None, t).T))
+    g = dict(zip(CONTEXT_FEATURES, context_features(c, _stripe_image(res, (70, 160)), None, t).T))
+    # paint on asphalt: much brighter than both sides, which are alike
+    assert np.all(f["contrast_near"] > 0.5) and np.all(f["side_difference_far"] < 0.02)
+    # a kerb: the far side is bright sidewalk
+    assert np.all(g["side_difference_far"] > 0.3) and np.all(g["contrast_far"] < 0.25)
+    assert np.allclose(f["width"], 0.15, atol=0.03)
+    assert np.allclose(f["spread_ratio"], 1.0, atol=0.15)
+    # samples in nodata carry no evidence (zeros), never NaN
+    valid = np.ones((200, 300), bool)
+    valid[:, :150] = False
+    h = context_features(c, _stripe_image(res, (70, 70)), valid, t)
+    assert np.isfinite(h).all()
+
+
+def test_detect_markings_applies_a_verifier_only_when_asked():
+    from mapbuilder.cluster import CONTEXT_FEATURES
+
+    class Half:
+        """Accepts every other cluster."""
+
+        def predict(self, feats):
+            assert feats.shape[1] == len(CONTEXT_FEATURES)
+            return np.array([0.9 if i % 2 else 0.1 for i in range(len(feats))], np.float32)
+
+    res = 0.05
+    t = _grid(res)
+    img = np.zeros((400, 400), np.float32)
+    for i in range(4):
+        _draw(img, t, X0 + 3 + 4 * i, Y0 - 10, 2.0, 0.15, 0.0, 0.9)
+    rgb = np.full((400, 400, 3), 70, np.uint8)
+    rgb[img > 0] = 210
+    assert len(detect_markings(img, None, t)) == 4
+    assert len(detect_markings(img, None, t, ClusterParams(), rgb=rgb, verifier=Half())) == 4
+    kept = detect_markings(img, None, t, ClusterParams(verify=True), rgb=rgb, verifier=Half())
+    assert len(kept) == 2

@@ -153,3 +153,44 @@ def test_cli_train_bad_inputs(labelled, tmp_path):
     assert not out.exists()
     code, output = _invoke(image, labels, "--out", out, "--C", "0")
     assert code == 1 and "--C" in output
+
+
+def test_verifier_from_renders_onnx_round_trip(tmp_path):
+    """Clusters of two small renders → verifier → ONNX → the same probabilities."""
+    from mapbuilder.classify import ClusterVerifier, ModelError
+    from mapbuilder.cluster import CONTEXT_FEATURES
+    from mapbuilder.train import export_verifier_onnx, fit_verifier, verifier_training_set
+
+    X, y = verifier_training_set([1000, 1001], resolutions=(0.1,), size_m=60.0)
+    assert X.shape == (len(y), len(CONTEXT_FEATURES)) and np.isfinite(X).all()
+    # the renders hold both paint and other bright stripes
+    assert 50 <= y.sum() < len(y) - 20
+    clf = fit_verifier(np.concatenate([X, X]), np.concatenate([y, y]), max_iter=20)
+    path = export_verifier_onnx(clf, tmp_path / "v.onnx")
+    v = ClusterVerifier(path)
+    np.testing.assert_allclose(v.predict(X), clf.predict_proba(X)[:, 1], atol=1e-4)
+    assert v.metadata["lanemap.context_features"] == ",".join(CONTEXT_FEATURES)
+    with pytest.raises(TrainingError, match="too few clusters"):
+        fit_verifier(X[:10], y[:10])
+    # a pixel model is not a verifier
+    from mapbuilder.classify import default_model_path
+
+    with pytest.raises(ModelError, match="context features"):
+        ClusterVerifier(default_model_path())
+
+
+def test_cluster_labels_follow_the_painted_axis():
+    from affine import Affine
+
+    from mapbuilder.cluster import detect_markings
+    from mapbuilder.train import cluster_labels
+
+    t = Affine(0.1, 0, 0.0, 0, -0.1, 30.0)
+    prob = np.zeros((300, 300), np.float32)
+    prob[50:80, 100:102] = 0.9   # on paint
+    prob[150:180, 200:202] = 0.9  # not
+    label = np.zeros((300, 300), bool)
+    label[48:82, 100:102] = True
+    c = detect_markings(prob, None, t)
+    lab = cluster_labels(c, label, t)
+    assert sorted(zip(np.round(c.x, 1), lab)) == [(10.1, True), (20.1, False)]

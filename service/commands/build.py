@@ -29,11 +29,19 @@ def build(
     dask: Optional[str] = typer.Option(
         None, "--dask", help="Run tiles on this Dask scheduler (e.g. tcp://host:8786)."
     ),
-    tile_px: int = typer.Option(1024, "--tile-size", help="Tile core size, pixels."),
+    tile_px: int = typer.Option(2048, "--tile-size", help="Tile core size, pixels."),
     halo_m: float = typer.Option(4.0, "--halo", help="Halo around each tile, metres."),
     threshold: float = typer.Option(0.5, help="Marking probability threshold."),
     piece_m: float = typer.Option(
         3.0, "--piece-length", help="Long markings are cut into pieces of this length, metres."
+    ),
+    verify: bool = typer.Option(
+        False, "--verify/--no-verify",
+        help="Check each detected marking's shape and road-surface context with the cluster "
+        "verifier (drops kerbs and car outlines; may drop short fragments between cars).",
+    ),
+    verifier: Optional[Path] = typer.Option(
+        None, "--verifier", help="ONNX cluster verifier (default: the one shipped with lanemap)."
     ),
     restart: bool = typer.Option(
         False, "--restart", help="Start afresh instead of resuming an unfinished build."
@@ -54,7 +62,8 @@ def build(
             tile_px=tile_px,
             halo_m=halo_m,
             model=str(model) if model is not None else None,
-            cluster=ClusterParams(threshold=threshold, max_length_m=piece_m),
+            cluster=ClusterParams(threshold=threshold, max_length_m=piece_m, verify=verify),
+            verifier=str(verifier) if verifier is not None else None,
         )
     except ValueError as exc:
         fail(str(exc))
