@@ -13,7 +13,9 @@ give:
   database is busy or unreachable);
 * operations with a request body: 413 (too large) and 415 (wrong content type);
 * writes (POST, PUT, PATCH, DELETE): 409 (conflict with the stored state);
-* operations taking ``If-Match``: 412 (stale version).
+* operations taking ``If-Match``: 412 (stale version);
+* imagery uploads: 500 (the imagery folder is not writable) and 507 (the disk
+  is full).
 """
 
 from __future__ import annotations
@@ -59,6 +61,8 @@ def problem_statuses(method: str, operation: dict[str, Any]) -> set[int]:
     if any(p.get("in") == "header" and p.get("name", "").lower() == "if-match"
            for p in operation.get("parameters", [])):  # fmt: skip
         codes.add(412)
+    if method == "post" and "Imagery" in operation.get("tags", []):
+        codes |= {500, 507}  # the imagery folder is unwritable / the disk is full
     return codes
 
 

@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
         host: str = typer.Option("127.0.0.1", help="Address to listen on."),
         port: int = typer.Option(8000, min=0, max=65535, help="Port to listen on."),
         demo: bool = typer.Option(False, "--demo", help="Create the Karlsruhe demo map on first start."),
-        workers: int = typer.Option(1, min=1, max=64, help="Server processes."),
+        workers: int = typer.Option(1, min=1, max=64, envvar="LANEMAP_WORKERS", help="Server processes."),
         log_level: str = typer.Option("info", help="uvicorn log level."),
     ) -> None:
         """Serve the REST API (OGC API Features, builds, tiles, localization)."""

@@ -22,7 +22,7 @@ router = APIRouter(tags=["Jobs"], dependencies=[Depends(require_read)])
 class BuildIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     imagery: str | int = Field(..., description="Id of imagery uploaded to this map")
-    tile_px: int = Field(1024, ge=64, le=8192, description="Core size of a tile, pixels")
+    tile_px: int = Field(2048, ge=64, le=8192, description="Core size of a tile, pixels")
     halo_m: float = Field(4.0, gt=0, le=100, description="Halo read around each tile, metres")
     threshold: float = Field(0.5, gt=0, lt=1, description="Marking probability threshold")
 
