@@ -16,6 +16,7 @@ from .geometry import LocalMap, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
 from .robust import (
+    count_inliers,
     data_scores,
     data_weights,
     fit_statistics,
@@ -264,6 +265,12 @@ def localize(
             return Pose(status="failed", crs=crs, reason="the global search found no candidate")
         # Refinements that end inside the best one's uncertainty are the same optimum
         # (e.g. sliding along a solid line), not an alternative.
+        # A pose that matches fewer observations than a fix needs is no hypothesis,
+        # however well it scores (a pose looking at bare road predicts nothing it
+        # could miss); it only decides the answer when nothing better exists.
+        enough = count_inliers(local, obs_xy, sig, [r[1].pose for r in refined], options) >= options.min_inliers
+        if enough.any():
+            refined = [r for r, e in zip(refined, enough) if e]
         best_fit = fit_statistics(local, obs_xy, w_data, sig, refined[0][1].pose, options, prior_info)
         kept: list[tuple[float, Any, Any, Any]] = [refined[0]]
         for item in refined[1:]:

@@ -241,6 +241,19 @@ def missed_counts(local_map: LocalMap, obs_xy, poses, options: Options, view=Non
     return out
 
 
+def count_inliers(local_map: LocalMap, obs_xy, sigma_obs, poses, options: Options) -> np.ndarray:
+    """Observations within the inlier gate of the map at each pose (K,), as in :func:`fit_statistics`."""
+    P = np.asarray(poses, float).reshape(-1, 3)
+    if len(P) == 0 or len(obs_xy) == 0:
+        return np.zeros(len(P), int)
+    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
+    px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
+    py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
+    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
+    d = local_map.closest(np.stack([px, py], -1).reshape(-1, 2), float(gate.max()))[0]
+    return np.sum(d.reshape(len(P), -1) <= gate[None], axis=1)
+
+
 @dataclass
 class Fit:
     """Statistics of a pose: inliers, RMS and covariance (x, y, yaw)."""
