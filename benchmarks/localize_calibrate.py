@@ -95,8 +95,8 @@ def main() -> None:
     print(f"ok threshold {opts.ambiguity_probability}")
     print("p_miss  p_miss_solid  T     null   conf.wrong  near ok / amb   far ok / amb")
     rows = []
-    for mp, ms, T, null in itertools.product((0.1, 0.2, 0.3), (0.1, 0.2, 0.3),
-                                            (1.0, 1.25, 1.5, 2.0), (opts.null_score, -math.inf)):
+    for mp, ms, T, null in itertools.product((0.1, 0.2, 0.3), (0.1, 0.2, 0.3), (1.0, 1.25, 1.5, 2.0),
+                                            (0.0, -1.0, -2.0, -3.0, -math.inf)):
         e = evaluate(runs, mp, ms, T, opts.ambiguity_probability, null)
         rows.append((mp, ms, T, null, e))
     for mp, ms, T, null, e in rows:

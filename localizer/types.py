@@ -215,7 +215,8 @@ class Options:
         ``ok`` needs the best hypothesis to hold at least this posterior probability.
     null_score : float
         Log score of "none of the hypotheses found": all observations clutter
-        (data log-likelihood ratio 0) at the prior's mean; it takes its share of
+        (data log-likelihood ratio 0) at the prior's mean, less a little for a
+        search that found nothing (calibrated); it takes its share of
         the posterior, so a best hypothesis must explain clearly more than
         clutter would to be ``ok``. ``-inf`` disables it.
     max_hypotheses, min_hypothesis_probability : int, float
@@ -265,9 +266,9 @@ class Options:
     view_half_fov_deg: float | None = 30.0
     view_margin_m: float = 1.0
     view_margin_deg: float = 2.0
-    temperature: float = 1.25
+    temperature: float = 1.5
     ambiguity_probability: float = 0.95
-    null_score: float = 0.0
+    null_score: float = -1.0
     max_hypotheses: int = 8
     min_hypothesis_probability: float = 0.002
     min_inliers: int = 3
