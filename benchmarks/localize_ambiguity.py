@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from localize_paper import SCENARIOS, cases, karlsruhe, scene_poses  # noqa: E402
 
-from localizer import localize  # noqa: E402
+from localizer import Options, localize  # noqa: E402
 from localizer.simulate import Camera, _in_view, _to_vehicle  # noqa: E402
 
 
@@ -65,7 +65,7 @@ def main() -> None:
     status, diff = [], []
     for pose, scene, prior in tqdm(cases(args, sc, index, smap, cam, poses), total=len(poses),
                                   desc=sc.name, leave=False):
-        p = localize(index, scene.observations, prior)
+        p = localize(index, scene.observations, prior, options=Options(record_candidates=True))
         truth = view(pose)
         best = math.inf
         for cd in p.diagnostics.get("candidates", []):

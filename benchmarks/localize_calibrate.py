@@ -88,7 +88,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--intersections", action="store_true")
     args = ap.parse_args()
-    opts = Options()
+    opts = Options(record_candidates=True)
     runs = collect(args, opts)
     n = len(runs)
     print(f"{n} runs, seed {args.seed}; near: 0.5-2 m/±15° (+heavy), far: 8-10 m/±15° (+heavy)")

@@ -214,6 +214,7 @@ def localize(
         res = pink2008_icp(local, obs_xy, gamma, prior_pose, options)
         pose, iterations, trace = res.pose, res.iterations, res.trace
         hyps: list[tuple[tuple[float, float, float], float]] = [(pose, 1.0)]
+        fits = {}
         status = "ok"
         diagnostics = {}
     else:
@@ -272,6 +273,7 @@ def localize(
         if enough.any():
             refined = [r for r, e in zip(refined, enough) if e]
         best_fit = fit_statistics(local, obs_xy, w_data, sig, refined[0][1].pose, options, prior_info)
+        fits = {refined[0][1].pose: best_fit}
         kept: list[tuple[float, Any, Any, Any]] = [refined[0]]
         for item in refined[1:]:
             if not any(_same_optimum(item[1].pose, o[1].pose, best_fit.covariance) for o in kept):
@@ -303,12 +305,12 @@ def localize(
             again = robust_refine(local, obs_xy, w_data, sig, [start], kept[0][3], record=True)[0]
             trace = [prior_pose] + again.trace
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
-        n_pt, n_sol = missed_counts(local, obs_xy, kept_poses, options, view)
-        pos = data_scores(local, obs_xy, w_data, sig, kept_poses,
-                          replace(score_options, miss_probability=1.0, solid_miss_probability=1.0), view)
-        diagnostics = {
-            "search": all_search,
-            "candidates": [
+        diagnostics = {"search": all_search}
+        if options.record_candidates:
+            n_pt, n_sol = missed_counts(local, obs_xy, kept_poses, options, view)
+            pos = data_scores(local, obs_xy, w_data, sig, kept_poses,
+                              replace(score_options, miss_probability=1.0, solid_miss_probability=1.0), view)
+            diagnostics["candidates"] = [
                 {"pose": (k[1].pose[0] + px, k[1].pose[1] + py, k[1].pose[2]), "score": k[0],
                  "prior": log_prior(k[1].pose, prior_pose, sigma_p, sigma_yaw),
                  "positive": float(pos[i]), "missed_points": int(n_pt[i]),
@@ -316,10 +318,9 @@ def localize(
                  "search": (k[2].x + px, k[2].y + py, k[2].yaw, k[2].score)}
                 for i, k in enumerate(kept)
             ]
-        }
         status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
 
-    fit = fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
+    fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
     if fit.inliers < options.min_inliers:
         return Pose(
             status="failed",

@@ -238,6 +238,10 @@ class Options:
         Observations farther from the vehicle are rejected as bad input.
     record_trace : bool
         Keep the pose after every iteration in ``Pose.trace``.
+    record_candidates : bool
+        Keep every scored hypothesis with the parts of its score (positive
+        evidence, missed markings, prior) in ``Pose.diagnostics["candidates"]``
+        (for calibration; costs a few milliseconds).
     """
 
     max_pair_distance_m: float = 3.0
@@ -279,3 +283,4 @@ class Options:
     max_observations: int = 500
     max_observation_range_m: float = 150.0
     record_trace: bool = False
+    record_candidates: bool = False
