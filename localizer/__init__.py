@@ -29,12 +29,21 @@ Methods
        coarse scales off. Pieces of solid lines (given ``bearing_deg`` and
        ``length_m``) are matched point-to-segment: a camera clusters a solid
        line at its own phase.
-    3. Refined candidates are scored: the data log-likelihood (matched versus
-       clutter; a match on a segment counts less; every map marking that should
-       be in view but is unexplained costs ``log(1/p_miss)``), divided by a
-       temperature for correlated errors, plus the prior. Their posterior
-       probabilities decide ``ok`` versus ``ambiguous`` (repeating 9 m dashes,
-       parallel lanes 3.5 m apart): ``ok`` needs 95 %.
+    3. Refined candidates are scored by a likelihood: per observation the
+       log-likelihood ratio of matched versus clutter (a match on a segment
+       counts less; the outlier density grows with the frame's clutter), and
+       *negative evidence*: every place where the map says the camera should
+       report a centroid (a point-like marking, or a point every 3 m along a
+       solid line, precomputed per map) that the pose puts inside the camera's
+       view (4-25 m, ±30° by default; ``Options.view_*``) with no observation
+       near it costs ``log(1/p_miss)``. A pose one dash period off explains the
+       observed dashes as well, but near the end of a dashed line, a stop line
+       or a change of line type it predicts markings nobody saw. Scores are
+       divided by a temperature for correlated errors and the GPS prior is
+       added; poses matching fewer than ``min_inliers`` observations do not
+       compete, and a "none of these" hypothesis (all clutter) takes its share.
+       The posterior probabilities decide ``ok`` versus ``ambiguous``
+       (repeating 9 m dashes, parallel lanes 3.5 m apart): ``ok`` needs 95 %.
     4. The covariance of (easting, northing, yaw) averages the model-based and
        sandwich estimates of the weighted fit, adds the propagated effect of a
        camera pitch error (ranges stretch together), and lets the prior's

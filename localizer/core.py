@@ -15,13 +15,29 @@ from .frames import wrap_angle
 from .geometry import LocalMap, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
-from .robust import data_scores, data_weights, view_of, fit_statistics, log_prior, noise_sigma, robust_refine
-from .search import correlative_search
+from .robust import (
+    count_inliers,
+    data_scores,
+    data_weights,
+    fit_statistics,
+    log_prior,
+    missed_counts,
+    noise_sigma,
+    robust_refine,
+    view_of,
+)
+from .search import Candidate, correlative_search
 from .types import Hypothesis, Options, Pose, Prior
 
 log = logging.getLogger(__name__)
 
 METHODS = ("default", "pink2008")
+
+#: Accepted prior standard deviations. Below the lower bounds a prior would
+#: override every observation (and make the search grid degenerate); the upper
+#: bounds are those of the HTTP API.
+PRIOR_POSITION_SIGMA_RANGE_M = (0.01, 1000.0)
+PRIOR_HEADING_SIGMA_RANGE_DEG = (0.01, 180.0)
 
 
 def parse_observations(
@@ -102,10 +118,17 @@ def _check_prior(prior: Prior) -> None:
         raise LocalizationInputError(f"prior.lat: {prior.lat} is outside [-90, 90]")
     if not -180.0 <= prior.lon <= 180.0:
         raise LocalizationInputError(f"prior.lon: {prior.lon} is outside [-180, 180]")
-    if prior.position_sigma_m <= 0:
-        raise LocalizationInputError("prior.position_sigma_m: must be positive")
-    if prior.heading_sigma_deg <= 0:
-        raise LocalizationInputError("prior.heading_sigma_deg: must be positive")
+    lo, hi = PRIOR_POSITION_SIGMA_RANGE_M
+    if not lo <= prior.position_sigma_m <= hi:
+        raise LocalizationInputError(
+            f"prior.position_sigma_m: {prior.position_sigma_m!r} is outside [{lo:g}, {hi:g}] m "
+            "(a GPS fix is never exact, and a sigma of kilometres says nothing)"
+        )
+    lo, hi = PRIOR_HEADING_SIGMA_RANGE_DEG
+    if not lo <= prior.heading_sigma_deg <= hi:
+        raise LocalizationInputError(
+            f"prior.heading_sigma_deg: {prior.heading_sigma_deg!r} is outside [{lo:g}, {hi:g}] degrees"
+        )
 
 
 def localize(
@@ -191,6 +214,7 @@ def localize(
         res = pink2008_icp(local, obs_xy, gamma, prior_pose, options)
         pose, iterations, trace = res.pose, res.iterations, res.trace
         hyps: list[tuple[tuple[float, float, float], float]] = [(pose, 1.0)]
+        fits = {}
         status = "ok"
         diagnostics = {}
     else:
@@ -206,20 +230,33 @@ def localize(
             # Candidates far below the best cannot become competitive.
             floor = cands[0].score - options.candidate_margin
             cands = [c for k, c in enumerate(cands) if k < 4 or c.score >= floor]
+            # The prior itself is always refined too: when clutter dominates the
+            # coarse correlation, the few true matches may still pull a refinement
+            # started at the GPS fix to the right pose.
+            if not any(math.hypot(c.x, c.y) < 0.5 and abs(wrap_angle(c.yaw - yaw0)) < math.radians(1.0)
+                       for c in cands):
+                cands.append(Candidate(0.0, 0.0, yaw0, -math.inf))
         inits = [(c.x, c.y, c.yaw) for c in cands]
         coarse = robust_refine(local, obs_xy, w_data, sig, inits, options) if cands else []
         # The coarse-to-fine schedule can be dragged off a right candidate by heavy
         # clutter; a fine-only refinement from the same start cannot go far. Keep
         # whichever explains the observations better.
+        # Only a refinement that travelled can have been dragged off: the others
+        # would end where the fine-only one does.
         fine_options = replace(options, anneal_m=options.anneal_m[-2:])
-        fine = robust_refine(local, obs_xy, w_data, sig, inits, fine_options) if cands else []
+        moved = [k for k, (c, r) in enumerate(zip(cands, coarse))
+                 if math.hypot(r.pose[0] - c.x, r.pose[1] - c.y) > 0.5
+                 or abs(wrap_angle(r.pose[2] - c.yaw)) > math.radians(1.5)]
+        fine = dict(zip(moved, robust_refine(local, obs_xy, w_data, sig, [inits[k] for k in moved],
+                                             fine_options))) if moved else {}
         refined = []
         if cands:
             both = data_scores(local, obs_xy, w_data, sig,
-                               [r.pose for r in coarse] + [r.pose for r in fine], options, view)
+                               [r.pose for r in coarse] + [fine[k].pose for k in moved], options, view)
+            fine_score = dict(zip(moved, both[len(cands):]))
         for k, cand in enumerate(cands):
-            a, b = coarse[k], fine[k]
-            sa, sb = both[k], both[len(cands) + k]
+            a, sa = coarse[k], both[k]
+            b, sb = fine.get(k), fine_score.get(k, -math.inf)
             r, sc, sched = (a, sa, options) if sa >= sb else (b, sb, fine_options)
             score = sc / options.temperature + log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
             refined.append((score, r, cand, sched))
@@ -229,14 +266,37 @@ def localize(
             return Pose(status="failed", crs=crs, reason="the global search found no candidate")
         # Refinements that end inside the best one's uncertainty are the same optimum
         # (e.g. sliding along a solid line), not an alternative.
+        # A pose that matches fewer observations than a fix needs is no hypothesis,
+        # however well it scores (a pose looking at bare road predicts nothing it
+        # could miss); it only decides the answer when nothing better exists.
+        enough = count_inliers(local, obs_xy, sig, [r[1].pose for r in refined], options) >= options.min_inliers
+        if enough.any():
+            refined = [r for r, e in zip(refined, enough) if e]
         best_fit = fit_statistics(local, obs_xy, w_data, sig, refined[0][1].pose, options, prior_info)
+        fits = {refined[0][1].pose: best_fit}
         kept: list[tuple[float, Any, Any, Any]] = [refined[0]]
         for item in refined[1:]:
             if not any(_same_optimum(item[1].pose, o[1].pose, best_fit.covariance) for o in kept):
                 kept.append(item)
+        # The clutter rate: observations that the best pose leaves unexplained. The
+        # more clutter, the likelier a chance match, the less each match tells.
+        n_clutter = len(obs) - best_fit.inliers
+        score_options = replace(options, outlier_density=options.outlier_density
+                                * max(1.0, n_clutter / options.clutter_reference))
+        kept_poses = [k[1].pose for k in kept]
+        if score_options.outlier_density != options.outlier_density:
+            data = data_scores(local, obs_xy, w_data, sig, kept_poses, score_options, view)
+            kept = [(float(d) / options.temperature + log_prior(k[1].pose, prior_pose, sigma_p, sigma_yaw),)
+                    + tuple(k[1:]) for d, k in zip(data, kept)]
+            kept.sort(key=lambda t: -t[0])
+            kept_poses = [k[1].pose for k in kept]
         scores = np.array([k[0] for k in kept])
-        prob = np.exp(scores - scores.max())
-        prob /= prob.sum()
+        # "None of these": every observation clutter, the vehicle somewhere the
+        # search found nothing. A best hypothesis that explains little more than
+        # that cannot be confident, however poor its rivals.
+        top = max(float(scores.max()), options.null_score)
+        prob = np.exp(scores - top)
+        prob /= prob.sum() + math.exp(options.null_score - top)
         best = kept[0][1]
         pose, iterations = best.pose, best.iterations
         trace = []
@@ -245,18 +305,22 @@ def localize(
             again = robust_refine(local, obs_xy, w_data, sig, [start], kept[0][3], record=True)[0]
             trace = [prior_pose] + again.trace
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
-        diagnostics = {
-            "search": all_search,
-            "candidates": [
+        diagnostics = {"search": all_search}
+        if options.record_candidates:
+            n_pt, n_sol = missed_counts(local, obs_xy, kept_poses, options, view)
+            pos = data_scores(local, obs_xy, w_data, sig, kept_poses,
+                              replace(score_options, miss_probability=1.0, solid_miss_probability=1.0), view)
+            diagnostics["candidates"] = [
                 {"pose": (k[1].pose[0] + px, k[1].pose[1] + py, k[1].pose[2]), "score": k[0],
                  "prior": log_prior(k[1].pose, prior_pose, sigma_p, sigma_yaw),
+                 "positive": float(pos[i]), "missed_points": int(n_pt[i]),
+                 "missed_solid": int(n_sol[i]),
                  "search": (k[2].x + px, k[2].y + py, k[2].yaw, k[2].score)}
-                for k in kept
+                for i, k in enumerate(kept)
             ]
-        }
         status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
 
-    fit = fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
+    fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
     if fit.inliers < options.min_inliers:
         return Pose(
             status="failed",

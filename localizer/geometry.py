@@ -92,6 +92,15 @@ class LocalMap:
         self.half = index.half_length[sel]
         self.max_half = float(self.half.max()) if sel.size else 0.0
         self.tree = cKDTree(self.xy) if sel.size else None
+        if index.expect_xy is not None and sel.size:
+            inside = np.zeros(len(index), bool)
+            inside[sel] = True
+            keep = inside[index.expect_owner]
+            self.expect_xy = index.expect_xy[keep] - self.origin
+            self.expect_solid = index.expect_solid[keep]
+        else:
+            self.expect_xy = np.zeros((0, 2))
+            self.expect_solid = np.zeros(0, bool)
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])

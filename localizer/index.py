@@ -43,6 +43,30 @@ def _continuous_pieces(xy: np.ndarray, u: np.ndarray, length: np.ndarray) -> np.
     return touched[:n] & touched[n:]
 
 
+#: Spacing of the expected observations along a solid line, metres.
+SOLID_SAMPLE_M = 3.0
+
+
+def expected_points(xy: np.ndarray, axis: np.ndarray, half: np.ndarray):
+    """Points where a camera should report a centroid: ``(points, owner, on_line)``.
+
+    Point-like markings are their centroid; a line-like marking of length
+    ``L`` gives ``max(1, round(L / SOLID_SAMPLE_M))`` evenly spaced points.
+    """
+    point = half == 0
+    pts = [xy[point]]
+    owner = [np.flatnonzero(point)]
+    solid = [np.zeros(int(point.sum()), bool)]
+    for i in np.flatnonzero(~point):
+        n = max(1, int(round(2 * half[i] / SOLID_SAMPLE_M)))
+        a = (np.arange(n) + 0.5) / n * 2 * half[i] - half[i]
+        pts.append(xy[i] + a[:, None] * axis[i])
+        owner.append(np.full(n, i))
+        solid.append(np.ones(n, bool))
+    return (np.concatenate(pts).reshape(-1, 2), np.concatenate(owner).astype(np.intp),
+            np.concatenate(solid))
+
+
 @dataclass(frozen=True, eq=False)
 class MapIndex:
     """Marking centroids of one map with a KD-tree over them.
@@ -65,6 +89,16 @@ class MapIndex:
         Over ``xy``.
     frame : GeoFrame
         WGS84 ↔ map CRS conversions.
+    expect_xy : (E, 2) ndarray
+        Where a camera is expected to report a centroid: point-like markings,
+        and points every :data:`SOLID_SAMPLE_M` along line-like ones (a camera
+        cuts a solid line into clusters of a few metres). Used for negative
+        evidence (what a pose predicts in view but nobody saw); precomputed
+        once per map.
+    expect_owner : (E,) ndarray
+        Marking index of each expected point.
+    expect_solid : (E,) ndarray of bool
+        The expected point lies on a line-like marking.
     """
 
     xy: np.ndarray
@@ -73,6 +107,9 @@ class MapIndex:
     half_length: np.ndarray
     tree: cKDTree
     frame: GeoFrame
+    expect_xy: np.ndarray | None = None
+    expect_owner: np.ndarray | None = None
+    expect_solid: np.ndarray | None = None
 
     @property
     def crs(self) -> str:
@@ -146,10 +183,12 @@ class MapIndex:
             solid &= length > 0.5
             axis[solid] = u[solid]
             half[solid] = 0.5 * length[solid]
-        for arr in (xy, w, axis, half):
+        exy, owner, esolid = expected_points(xy, axis, half)
+        for arr in (xy, w, axis, half, exy, owner, esolid):
             arr.setflags(write=False)
         tree = cKDTree(xy) if xs.size else cKDTree(np.zeros((0, 2)))
-        return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame)
+        return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame,
+                   expect_xy=exy, expect_owner=owner, expect_solid=esolid)
 
     def near(self, center, radius: float) -> np.ndarray:
         """Indices of markings within ``radius`` metres of ``center`` (x, y)."""

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .geometry import LocalMap, apply, rotation
 from .types import Options
@@ -127,16 +128,22 @@ def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:
 def view_of(obs_xy: np.ndarray, options: Options) -> tuple[float, float, float]:
     """The camera's ground view ``(min range, max range, half angle rad)``.
 
-    From the options when set, else the extent of the observations (shrunk a
-    little, so the view is never larger than what the camera demonstrably sees).
+    The configured view (``view_*`` options, by default a forward camera seeing
+    the ground 4-25 m ahead within ±30°), widened to cover every observation: a
+    camera that demonstrably sees farther than configured sees at least that
+    far. A view option set to None is taken from the extent of the observations
+    alone (shrunk a little, so it is never larger than what the camera saw).
     """
+    if len(obs_xy) == 0:
+        return 0.0, 0.0, 0.0
     r = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
     b = np.abs(np.arctan2(obs_xy[:, 1], obs_xy[:, 0]))
-    rmin = options.view_min_range_m if options.view_min_range_m is not None else float(r.min()) + 0.5
-    rmax = options.view_max_range_m if options.view_max_range_m is not None else float(r.max()) - 0.5
+    o = options
+    rmin = min(o.view_min_range_m, float(r.min())) if o.view_min_range_m is not None else float(r.min()) + 0.5
+    rmax = max(o.view_max_range_m, float(r.max())) if o.view_max_range_m is not None else float(r.max()) - 0.5
     half = (
-        math.radians(options.view_half_fov_deg)
-        if options.view_half_fov_deg is not None
+        max(math.radians(o.view_half_fov_deg), float(b.max()))
+        if o.view_half_fov_deg is not None
         else float(b.max()) - math.radians(2.0)
     )
     return rmin, rmax, half
@@ -147,12 +154,7 @@ def data_score(
 ) -> float:
     """Log-likelihood ratio of the observations at ``pose``, with negative evidence.
 
-    Each observation adds ``w log(1 + N(d; s) / π)`` (matched marking versus
-    clutter; a match on a segment counts less, its density being spread along it).
-    Each point-like map marking that the camera should see at ``pose`` (inside
-    ``view``) but that no observation explains subtracts ``log(1 / p_miss)``: a
-    wrong pose on a repeating pattern usually predicts a marking where none was
-    seen, or sees one where the map has none.
+    See :func:`data_scores`.
     """
     return float(data_scores(local_map, obs_xy, w_obs, sigma_obs, [pose], options, view)[0])
 
@@ -160,7 +162,22 @@ def data_score(
 def data_scores(
     local_map: LocalMap, obs_xy, w_obs, sigma_obs, poses, options: Options, view=None
 ) -> np.ndarray:
-    """:func:`data_score` of several poses (K, 3) at once."""
+    """Log-likelihood ratio of the observations at each of ``poses`` (K, 3).
+
+    Positive evidence: each observation adds ``w log(1 + N(d; s) / π)`` (matched
+    marking versus clutter; a match on a segment counts less, its density being
+    spread along it).
+
+    Negative evidence: each place where the map says the camera should report a
+    centroid at a pose (a point-like marking, or a point every few metres along
+    a solid line; :attr:`MapIndex.expect_xy`) that lies inside ``view`` (shrunk
+    by ``view_margin_m`` / ``view_margin_deg`` against edge effects) and that no
+    observation explains within ``explain_distance_m`` costs
+    ``log(1 / miss_probability)`` (``solid_miss_probability`` on solid lines).
+    A pose shifted by one dash period explains the observed dashes as well as
+    the true one, but at the end of a dashed line, a stop line or a change of
+    line type it predicts markings that nobody saw.
+    """
     P = np.asarray(poses, float).reshape(-1, 3)
     K, N = len(P), len(obs_xy)
     cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
@@ -178,24 +195,63 @@ def data_scores(
     seg = half > 0
     k[seg] *= np.minimum(1.0, (math.sqrt(2 * math.pi) * s[None] / np.maximum(2 * half, 1e-9))[seg])
     score = np.sum(w_obs[None] * np.log1p(k / options.outlier_density), axis=1)
-    if view is None or options.miss_probability >= 1.0 or len(local_map) == 0:
-        return score
+    return score - miss_costs(local_map, obs_xy, P, options, view)
+
+
+def miss_costs(local_map: LocalMap, obs_xy, poses, options: Options, view=None) -> np.ndarray:
+    """Negative evidence of each pose (K,): expected centroids in view that nobody saw."""
+    points, solid = missed_counts(local_map, obs_xy, poses, options, view)
+    return (points * math.log(1.0 / options.miss_probability)
+            + solid * math.log(1.0 / options.solid_miss_probability))
+
+
+def missed_counts(local_map: LocalMap, obs_xy, poses, options: Options, view=None):
+    """Expected centroids in view that no observation explains, per pose: ``(points, solid)``.
+
+    ``points`` counts point-like markings, ``solid`` the expected clusters of
+    solid lines (see :attr:`MapIndex.expect_xy`); both (K,) arrays.
+    """
+    P = np.asarray(poses, float).reshape(-1, 3)
+    out = np.zeros(len(P)), np.zeros(len(P))
+    E = local_map.expect_xy
+    if view is None or len(E) == 0 or len(obs_xy) == 0:
+        return out
     rmin, rmax, halfang = view
-    mp = local_map.xy[local_map.half == 0]
-    penalty = math.log(1.0 / options.miss_probability)
-    for j in range(K):
-        dx = mp[:, 0] - P[j, 0]
-        dy = mp[:, 1] - P[j, 1]
-        vx = cos[j] * dx + sin[j] * dy
-        vy = -sin[j] * dx + cos[j] * dy
-        r = np.hypot(vx, vy)
-        seen = (r >= rmin) & (r <= rmax) & (np.abs(np.arctan2(vy, vx)) <= halfang)
-        if not seen.any():
-            continue
-        pred = mp[seen]
-        dd = np.min(np.hypot(pred[:, None, 0] - px[j][None], pred[:, None, 1] - py[j][None]), axis=1)
-        score[j] -= penalty * int(np.sum(dd > options.explain_distance_m))
-    return score
+    rmin += options.view_margin_m
+    rmax -= options.view_margin_m
+    halfang -= math.radians(options.view_margin_deg)
+    if rmax <= rmin or halfang <= 0:
+        return out
+    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
+    dx = E[None, :, 0] - P[:, 0, None]
+    dy = E[None, :, 1] - P[:, 1, None]
+    vx = cos[:, None] * dx + sin[:, None] * dy
+    vy = -sin[:, None] * dx + cos[:, None] * dy
+    r2 = vx * vx + vy * vy
+    seen = (r2 >= rmin * rmin) & (r2 <= rmax * rmax) & (np.abs(vy) <= np.tan(halfang) * vx) & (vx > 0)
+    kk, ee = np.nonzero(seen)
+    if kk.size == 0:
+        return out
+    dist, _ = cKDTree(obs_xy).query(np.column_stack([vx[kk, ee], vy[kk, ee]]),
+                                    distance_upper_bound=options.explain_distance_m)
+    missed = ~np.isfinite(dist)
+    on_line = local_map.expect_solid[ee]
+    np.add.at(out[0], kk[missed & ~on_line], 1.0)
+    np.add.at(out[1], kk[missed & on_line], 1.0)
+    return out
+
+
+def count_inliers(local_map: LocalMap, obs_xy, sigma_obs, poses, options: Options) -> np.ndarray:
+    """Observations within the inlier gate of the map at each pose (K,), as in :func:`fit_statistics`."""
+    P = np.asarray(poses, float).reshape(-1, 3)
+    if len(P) == 0 or len(obs_xy) == 0:
+        return np.zeros(len(P), int)
+    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
+    px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
+    py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
+    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
+    d = local_map.closest(np.stack([px, py], -1).reshape(-1, 2), float(gate.max()))[0]
+    return np.sum(d.reshape(len(P), -1) <= gate[None], axis=1)
 
 
 @dataclass

@@ -21,10 +21,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 from .geometry import LocalMap
 
+
+#: Local maxima are taken over a (2 PEAK_HALF + 1)³ neighbourhood of the volume.
+PEAK_HALF = 2
+#: Only the best cells of the volume are examined for local maxima.
+PEAK_TOP_K = 4000
+#: Candidates closer than this to a better one are the same optimum (metres, degrees).
+SEP_M, SEP_DEG = 1.0, 2.5
 
 @dataclass(frozen=True)
 class Candidate:
@@ -51,6 +57,32 @@ def _sample_markings(local_map: LocalMap, step: float, sigma: float):
         pts.append(local_map.xy[i] + a[:, None] * local_map.axis[i])
         amp.append(np.full(n, min(1.0, math.sqrt(2 * math.pi) * sigma / (2 * h))))
     return np.concatenate(pts), np.concatenate(amp)
+
+
+def _local_maxima(volume: np.ndarray, half: int, top_k: int):
+    """Indices ``(a, i, j)`` of finite local maxima of ``volume`` among its ``top_k`` best cells.
+
+    A cell is a local maximum when no cell of its ``(2 half + 1)³``
+    neighbourhood (edges replicated) is larger, as with a ``maximum_filter``;
+    only the best cells are examined, a small fraction of the volume.
+    """
+    flat = volume.ravel()
+    k = min(top_k, flat.size)
+    idx = np.argpartition(-flat, k - 1)[:k] if k < flat.size else np.arange(flat.size)
+    idx = idx[np.isfinite(flat[idx])]
+    a, i, j = np.unravel_index(idx, volume.shape)
+    padded = np.pad(volume, half, mode="edge")
+    pa, pi, pj = padded.shape
+    base = ((a + half) * pi + (i + half)) * pj + (j + half)
+    pf = padded.ravel()
+    v = flat[idx]
+    keep = np.ones(idx.size, bool)
+    for da in range(-half, half + 1):
+        for di in range(-half, half + 1):
+            for dj in range(-half, half + 1):
+                if da or di or dj:
+                    keep &= pf[base + (da * pi + di) * pj + dj] <= v
+    return a[keep], i[keep], j[keep]
 
 
 def likelihood_raster(
@@ -143,15 +175,13 @@ def correlative_search(
         volume[a] = acc + prior_t - 0.5 * dyaw * dyaw
     # Inside the disc of the search radius only.
     volume[:, (tx[None, :] ** 2 + tx[:, None] ** 2) > radius**2] = -np.inf
-    peaks = volume == maximum_filter(volume, size=(5, 5, 5), mode="nearest")
-    peaks &= np.isfinite(volume)
-    a, i, j = np.nonzero(peaks)
+    a, i, j = _local_maxima(volume, PEAK_HALF, PEAK_TOP_K)
     order = np.argsort(-volume[a, i, j])
     out: list[Candidate] = []
     for o in order:
         cand = Candidate(px + tx[j[o]], py + tx[i[o]], float(yaws[a[o]]), float(volume[a[o], i[o], j[o]]))
         if any(
-            math.hypot(cand.x - c.x, cand.y - c.y) < 2.0 and abs(cand.yaw - c.yaw) < math.radians(5)
+            math.hypot(cand.x - c.x, cand.y - c.y) < SEP_M and abs(cand.yaw - c.yaw) < math.radians(SEP_DEG)
             for c in out
         ):
             continue

@@ -188,19 +188,37 @@ class Options:
         (flat-ground camera: range error grows with range²).
     outlier_density : float
         Relative density of outliers in the per-observation likelihood.
+    clutter_reference : float
+        When the best pose leaves more than this many observations unexplained,
+        the outlier density used to score hypotheses grows in proportion (the
+        clutter rate of the frame: under heavy clutter a chance match is likelier,
+        so each match is weaker evidence).
     miss_probability : float
         Probability that the camera misses a marking in its view; each map marking
         predicted in view but not explained by an observation within
         ``explain_distance_m`` costs ``log(1 / miss_probability)``.
+    solid_miss_probability : float
+        The same for each expected cluster of a solid line (one every 3 m).
     explain_distance_m : float
         See ``miss_probability``, metres.
     view_min_range_m, view_max_range_m, view_half_fov_deg : float or None
-        The camera's ground view; None: taken from the extent of the observations.
+        The camera's ground view (a forward camera seeing the ground 4-25 m ahead
+        within ±30° by default), widened to cover every observation; None: taken
+        from the extent of the observations alone.
+    view_margin_m, view_margin_deg : float
+        Expected markings this close to the edge of the view are not held against a
+        pose (a marking just outside may be seen, one just inside missed).
     temperature : float
         Scores are divided by this before turning them into probabilities;
         > 1 accounts for correlated observation errors.
     ambiguity_probability : float
         ``ok`` needs the best hypothesis to hold at least this posterior probability.
+    null_score : float
+        Log score of "none of the hypotheses found": all observations clutter
+        (data log-likelihood ratio 0) at the prior's mean, less a little for a
+        search that found nothing (calibrated); it takes its share of
+        the posterior, so a best hypothesis must explain clearly more than
+        clutter would to be ``ok``. ``-inf`` disables it.
     max_hypotheses, min_hypothesis_probability : int, float
         An ambiguous result lists at most this many hypotheses, each at least this probable.
     min_inliers : int
@@ -220,6 +238,10 @@ class Options:
         Observations farther from the vehicle are rejected as bad input.
     record_trace : bool
         Keep the pose after every iteration in ``Pose.trace``.
+    record_candidates : bool
+        Keep every scored hypothesis with the parts of its score (positive
+        evidence, missed markings, prior) in ``Pose.diagnostics["candidates"]``
+        (for calibration; costs a few milliseconds).
     """
 
     max_pair_distance_m: float = 3.0
@@ -239,13 +261,18 @@ class Options:
     noise_m: float = 0.05
     noise_range_coeff: float = 5e-4
     outlier_density: float = 0.05
-    miss_probability: float = 0.3
+    clutter_reference: float = 8.0
+    miss_probability: float = 0.2
+    solid_miss_probability: float = 0.2
     explain_distance_m: float = 1.5
-    view_min_range_m: float | None = None
-    view_max_range_m: float | None = None
-    view_half_fov_deg: float | None = None
+    view_min_range_m: float | None = 4.0
+    view_max_range_m: float | None = 25.0
+    view_half_fov_deg: float | None = 30.0
+    view_margin_m: float = 1.0
+    view_margin_deg: float = 2.0
     temperature: float = 1.5
     ambiguity_probability: float = 0.95
+    null_score: float = -1.0
     max_hypotheses: int = 8
     min_hypothesis_probability: float = 0.002
     min_inliers: int = 3
@@ -256,3 +283,4 @@ class Options:
     max_observations: int = 500
     max_observation_range_m: float = 150.0
     record_trace: bool = False
+    record_candidates: bool = False

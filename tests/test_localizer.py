@@ -198,6 +198,74 @@ def test_a_distinct_marking_resolves_the_period():
     assert errors(r, pose)[0] < 0.2
 
 
+def ending_dash_rows(end_m=60.0):
+    """Three dashed lines a lane apart that end ``end_m`` metres east of ORIGIN."""
+    xy = dash_rows(lateral=(0.0, 3.5, 7.0))
+    return xy[xy[:, 0] - ORIGIN[0] <= end_m]
+
+
+def test_negative_evidence_resolves_the_period_where_a_dashed_line_ends():
+    # The camera sees the last dashes of the lines and nothing beyond. A pose one
+    # period back explains those as well (its dashes lie where the camera saw
+    # dashes), but it also puts the last dash of each line in view, where nobody
+    # saw one.
+    xy = ending_dash_rows()
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 40.0, ORIGIN[1] + 1.7, 0.0)
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    assert len(scene.observations) == 5
+    prior = prior_at(index, (pose[0] - 1.0, pose[1], 0.0))  # 1 m back, sigma 5 m
+
+    def period_back(result):
+        """Posterior probability of the pose one period back."""
+        return sum(h.score for h in result.hypotheses
+                   if abs(h.easting - pose[0] + 9.0) < 0.3 and abs(h.northing - pose[1]) < 0.3)
+
+    r = localize(index, scene.observations, prior)
+    assert errors(r, pose)[0] < 0.2  # the best pose is the truth
+    assert r.status == "ok" or period_back(r) < 0.02
+    # Without negative evidence the pose a period back is a serious rival.
+    blind = Options(miss_probability=1.0, solid_miss_probability=1.0)
+    r = localize(index, scene.observations, prior, options=blind)
+    assert r.status == "ambiguous"
+    assert period_back(r) > 0.1
+
+
+def test_a_solid_line_predicted_in_view_but_not_seen_counts_against_a_pose():
+    from localizer.geometry import LocalMap
+    from localizer.robust import missed_counts, view_of
+
+    # A 30 m solid line cut in 3 m pieces, 1.75 m left of a vehicle driving along it.
+    xs = np.arange(10) * 3.0 + 1.5
+    xy = ORIGIN + np.column_stack([xs, np.zeros(10)])
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS,
+                                 bearing_deg=np.full(10, 90.0), length_m=np.full(10, 3.0))
+    assert np.all(index.half_length[1:-1] == 1.5)  # the end pieces stay point-like
+    local = LocalMap(index, ORIGIN, 100.0)
+    opts = Options()
+    on_line = np.column_stack([np.arange(6, 26, 3.0), np.full(7, 1.75)])  # what the camera saw
+    elsewhere = np.array([[8.0, -6.0], [12.0, -6.5], [20.0, -7.0]])
+    for obs, expect_missed in ((on_line, False), (elsewhere, True)):
+        pts, solid = missed_counts(local, obs, [(-2.0, -1.75, 0.0)], opts, view_of(obs, opts))
+        assert pts[0] == 0
+        assert (solid[0] >= 4) if expect_missed else (solid[0] == 0)
+
+
+def test_a_pose_that_explains_little_more_than_clutter_is_not_ok():
+    # Two markings matched among a dozen random blobs: whatever the best pose, the
+    # "none of these" hypothesis keeps it from being reported as certain.
+    rng = np.random.default_rng(11)
+    xy, w = random_map(rng, n=400)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], 0.3)
+    real = observe(xy, pose).observations
+    real = real[np.argsort(real[:, 0])][:3]
+    clutter = np.column_stack([rng.uniform(5, 24, 12), rng.uniform(-8, 8, 12), rng.uniform(20, 60, 12)])
+    obs = np.vstack([real, clutter])
+    r = localize(index, obs, prior_at(index, pose, 5.0, 10.0))
+    assert r.status in ("ambiguous", "failed")
+
+
 def test_failed_when_too_few_observations_match():
     rng = np.random.default_rng(7)
     xy, w = random_map(rng)
@@ -364,6 +432,9 @@ def test_observations_as_dicts_equal_array(small):
     "kwargs, match",
     [({"lat": 95.0}, "prior.lat"), ({"lon": float("nan")}, "prior.lon"),
      ({"position_sigma_m": 0.0}, "position_sigma_m"), ({"heading_sigma_deg": -1.0}, "heading_sigma"),
+     ({"position_sigma_m": -5.0}, "position_sigma_m"), ({"position_sigma_m": 1e-9}, "position_sigma_m"),
+     ({"heading_sigma_deg": 1e-12}, "heading_sigma"), ({"heading_sigma_deg": 0.0}, "heading_sigma"),
+     ({"position_sigma_m": 1e7}, "position_sigma_m"), ({"heading_sigma_deg": float("nan")}, "heading_sigma"),
      ({"heading_deg": float("inf")}, "heading_deg")],
 )
 def test_bad_prior_raises(small, kwargs, match):
