@@ -174,9 +174,10 @@ def test_a_worker_killed_mid_build_costs_nothing(topology):
     after = dask.task_counts("process_tiles")
     delta = {k: after.get(k, 0) - before.get(k, 0) for k in after}
     # The worker died with tiles in hand: the scheduler released them and ran them again
-    # elsewhere, and each run of tiles finished exactly once.
+    # elsewhere. A run that had already finished on the dead worker may be released and run
+    # again too, so up to all of them reach memory; the stored markings must not care.
     assert delta.get("released", 0) >= 1, delta
-    assert delta["memory"] == delta["processing"] - delta["released"], delta
+    assert delta["processing"] - delta["released"] <= delta["memory"] <= delta["processing"], delta
     feats = _markings(b, map_id)
     got = _marking_set(feats)
     assert len({f["id"] for f in feats}) == len(feats)
