@@ -137,28 +137,11 @@ def _box(img: np.ndarray, n: int) -> np.ndarray:
     if n > 9:
         return ndimage.uniform_filter(img, n, mode="nearest")
     # small windows: shifted sums are several times faster than the generic filter
-    r = n // 2
-    out = img
-    for axis in (0, 1):
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (r, r)
-        p = np.pad(out, pad, mode="edge")
-        length = out.shape[axis]
-        sl = [slice(None), slice(None)]
-        sl[axis] = slice(0, length)
-        acc = p[tuple(sl)].copy()
-        for i in range(1, n):
-            sl[axis] = slice(i, i + length)
-            acc += p[tuple(sl)]
-        out = acc
-    return out * np.float32(1.0 / (n * n))
+    return _shifted_box_sum(img, n) * np.float32(1.0 / (n * n))
 
 
-def _box_sum_u16(img: np.ndarray, n: int) -> np.ndarray:
-    """Box sum over ``n`` x ``n`` of a uint16 image (edges repeat), uint16.
-
-    The caller keeps ``n * n * max(img)`` below 65536.
-    """
+def _shifted_box_sum(img: np.ndarray, n: int) -> np.ndarray:
+    """Box sum over ``n`` x ``n`` (edges repeat the border values), in ``img``'s dtype."""
     r = n // 2
     out = img
     for axis in (0, 1):
@@ -174,6 +157,14 @@ def _box_sum_u16(img: np.ndarray, n: int) -> np.ndarray:
             acc += p[tuple(sl)]
         out = acc
     return out
+
+
+def _box_sum_u16(img: np.ndarray, n: int) -> np.ndarray:
+    """Box sum over ``n`` x ``n`` of a uint16 image (edges repeat), uint16.
+
+    The caller keeps ``n * n * max(img)`` below 65536.
+    """
+    return _shifted_box_sum(img, n)
 
 
 def _bilinear(grid: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -301,7 +292,6 @@ def _features(rgb, valid, resolution_m, threshold):
             for ch in (r_s, g_s, b_s):
                 ch[~vs] = ch[vs].mean()
     lum_s = r_s + g_s + b_s
-    sat_s = np.maximum(np.maximum(r_s, g_s), b_s) - np.minimum(np.minimum(r_s, g_s), b_s)
     rk = res * k
     sq_s = lum_s * lum_s
     third = np.float32(1.0 / 3.0)

@@ -226,7 +226,14 @@ def export_onnx(model: QuadraticSVM, path: str | Path, metadata: dict | None = N
         "lanemap.features": ",".join(FEATURE_NAMES),
         "lanemap.candidate_tophat": str(CANDIDATE_TOPHAT),
     }
-    meta.update({k: str(v) for k, v in (metadata or {}).items()})
+    return _save_onnx(onx, path, meta, metadata)
+
+
+def _save_onnx(onx, path: str | Path, meta: dict[str, str], metadata: dict | None) -> Path:
+    """Write an ONNX model with lanemap's metadata (``meta``) and the caller's (``metadata``)."""
+    import onnx
+
+    meta = {**meta, **{k: str(v) for k, v in (metadata or {}).items()}}
     for k, v in meta.items():
         entry = onx.metadata_props.add()
         entry.key, entry.value = k, v
@@ -582,7 +589,6 @@ def fit_verifier(X: np.ndarray, y: np.ndarray, seed: int = 0, max_iter: int = 20
 
 def export_verifier_onnx(clf, path: str | Path, metadata: dict | None = None) -> Path:
     """Write a fitted verifier as ONNX (``features`` (N, F) → ``probabilities`` (N, 2))."""
-    import onnx
     from skl2onnx import to_onnx
     from skl2onnx.common.data_types import FloatTensorType
 
@@ -597,14 +603,7 @@ def export_verifier_onnx(clf, path: str | Path, metadata: dict | None = None) ->
         "lanemap.context_version": CONTEXT_VERSION,
         "lanemap.context_features": ",".join(CONTEXT_FEATURES),
     }
-    meta.update({k: str(v) for k, v in (metadata or {}).items()})
-    for k, v in meta.items():
-        entry = onx.metadata_props.add()
-        entry.key, entry.value = k, v
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(onx, str(path))
-    return path
+    return _save_onnx(onx, path, meta, metadata)
 
 
 def train_synthetic_verifier(
