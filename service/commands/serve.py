@@ -42,10 +42,9 @@ def register(app: typer.Typer) -> None:
         from mapbuilder.settings import Settings as StoreSettings
         from mapbuilder.store import Store
 
+        from .. import multiprocess
         from ..app import create_app
         from ..settings import ServiceSettings, ensure_token_file, parse_tokens, token_path
-
-        from .. import multiprocess
 
         settings = ServiceSettings()
         store_settings = StoreSettings()
