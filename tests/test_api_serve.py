@@ -12,7 +12,6 @@ import stat
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -120,29 +119,54 @@ def _listening_processes(root_pid: int, port: int) -> set[int]:
     return pids
 
 
-def test_several_workers_spread_keep_alive_connections(tmp_path):
+def _get_health(sock: socket.socket) -> int:
+    """One ``GET /health`` on a keep-alive HTTP/1.1 connection; the status code."""
+    sock.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        assert chunk, "connection closed"
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = int(re.search(rb"(?im)^content-length:\s*(\d+)", head).group(1))
+    while len(body) < length:
+        body += sock.recv(65536)
+    return int(head.split()[1])
+
+
+def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
     """Each worker has its own SO_REUSEPORT socket, so the kernel spreads connections over them.
 
-    With one shared socket (uvicorn's own multiprocess mode) the first process to
-    wake took every connection of a burst. 16 connections all hashed to one of
-    two sockets would happen once in 2**15 runs.
+    The 16 clients connect while both server processes are busy (stopped), as
+    when a burst of clients arrives under load. With one shared socket
+    (uvicorn's own multiprocess mode) the process that got the CPU back first
+    accepted every queued connection and served those clients for good. 16
+    connections all hashed to one of two sockets would happen once in 2**15 runs.
     """
     server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", args=("--workers", "2"))
-    clients = [server.client() for _ in range(16)]
+    port = int(server.base_url.rsplit(":", 1)[1])
+    conns: list[socket.socket] = []
     try:
-        port = int(server.base_url.rsplit(":", 1)[1])
-        with ThreadPoolExecutor(len(clients)) as pool:
-            assert set(pool.map(lambda c: c.get("/health").status_code, clients)) == {200}
+        workers = _listening_processes(server.proc.pid, port)
+        assert len(workers) == 2
+        for pid in workers:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            for _ in range(16):
+                conns.append(socket.create_connection(("127.0.0.1", port), timeout=30))
+        finally:
+            for pid in sorted(workers):  # one process frees up a little before the other
+                os.kill(pid, signal.SIGCONT)
+                time.sleep(0.3)
+        assert [_get_health(c) for c in conns] == [200] * len(conns)
         counts = _established_per_process(server.proc.pid, port)
-        assert sum(counts.values()) == len(clients)
-        assert len(counts) == 2, counts
-        assert server.proc.pid not in counts  # the supervising parent serves nothing
-        # The keep-alive connections stay where they are: a second round adds none.
-        for c in clients:
-            assert c.get("/health").status_code == 200
+        assert sum(counts.values()) == len(conns)
+        assert set(counts) == workers, counts  # both served some; the supervising parent none
+        # The keep-alive connections stay where they are: a second round moves none.
+        assert [_get_health(c) for c in conns] == [200] * len(conns)
         assert _established_per_process(server.proc.pid, port) == counts
     finally:
-        for c in clients:
+        for c in conns:
             c.close()
         server.stop()
 
