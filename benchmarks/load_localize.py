@@ -21,8 +21,10 @@ localizations, errors (timeouts, resets, any status but 200 and 503), the
 client then waits ``Retry-After`` as a vehicle would), the median time the
 localizer itself took and the time a request waited for a worker thread (the
 server's ``Server-Timing`` header), the load generator's own CPU use, the CPU
-seconds of each server process (how evenly ``--workers`` share the load) and
-the load average; it marks the first level with errors, the first with
+seconds of each server process and the clients' connections each held
+halfway through the level (how evenly ``--workers`` share the load: each
+server process listens on its own ``SO_REUSEPORT`` socket and the kernel
+spreads connections over them), and the load average; it marks the first level with errors, the first with
 shedding, and the level where throughput stops growing (saturation).
 
 The load generator is an asyncio ``httpx`` client in this process. It shares
@@ -124,6 +126,8 @@ class Level:
     client_cpu: float = 0.0
     #: CPU seconds each server process used during the level, largest first
     server_cpu: list[float] = field(default_factory=list)
+    #: established connections per server process halfway through, most first
+    connections: list[int] = field(default_factory=list)
     load: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
@@ -149,8 +153,12 @@ def _server_timing(header: str | None) -> dict[str, float]:
     return out
 
 
-async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float, timeout: float) -> Level:
-    """``c`` closed-loop clients for ``duration`` seconds."""
+async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float, timeout: float,
+                    server_pid: int | None = None) -> Level:  # fmt: skip
+    """``c`` closed-loop clients for ``duration`` seconds.
+
+    With ``server_pid``, the connections each server process holds are counted halfway through.
+    """
     lvl = Level(c)
     url = f"{base_url}/collections/{MAP_ID}/localize"
     headers = {"Content-Type": "application/json"}
@@ -190,12 +198,38 @@ async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float,
                     lvl.localize_ms.append(timing["localize"])
                     lvl.queue_ms.append(timing.get("queue", 0.0))
 
+        async def count_connections() -> None:
+            await asyncio.sleep(duration / 2)
+            port = int(base_url.rsplit(":", 1)[1])
+            per_process = await asyncio.to_thread(_connections_by_process, server_pid, port)
+            lvl.connections = sorted(per_process.values(), reverse=True)
+
         cpu0, t0 = time.process_time(), time.perf_counter()
-        await asyncio.gather(*(worker(k) for k in range(c)))
+        tasks = [worker(k) for k in range(c)] + ([count_connections()] if server_pid else [])
+        await asyncio.gather(*tasks)
         lvl.seconds = time.perf_counter() - t0
         lvl.client_cpu = (time.process_time() - cpu0) / lvl.seconds
     lvl.load = os.getloadavg()
     return lvl
+
+
+def _connections_by_process(pid: int, port: int) -> dict[int, int]:
+    """Established TCP connections to ``port`` held by each descendant of process ``pid``."""
+    import psutil
+
+    out = {}
+    try:
+        for p in psutil.Process(pid).children(recursive=True):
+            try:
+                n = sum(1 for k in p.net_connections("tcp")
+                        if k.status == psutil.CONN_ESTABLISHED and k.laddr and k.laddr.port == port)  # fmt: skip
+            except psutil.Error:
+                continue
+            if n:
+                out[p.pid] = n
+    except psutil.Error:
+        pass
+    return out
 
 
 def _cpu_by_process(pid: int) -> dict[int, float]:
@@ -224,7 +258,7 @@ def warm_up(base_url: str, bodies: list[bytes], workers: int) -> None:
 def print_levels(levels: list[Level], workers: int) -> None:
     print(f"\n  {'clients':>7s} {'req/s':>7s} {'p50 ms':>7s} {'p90 ms':>7s} {'p99 ms':>7s} {'errors':>6s} "
           f"{'503 shed':>8s} {'localizer p50 ms':>16s} {'thread wait p50':>15s} {'client CPU':>10s} "
-          f"{'server CPU s':>12s} {'load 1m':>7s}  notes")  # fmt: skip
+          f"{'server CPU s':>12s} {'conns':>7s} {'load 1m':>7s}  notes")  # fmt: skip
     best = 0.0
     first_error = first_shed = None
     saturated = None
@@ -248,6 +282,7 @@ def print_levels(levels: list[Level], workers: int) -> None:
         print(f"  {lv.concurrency:7d} {lv.rps:7.1f} {lv.pct(50):7.1f} {lv.pct(90):7.1f} {lv.pct(99):7.1f} "
               f"{lv.errors:6d} {lv.shed:8d} {loc:16.1f} {wait:15.1f} {100 * lv.client_cpu:9.0f}% "
               f"{'+'.join(f'{x:.1f}' for x in lv.server_cpu[:workers]):>12s} "
+              f"{'+'.join(str(x) for x in lv.connections):>7s} "
               f"{lv.load[0]:7.2f}  {'; '.join(notes)}")  # fmt: skip
     statuses: dict[str, int] = {}
     for lv in levels:
@@ -313,7 +348,8 @@ def main() -> None:
             levels = []
             for c in args.levels:
                 before = _cpu_by_process(server.proc.pid)
-                levels.append(asyncio.run(run_level(server.base_url, bodies, c, args.duration, args.timeout)))
+                levels.append(asyncio.run(run_level(server.base_url, bodies, c, args.duration, args.timeout,
+                                                    server.proc.pid)))  # fmt: skip
                 lv = levels[-1]
                 after = _cpu_by_process(server.proc.pid)
                 lv.server_cpu = sorted((after[p] - before.get(p, 0.0) for p in after), reverse=True)

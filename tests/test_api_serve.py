@@ -1,17 +1,21 @@
 """``lanemap serve``: the generated write token, the demo map, several workers, a busy port."""
 
+
 from __future__ import annotations
 
 import math
 import os
 import re
+import signal
 import socket
 import stat
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import httpx
+import psutil
 
 from tests._api_helpers import feature, start_server
 
@@ -87,6 +91,131 @@ def test_several_workers_share_the_store(tmp_path):
         assert len(re.findall(r"Started server process", server.log())) == 2
     finally:
         server.stop()
+
+
+def _established_per_process(root_pid: int, port: int) -> dict[int, int]:
+    """Established TCP connections to ``port`` held by each process below ``root_pid``."""
+    counts = {}
+    for child in psutil.Process(root_pid).children(recursive=True):
+        try:
+            conns = child.net_connections(kind="tcp")
+        except psutil.NoSuchProcess:
+            continue
+        n = sum(1 for c in conns if c.status == psutil.CONN_ESTABLISHED and c.laddr and c.laddr.port == port)
+        if n:
+            counts[child.pid] = n
+    return counts
+
+
+def _listening_processes(root_pid: int, port: int) -> set[int]:
+    """Processes below ``root_pid`` that listen on ``port`` (the server processes)."""
+    pids = set()
+    for child in psutil.Process(root_pid).children():
+        try:
+            if any(c.status == psutil.CONN_LISTEN and c.laddr.port == port for c in child.net_connections("tcp")):
+                pids.add(child.pid)
+        except psutil.NoSuchProcess:
+            pass
+    return pids
+
+
+def _get_health(sock: socket.socket) -> int:
+    """One ``GET /health`` on a keep-alive HTTP/1.1 connection; the status code."""
+    sock.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        assert chunk, "connection closed"
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = int(re.search(rb"(?im)^content-length:\s*(\d+)", head).group(1))
+    while len(body) < length:
+        body += sock.recv(65536)
+    return int(head.split()[1])
+
+
+def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
+    """Each worker has its own SO_REUSEPORT socket, so the kernel spreads connections over them.
+
+    The 16 clients connect while both server processes are busy (stopped), as
+    when a burst of clients arrives under load. With one shared socket
+    (uvicorn's own multiprocess mode) the process that got the CPU back first
+    accepted every queued connection and served those clients for good. 16
+    connections all hashed to one of two sockets would happen once in 2**15 runs.
+    """
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", args=("--workers", "2"))
+    port = int(server.base_url.rsplit(":", 1)[1])
+    conns: list[socket.socket] = []
+    try:
+        workers = _listening_processes(server.proc.pid, port)
+        assert len(workers) == 2
+        for pid in workers:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            for _ in range(16):
+                conns.append(socket.create_connection(("127.0.0.1", port), timeout=30))
+        finally:
+            for pid in sorted(workers):  # one process frees up a little before the other
+                os.kill(pid, signal.SIGCONT)
+                time.sleep(0.3)
+        assert [_get_health(c) for c in conns] == [200] * len(conns)
+        counts = _established_per_process(server.proc.pid, port)
+        assert sum(counts.values()) == len(conns)
+        assert set(counts) == workers, counts  # both served some; the supervising parent none
+        # The keep-alive connections stay where they are: a second round moves none.
+        assert [_get_health(c) for c in conns] == [200] * len(conns)
+        assert _established_per_process(server.proc.pid, port) == counts
+    finally:
+        for c in conns:
+            c.close()
+        server.stop()
+
+
+def test_worker_that_cannot_start_is_one_line_error(tmp_path):
+    """A server process that ends before it serves stops the server with one ``error:`` line."""
+    code = (
+        "import uvicorn\n"
+        "from service import multiprocess\n"
+        "from service.cli_errors import fail\n"
+        "socks = multiprocess.bind_reuseport('127.0.0.1', 0, 2)\n"
+        "config = uvicorn.Config('service.no_such_module:app', log_level='warning')\n"
+        "try:\n"
+        "    multiprocess.serve(config, socks, shutdown_timeout_s=10)\n"
+        "except multiprocess.WorkerStartError as exc:\n"
+        "    print('error:', exc)\n"
+        "    raise SystemExit(1)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False,
+                          cwd=Path(__file__).resolve().parents[1])  # fmt: skip
+    assert proc.returncode == 1
+    errors = [line for line in proc.stdout.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "before it started serving" in errors[0], proc.stdout + proc.stderr
+
+
+def test_a_crashed_worker_is_replaced(tmp_path):
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", args=("--workers", "2"))
+    try:
+        port = int(server.base_url.rsplit(":", 1)[1])
+        before = _listening_processes(server.proc.pid, port)
+        assert len(before) == 2
+        victim = min(before)
+        os.kill(victim, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            now = _listening_processes(server.proc.pid, port)
+            if len(now) == 2 and victim not in now and "ended with exit code -9" in server.log():
+                break
+            time.sleep(0.2)
+        assert len(now) == 2 and victim not in now
+        assert f"(pid {victim}) ended with exit code -9" in server.log()
+        # Every connection is answered, whichever socket the kernel hashes it to.
+        for _ in range(20):
+            with server.client() as c:
+                assert c.get("/health").status_code == 200
+        assert server.proc.poll() is None
+    finally:
+        server.stop()
+    assert server.proc.returncode == 0
 
 
 def test_busy_port_is_one_line_error(tmp_path):

@@ -1,4 +1,11 @@
-"""``lanemap serve``: run the HTTP API under uvicorn."""
+"""``lanemap serve``: run the HTTP API under uvicorn.
+
+With ``--workers N`` (N > 1) on Linux, N server processes each listen on their
+own ``SO_REUSEPORT`` socket on the same address, so the kernel spreads
+connections over them; a parent process supervises them (see
+:mod:`service.multiprocess` for what happens when one ends). Elsewhere uvicorn's
+own multiprocess mode (one shared socket) is used.
+"""
 
 from __future__ import annotations
 
@@ -35,6 +42,7 @@ def register(app: typer.Typer) -> None:
         from mapbuilder.settings import Settings as StoreSettings
         from mapbuilder.store import Store
 
+        from .. import multiprocess
         from ..app import create_app
         from ..settings import ServiceSettings, ensure_token_file, parse_tokens, token_path
 
@@ -42,6 +50,14 @@ def register(app: typer.Typer) -> None:
         store_settings = StoreSettings()
         data_dir = store_settings.data_dir.resolve()
         _check_port(host, port)
+        sockets = None
+        if workers > 1 and multiprocess.reuseport_supported():
+            # Bound before the demo map is made, so that a busy port fails at once.
+            try:
+                sockets = multiprocess.bind_reuseport(host, port, workers)
+            except OSError as exc:
+                fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
+            port = sockets[0].getsockname()[1]
         store = Store(store_settings.resolved_database_url())
         token_note = None
         if not parse_tokens(settings.api_tokens):
@@ -70,6 +86,14 @@ def register(app: typer.Typer) -> None:
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
                         log_level=log_level)  # fmt: skip
+        elif sockets is not None:
+            store.close()
+            config = uvicorn.Config("service.app:app_from_env", factory=True, host=host, port=port,
+                                    log_level=log_level)  # fmt: skip
+            try:
+                multiprocess.serve(config, sockets)
+            except multiprocess.WorkerStartError as exc:
+                fail(str(exc))
         else:
             store.close()
             uvicorn.run("service.app:app_from_env", factory=True, host=host, port=port, workers=workers,
