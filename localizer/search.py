@@ -76,12 +76,12 @@ def _local_maxima(volume: np.ndarray, half: int, top_k: int):
     base = ((a + half) * pi + (i + half)) * pj + (j + half)
     pf = padded.ravel()
     v = flat[idx]
-    keep = np.ones(idx.size, bool)
-    for da in range(-half, half + 1):
-        for di in range(-half, half + 1):
-            for dj in range(-half, half + 1):
-                if da or di or dj:
-                    keep &= pf[base + (da * pi + di) * pj + dj] <= v
+    # Offsets of the neighbourhood in the padded volume, all compared in one gather.
+    r = np.arange(-half, half + 1)
+    da, di, dj = np.meshgrid(r, r, r, indexing="ij")
+    off = ((da * pi + di) * pj + dj).ravel()
+    off = off[off != 0]
+    keep = np.all(pf[base[None, :] + off[:, None]] <= v[None, :], axis=0)
     return a[keep], i[keep], j[keep]
 
 
@@ -160,19 +160,24 @@ def correlative_search(
     yaws = pyaw + step * np.arange(-k, k + 1)
     tx = (np.arange(n) - half) * cell  # offsets from the prior position
     prior_t = -0.5 * (tx[None, :] ** 2 + tx[:, None] ** 2) / sigma_p**2
-    volume = np.empty((len(yaws), n, n), np.float32)
     wf = (w_obs / temperature).astype(np.float32)
-    for a, yaw in enumerate(yaws):
-        c, s = math.cos(yaw), math.sin(yaw)
-        qx = c * obs_xy[:, 0] - s * obs_xy[:, 1] + px - half * cell
-        qy = s * obs_xy[:, 0] + c * obs_xy[:, 1] + py - half * cell
-        cj = np.rint((qx - x0) / cell).astype(np.int64)
-        ci = np.rint((qy - y0) / cell).astype(np.int64)
-        acc = np.zeros((n, n), np.float32)
-        for j in range(len(obs_xy)):
-            acc += wf[j] * raster[ci[j]:ci[j] + n, cj[j]:cj[j] + n]
-        dyaw = (yaw - pyaw) / sigma_yaw
-        volume[a] = acc + prior_t - 0.5 * dyaw * dyaw
+    # Every translation window of the raster as a view; the score volume at one
+    # heading is the weighted sum of the windows the observations fall into.
+    windows = np.lib.stride_tricks.sliding_window_view(raster, (n, n))
+    cos, sin = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    qx = cos * obs_xy[None, :, 0] - sin * obs_xy[None, :, 1] + px - half * cell
+    qy = sin * obs_xy[None, :, 0] + cos * obs_xy[None, :, 1] + py - half * cell
+    cj = np.rint((qx - x0) / cell).astype(np.int64)
+    ci = np.rint((qy - y0) / cell).astype(np.int64)
+    dyaw = (yaws - pyaw) / sigma_yaw
+    volume = np.empty((len(yaws), n, n), np.float32)
+    # Headings in chunks keep the gathered windows (chunk x N x n x n) small.
+    chunk = max(1, int(4_000_000 // max(1, len(obs_xy) * n * n)))
+    for a0 in range(0, len(yaws), chunk):
+        a1 = min(a0 + chunk, len(yaws))
+        block = windows[ci[a0:a1], cj[a0:a1]]  # (chunk, N, n, n)
+        acc = np.matmul(wf, block.reshape(a1 - a0, len(obs_xy), n * n)).reshape(a1 - a0, n, n)
+        volume[a0:a1] = acc + prior_t[None] - (0.5 * dyaw[a0:a1] ** 2)[:, None, None]
     # Inside the disc of the search radius only.
     volume[:, (tx[None, :] ** 2 + tx[:, None] ** 2) > radius**2] = -np.inf
     a, i, j = _local_maxima(volume, PEAK_HALF, PEAK_TOP_K)
