@@ -47,6 +47,7 @@ def robust_refine(
     options: Options,
     iterations_per_scale: int = 6,
     record: bool = False,
+    start_scale=None,
 ) -> list[RefineResult]:
     """IRLS with a Geman-McClure kernel whose scale is annealed coarse to fine.
 
@@ -59,17 +60,22 @@ def robust_refine(
 
     All initial poses ``inits`` (K, 3) are refined together (one KD-tree query
     per iteration for all of them). ``record`` keeps the trace of the first.
+    ``start_scale`` (K,), optional: index into ``options.anneal_m`` at which
+    each pose starts (default 0); a pose starting at the last two scales is
+    refined exactly as with ``anneal_m[-2:]``, so coarse-to-fine and fine-only
+    refinements share one batch.
     """
     poses = np.array(inits, float).reshape(-1, 3)
     K, N = len(poses), len(obs_xy)
     iters = np.zeros(K, int)
     trace = [tuple(poses[0])] if record else []
     var = sigma_obs**2
-    for c in options.anneal_m:
+    start = np.zeros(K, int) if start_scale is None else np.asarray(start_scale, int).reshape(K)
+    for si, c in enumerate(options.anneal_m):
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
         tol = options.tolerance_m if c == options.anneal_m[-1] else max(options.tolerance_m, 0.01)
-        active = np.ones(K, bool)
+        active = start <= si
         for _ in range(iterations_per_scale):
             idx = np.flatnonzero(active)
             if idx.size == 0:
