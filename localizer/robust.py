@@ -71,44 +71,53 @@ def robust_refine(
     trace = [tuple(poses[0])] if record else []
     var = sigma_obs**2
     start = np.zeros(K, int) if start_scale is None else np.asarray(start_scale, int).reshape(K)
+    ox, oy = obs_xy[None, :, 0], obs_xy[None, :, 1]
+    # Component arrays and per-scale constants: each iteration is a few dozen
+    # operations on small (K, N) arrays, so the number of operations is the cost.
     for si, c in enumerate(options.anneal_m):
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
-        tol = options.tolerance_m if c == options.anneal_m[-1] else max(options.tolerance_m, 0.01)
+        gmax = float(gate.max())
+        last = c == options.anneal_m[-1]
+        tol = options.tolerance_m if last else max(options.tolerance_m, 0.01)
+        wo = np.ones_like(w_obs) if last else w_obs
+        wo_s2 = (wo / s2)[None]
+        inv_s2 = (1.0 / s2)[None]
         active = start <= si
         for _ in range(iterations_per_scale):
             idx = np.flatnonzero(active)
             if idx.size == 0:
                 break
             P = poses[idx]
-            cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
-            px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
-            py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
-            pts = np.stack([px, py], -1).reshape(-1, 2)
-            d, tgt, _ = local_map.closest(pts, float(gate.max()))
+            cos, sin = np.cos(P[:, 2])[:, None], np.sin(P[:, 2])[:, None]
+            pts = np.empty((len(idx), N, 2))
+            px, py = pts[..., 0], pts[..., 1]
+            np.add(cos * ox - sin * oy, P[:, 0, None], out=px)
+            np.add(sin * ox + cos * oy, P[:, 1, None], out=py)
+            d, tgt, _ = local_map.closest(pts.reshape(-1, 2), gmax)
             d = d.reshape(-1, N)
-            tgt = tgt.reshape(-1, N, 2)
-            m = np.isfinite(d) & (d <= gate[None])
+            gx, gy = tgt[:, 0].reshape(-1, N), tgt[:, 1].reshape(-1, N)
+            m = d <= gate[None]
             dd = np.where(m, d, 0.0)
-            wo = w_obs if c != options.anneal_m[-1] else np.ones_like(w_obs)
-            w = np.where(m, wo[None] / s2[None] / (1.0 + dd**2 / s2[None]) ** 2, 0.0)
+            t = 1.0 + dd * dd * inv_s2
+            w = np.where(m, wo_s2 / (t * t), 0.0)
             wsum = w.sum(1)
             ok = (m.sum(1) >= 2) & (wsum > 0)
             ws = w / np.where(wsum > 0, wsum, 1.0)[:, None]
-            src = np.stack([px, py], -1)
-            cs = np.einsum("kn,knd->kd", ws, src)
-            cd = np.einsum("kn,knd->kd", ws, tgt)
-            a = src - cs[:, None]
-            b = tgt - cd[:, None]
-            sxx = np.einsum("kn,kn->k", ws, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1])
-            sxy = np.einsum("kn,kn->k", ws, a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+            csx, csy = (ws * px).sum(1), (ws * py).sum(1)
+            cdx, cdy = (ws * gx).sum(1), (ws * gy).sum(1)
+            ax, ay = px - csx[:, None], py - csy[:, None]
+            bx, by = gx - cdx[:, None], gy - cdy[:, None]
+            sxx = (ws * (ax * bx + ay * by)).sum(1)
+            sxy = (ws * (ax * by - ay * bx)).sum(1)
             th = np.where(ok, np.arctan2(sxy, sxx), 0.0)
             ct, st = np.cos(th), np.sin(th)
-            tx = cd[:, 0] - (ct * cs[:, 0] - st * cs[:, 1])
-            ty = cd[:, 1] - (st * cs[:, 0] + ct * cs[:, 1])
-            nx = ct * P[:, 0] - st * P[:, 1] + tx
-            ny = st * P[:, 0] + ct * P[:, 1] + ty
-            new = np.column_stack([nx, ny, P[:, 2] + th])
+            tx = cdx - (ct * csx - st * csy)
+            ty = cdy - (st * csx + ct * csy)
+            new = np.empty_like(P)
+            new[:, 0] = ct * P[:, 0] - st * P[:, 1] + tx
+            new[:, 1] = st * P[:, 0] + ct * P[:, 1] + ty
+            new[:, 2] = P[:, 2] + th
             new[~ok] = P[~ok]
             step = np.hypot(new[:, 0] - P[:, 0], new[:, 1] - P[:, 1])
             poses[idx] = new
