@@ -310,29 +310,30 @@ def fit_statistics(
     q = (rotation(pose[2]) @ obs_xy[m].T).T  # lever arms from the vehicle origin
     r = p[m] - tgt[m]
     w = w_obs[m] / sigma_obs[m] ** 2
-    H = np.zeros((3, 3))
-    B = np.zeros((3, 3))
-    G = np.zeros(3)  # effect of a camera pitch error on the normal equations
     rng_j = np.hypot(obs_xy[m, 0], obs_xy[m, 1])
     drdp = (rng_j**2 + options.camera_height_m**2) / options.camera_height_m
     radial = q / np.maximum(rng_j, 1e-9)[:, None]
-    chi2 = 0.0
-    dof = 0.0
-    for j in range(n):
-        J = np.array([[1.0, 0.0, -q[j, 1]], [0.0, 1.0, q[j, 0]]])
-        nv = normal[m][j]
-        if nv.any():
-            J = nv[None, :] @ J
-            rr = np.array([nv @ r[j]])
-        else:
-            rr = r[j]
-        H += w[j] * J.T @ J
-        shift = radial[j] * drdp[j]
-        G += w[j] * J.T @ (nv @ shift if nv.any() else shift).reshape(-1)
-        g = J.T @ rr * w[j]
-        B += np.outer(g, g)
-        chi2 += w[j] * float(rr @ rr)
-        dof += rr.size
+    shift = radial * drdp[:, None]
+    # Rows of the Jacobian: two per point pair (x, y), one per segment pair
+    # (across the line: the normal times the point rows).
+    nv = normal[m]
+    seg = nv.any(axis=1)
+    jx = np.column_stack([np.ones(n), np.zeros(n), -q[:, 1]])
+    jy = np.column_stack([np.zeros(n), np.ones(n), q[:, 0]])
+    js = nv[:, :1] * jx + nv[:, 1:] * jy
+    # Per pair: first row (x, or across the line), second row (y; zero for segments).
+    J1 = np.where(seg[:, None], js, jx)
+    J2 = np.where(seg[:, None], 0.0, jy)
+    r1 = np.where(seg, np.einsum("nd,nd->n", nv, r), r[:, 0])
+    r2 = np.where(seg, 0.0, r[:, 1])
+    s1 = np.where(seg, np.einsum("nd,nd->n", nv, shift), shift[:, 0])
+    s2_ = np.where(seg, 0.0, shift[:, 1])
+    H = (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2
+    G = (w * s1) @ J1 + (w * s2_) @ J2
+    g = (J1 * r1[:, None] + J2 * r2[:, None]) * w[:, None]
+    B = g.T @ g
+    chi2 = float(np.sum(w * (r1 * r1 + r2 * r2)))
+    dof = float(np.sum(np.where(seg, 1.0, 2.0)))
     s2 = chi2 / max(dof - 3.0, 1.0)
     s2 = max(s2, 0.25)  # optimistic residuals from few points must not shrink the ellipse
     info_prior = np.zeros((3, 3)) if prior_info is None else prior_info
