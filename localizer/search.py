@@ -111,19 +111,22 @@ def likelihood_raster(
     ny, nx = shape
     r = int(math.ceil(3.0 * sigma / cell))
     off = np.arange(-r, r + 1)
-    oy, ox = np.meshgrid(off, off, indexing="ij")
     k = np.zeros(ny * nx)
     if len(points):
         amp = np.ones(len(points)) if amplitude is None else amplitude
         ci = np.rint((points[:, 1] - y0) / cell).astype(np.int64)
         cj = np.rint((points[:, 0] - x0) / cell).astype(np.int64)
-        ii = ci[:, None, None] + oy[None]
-        jj = cj[:, None, None] + ox[None]
-        dy = y0 + ii * cell - points[:, 1, None, None]
-        dx = x0 + jj * cell - points[:, 0, None, None]
-        val = amp[:, None, None] * np.exp(-0.5 * (dx * dx + dy * dy) / sigma**2)
-        ok = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
-        np.maximum.at(k, (ii * nx + jj)[ok], val[ok])
+        # The Gaussian kernel is separable: one exp per row and per column offset.
+        ii = ci[:, None] + off[None]  # (P, 2r+1)
+        jj = cj[:, None] + off[None]
+        dy = y0 + ii * cell - points[:, 1, None]
+        dx = x0 + jj * cell - points[:, 0, None]
+        gy = amp[:, None] * np.exp(-0.5 * dy * dy / sigma**2)
+        gx = np.exp(-0.5 * dx * dx / sigma**2)
+        val = gy[:, :, None] * gx[:, None, :]
+        ok = ((ii >= 0) & (ii < ny))[:, :, None] & ((jj >= 0) & (jj < nx))[:, None, :]
+        flat = ii[:, :, None] * nx + jj[:, None, :]
+        np.maximum.at(k, flat[ok], val[ok])
     return np.log1p(k / outlier_density).reshape(ny, nx).astype(np.float32)
 
 
