@@ -95,9 +95,7 @@ class LocalMap:
         self._ux, self._uy = self.axis[:, 0].copy(), self.axis[:, 1].copy()
         self.tree = cKDTree(self.xy) if sel.size else None
         if index.expect_xy is not None and sel.size:
-            inside = np.zeros(len(index), bool)
-            inside[sel] = True
-            keep = inside[index.expect_owner]
+            keep = index.expect_of(sel)
             self.expect_xy = index.expect_xy[keep] - self.origin
             self.expect_solid = index.expect_solid[keep]
         else:
