@@ -155,14 +155,13 @@ class LocalMap:
         ey = ry - a * uy
         d2 = ex * ex + ey * ey
         d2[~valid] = np.inf
-        best = np.argmin(d2, axis=1)
-        rows = np.arange(n)
-        d = np.sqrt(d2[rows, best])
+        best = np.argmin(d2, axis=1) + np.arange(n) * k  # flat index of each row's best
+        d = np.sqrt(np.take(d2, best))
         d[d > max_dist] = np.inf
-        target[:, 0] = p[:, 0] - ex[rows, best]
-        target[:, 1] = p[:, 1] - ey[rows, best]
-        normal[:, 0] = -uy[rows, best]
-        normal[:, 1] = ux[rows, best]
+        target[:, 0] = p[:, 0] - np.take(ex, best)
+        target[:, 1] = p[:, 1] - np.take(ey, best)
+        normal[:, 0] = -np.take(uy, best)
+        normal[:, 1] = np.take(ux, best)
         if return_index:
-            return d, target, normal, np.where(np.isfinite(d), ii[rows, best], -1)
+            return d, target, normal, np.where(np.isfinite(d), np.take(ii, best), -1)
         return d, target, normal

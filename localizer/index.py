@@ -220,7 +220,7 @@ class MapIndex:
         if len(self) == 0:
             return np.zeros(0, dtype=np.intp)
         idx = self.tree.query_ball_point(np.asarray(center, float), radius)
-        return np.asarray(sorted(idx), dtype=np.intp)
+        return np.sort(np.asarray(idx, dtype=np.intp))
 
     def distance_to_nearest(self, point) -> float:
         """Distance from ``point`` (x, y) to the nearest marking, metres (inf when empty)."""
