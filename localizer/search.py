@@ -72,11 +72,14 @@ def _local_maxima(volume: np.ndarray, half: int, top_k: int):
     only the best cells are examined, a small fraction of the volume.
     """
     flat = volume.ravel()
-    if flat.size <= top_k:
-        # A small volume (a tight prior) is all examined: one separable filter
-        # is cheaper than gathering every cell's neighbourhood.
+    if flat.size <= 3 * top_k:
+        # A small volume (a tight prior): one separable filter over all of it is
+        # cheaper than gathering the neighbourhoods of the best cells.
         peak = maximum_filter(volume, size=2 * half + 1, mode="nearest")
-        return np.nonzero((volume == peak) & np.isfinite(volume))
+        found = (volume == peak) & np.isfinite(volume)
+        if flat.size > top_k:
+            found &= volume >= np.partition(flat, flat.size - top_k)[flat.size - top_k]
+        return np.nonzero(found)
     k = min(top_k, flat.size)
     idx = np.argpartition(-flat, k - 1)[:k] if k < flat.size else np.arange(flat.size)
     idx = idx[np.isfinite(flat[idx])]
