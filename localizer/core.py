@@ -237,18 +237,24 @@ def localize(
                        for c in cands):
                 cands.append(Candidate(0.0, 0.0, yaw0, -math.inf))
         inits = [(c.x, c.y, c.yaw) for c in cands]
-        coarse = robust_refine(local, obs_xy, w_data, sig, inits, options) if cands else []
         # The coarse-to-fine schedule can be dragged off a right candidate by heavy
         # clutter; a fine-only refinement from the same start cannot go far. Keep
-        # whichever explains the observations better.
+        # whichever explains the observations better. Both run in one batch (the
+        # fine-only ones join at the last two scales): one KD-tree query per
+        # iteration for all, instead of a second round of iterations.
+        fine_options = replace(options, anneal_m=options.anneal_m[-2:])
+        n_c = len(inits)
+        both_runs = robust_refine(
+            local, obs_xy, w_data, sig, inits + inits, options,
+            start_scale=[0] * n_c + [max(0, len(options.anneal_m) - 2)] * n_c,
+        ) if cands else []
+        coarse = both_runs[:n_c]
         # Only a refinement that travelled can have been dragged off: the others
         # would end where the fine-only one does.
-        fine_options = replace(options, anneal_m=options.anneal_m[-2:])
         moved = [k for k, (c, r) in enumerate(zip(cands, coarse))
                  if math.hypot(r.pose[0] - c.x, r.pose[1] - c.y) > 0.5
                  or abs(wrap_angle(r.pose[2] - c.yaw)) > math.radians(1.5)]
-        fine = dict(zip(moved, robust_refine(local, obs_xy, w_data, sig, [inits[k] for k in moved],
-                                             fine_options))) if moved else {}
+        fine = {k: both_runs[n_c + k] for k in moved}
         refined = []
         if cands:
             both = data_scores(local, obs_xy, w_data, sig,

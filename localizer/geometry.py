@@ -91,11 +91,11 @@ class LocalMap:
         self.axis = index.axis[sel]
         self.half = index.half_length[sel]
         self.max_half = float(self.half.max()) if sel.size else 0.0
+        self._x, self._y = self.xy[:, 0].copy(), self.xy[:, 1].copy()
+        self._ux, self._uy = self.axis[:, 0].copy(), self.axis[:, 1].copy()
         self.tree = cKDTree(self.xy) if sel.size else None
         if index.expect_xy is not None and sel.size:
-            inside = np.zeros(len(index), bool)
-            inside[sel] = True
-            keep = inside[index.expect_owner]
+            keep = index.expect_of(sel)
             self.expect_xy = index.expect_xy[keep] - self.origin
             self.expect_solid = index.expect_solid[keep]
         else:
@@ -144,20 +144,24 @@ class LocalMap:
             d0, ii = d0[:, None], ii[:, None]
         valid = np.isfinite(d0)
         ii = np.where(valid, ii, 0)
-        c = self.xy[ii]  # (n, k, 2)
-        u = self.axis[ii]
-        h = self.half[ii]
-        a = np.clip(np.einsum("nkd,nkd->nk", p[:, None, :] - c, u), -h, h)
-        cand = c + a[..., None] * u
-        dist = np.hypot(*(p[:, None, :] - cand).transpose(2, 0, 1))
-        dist = np.where(valid, dist, np.inf)
-        best = np.argmin(dist, axis=1)
-        rows = np.arange(n)
-        d = dist[rows, best]
-        d = np.where(d <= max_dist, d, np.inf)
-        target = cand[rows, best]
-        ub = u[rows, best]
-        normal = np.column_stack([-ub[:, 1], ub[:, 0]])
+        # Component arrays (not (n, k, 2) stacks): this runs once per refinement
+        # iteration for every candidate's observations, and small-array overhead
+        # dominates its cost.
+        ux, uy, h = self._ux[ii], self._uy[ii], self.half[ii]
+        rx = p[:, 0, None] - self._x[ii]
+        ry = p[:, 1, None] - self._y[ii]
+        a = np.clip(rx * ux + ry * uy, -h, h)
+        ex = rx - a * ux  # from the closest point of the marking to p
+        ey = ry - a * uy
+        d2 = ex * ex + ey * ey
+        d2[~valid] = np.inf
+        best = np.argmin(d2, axis=1) + np.arange(n) * k  # flat index of each row's best
+        d = np.sqrt(np.take(d2, best))
+        d[d > max_dist] = np.inf
+        target[:, 0] = p[:, 0] - np.take(ex, best)
+        target[:, 1] = p[:, 1] - np.take(ey, best)
+        normal[:, 0] = -np.take(uy, best)
+        normal[:, 1] = np.take(ux, best)
         if return_index:
-            return d, target, normal, np.where(np.isfinite(d), ii[rows, best], -1)
+            return d, target, normal, np.where(np.isfinite(d), np.take(ii, best), -1)
         return d, target, normal

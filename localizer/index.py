@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -190,12 +191,36 @@ class MapIndex:
         return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame,
                    expect_xy=exy, expect_owner=owner, expect_solid=esolid)
 
+    @cached_property
+    def expect_groups(self) -> tuple[np.ndarray, np.ndarray]:
+        """Expected points grouped by marking: ``(order, start)``.
+
+        The expected points of marking ``i`` are ``order[start[i]:start[i + 1]]``;
+        a request gathers those of its neighbourhood without touching the whole
+        map. Built on first use (a race builds it twice, harmlessly).
+        """
+        owner = np.zeros(0, np.intp) if self.expect_owner is None else self.expect_owner
+        order = np.argsort(owner, kind="stable")
+        start = np.searchsorted(owner[order], np.arange(len(self) + 1))
+        return order, start
+
+    def expect_of(self, markings: np.ndarray) -> np.ndarray:
+        """Indices (ascending) of the expected points of ``markings``."""
+        order, start = self.expect_groups
+        lo, hi = start[markings], start[markings + 1]
+        cnt = hi - lo
+        total = int(cnt.sum())
+        if total == 0:
+            return np.zeros(0, np.intp)
+        pos = np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(total)
+        return np.sort(order[pos])
+
     def near(self, center, radius: float) -> np.ndarray:
         """Indices of markings within ``radius`` metres of ``center`` (x, y)."""
         if len(self) == 0:
             return np.zeros(0, dtype=np.intp)
         idx = self.tree.query_ball_point(np.asarray(center, float), radius)
-        return np.asarray(sorted(idx), dtype=np.intp)
+        return np.sort(np.asarray(idx, dtype=np.intp))
 
     def distance_to_nearest(self, point) -> float:
         """Distance from ``point`` (x, y) to the nearest marking, metres (inf when empty)."""

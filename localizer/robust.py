@@ -47,6 +47,7 @@ def robust_refine(
     options: Options,
     iterations_per_scale: int = 6,
     record: bool = False,
+    start_scale=None,
 ) -> list[RefineResult]:
     """IRLS with a Geman-McClure kernel whose scale is annealed coarse to fine.
 
@@ -59,50 +60,64 @@ def robust_refine(
 
     All initial poses ``inits`` (K, 3) are refined together (one KD-tree query
     per iteration for all of them). ``record`` keeps the trace of the first.
+    ``start_scale`` (K,), optional: index into ``options.anneal_m`` at which
+    each pose starts (default 0); a pose starting at the last two scales is
+    refined exactly as with ``anneal_m[-2:]``, so coarse-to-fine and fine-only
+    refinements share one batch.
     """
     poses = np.array(inits, float).reshape(-1, 3)
     K, N = len(poses), len(obs_xy)
     iters = np.zeros(K, int)
     trace = [tuple(poses[0])] if record else []
     var = sigma_obs**2
-    for c in options.anneal_m:
+    start = np.zeros(K, int) if start_scale is None else np.asarray(start_scale, int).reshape(K)
+    ox, oy = obs_xy[None, :, 0], obs_xy[None, :, 1]
+    # Component arrays and per-scale constants: each iteration is a few dozen
+    # operations on small (K, N) arrays, so the number of operations is the cost.
+    for si, c in enumerate(options.anneal_m):
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
-        tol = options.tolerance_m if c == options.anneal_m[-1] else max(options.tolerance_m, 0.01)
-        active = np.ones(K, bool)
+        gmax = float(gate.max())
+        last = c == options.anneal_m[-1]
+        tol = options.tolerance_m if last else max(options.tolerance_m, 0.01)
+        wo = np.ones_like(w_obs) if last else w_obs
+        wo_s2 = (wo / s2)[None]
+        inv_s2 = (1.0 / s2)[None]
+        active = start <= si
         for _ in range(iterations_per_scale):
             idx = np.flatnonzero(active)
             if idx.size == 0:
                 break
             P = poses[idx]
-            cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
-            px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
-            py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
-            pts = np.stack([px, py], -1).reshape(-1, 2)
-            d, tgt, _ = local_map.closest(pts, float(gate.max()))
+            cos, sin = np.cos(P[:, 2])[:, None], np.sin(P[:, 2])[:, None]
+            pts = np.empty((len(idx), N, 2))
+            px, py = pts[..., 0], pts[..., 1]
+            np.add(cos * ox - sin * oy, P[:, 0, None], out=px)
+            np.add(sin * ox + cos * oy, P[:, 1, None], out=py)
+            d, tgt, _ = local_map.closest(pts.reshape(-1, 2), gmax)
             d = d.reshape(-1, N)
-            tgt = tgt.reshape(-1, N, 2)
-            m = np.isfinite(d) & (d <= gate[None])
+            gx, gy = tgt[:, 0].reshape(-1, N), tgt[:, 1].reshape(-1, N)
+            m = d <= gate[None]
             dd = np.where(m, d, 0.0)
-            wo = w_obs if c != options.anneal_m[-1] else np.ones_like(w_obs)
-            w = np.where(m, wo[None] / s2[None] / (1.0 + dd**2 / s2[None]) ** 2, 0.0)
+            t = 1.0 + dd * dd * inv_s2
+            w = np.where(m, wo_s2 / (t * t), 0.0)
             wsum = w.sum(1)
             ok = (m.sum(1) >= 2) & (wsum > 0)
             ws = w / np.where(wsum > 0, wsum, 1.0)[:, None]
-            src = np.stack([px, py], -1)
-            cs = np.einsum("kn,knd->kd", ws, src)
-            cd = np.einsum("kn,knd->kd", ws, tgt)
-            a = src - cs[:, None]
-            b = tgt - cd[:, None]
-            sxx = np.einsum("kn,kn->k", ws, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1])
-            sxy = np.einsum("kn,kn->k", ws, a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+            csx, csy = (ws * px).sum(1), (ws * py).sum(1)
+            cdx, cdy = (ws * gx).sum(1), (ws * gy).sum(1)
+            ax, ay = px - csx[:, None], py - csy[:, None]
+            bx, by = gx - cdx[:, None], gy - cdy[:, None]
+            sxx = (ws * (ax * bx + ay * by)).sum(1)
+            sxy = (ws * (ax * by - ay * bx)).sum(1)
             th = np.where(ok, np.arctan2(sxy, sxx), 0.0)
             ct, st = np.cos(th), np.sin(th)
-            tx = cd[:, 0] - (ct * cs[:, 0] - st * cs[:, 1])
-            ty = cd[:, 1] - (st * cs[:, 0] + ct * cs[:, 1])
-            nx = ct * P[:, 0] - st * P[:, 1] + tx
-            ny = st * P[:, 0] + ct * P[:, 1] + ty
-            new = np.column_stack([nx, ny, P[:, 2] + th])
+            tx = cdx - (ct * csx - st * csy)
+            ty = cdy - (st * csx + ct * csy)
+            new = np.empty_like(P)
+            new[:, 0] = ct * P[:, 0] - st * P[:, 1] + tx
+            new[:, 1] = st * P[:, 0] + ct * P[:, 1] + ty
+            new[:, 2] = P[:, 2] + th
             new[~ok] = P[~ok]
             step = np.hypot(new[:, 0] - P[:, 0], new[:, 1] - P[:, 1])
             poses[idx] = new
@@ -295,29 +310,30 @@ def fit_statistics(
     q = (rotation(pose[2]) @ obs_xy[m].T).T  # lever arms from the vehicle origin
     r = p[m] - tgt[m]
     w = w_obs[m] / sigma_obs[m] ** 2
-    H = np.zeros((3, 3))
-    B = np.zeros((3, 3))
-    G = np.zeros(3)  # effect of a camera pitch error on the normal equations
     rng_j = np.hypot(obs_xy[m, 0], obs_xy[m, 1])
     drdp = (rng_j**2 + options.camera_height_m**2) / options.camera_height_m
     radial = q / np.maximum(rng_j, 1e-9)[:, None]
-    chi2 = 0.0
-    dof = 0.0
-    for j in range(n):
-        J = np.array([[1.0, 0.0, -q[j, 1]], [0.0, 1.0, q[j, 0]]])
-        nv = normal[m][j]
-        if nv.any():
-            J = nv[None, :] @ J
-            rr = np.array([nv @ r[j]])
-        else:
-            rr = r[j]
-        H += w[j] * J.T @ J
-        shift = radial[j] * drdp[j]
-        G += w[j] * J.T @ (nv @ shift if nv.any() else shift).reshape(-1)
-        g = J.T @ rr * w[j]
-        B += np.outer(g, g)
-        chi2 += w[j] * float(rr @ rr)
-        dof += rr.size
+    shift = radial * drdp[:, None]
+    # Rows of the Jacobian: two per point pair (x, y), one per segment pair
+    # (across the line: the normal times the point rows).
+    nv = normal[m]
+    seg = nv.any(axis=1)
+    jx = np.column_stack([np.ones(n), np.zeros(n), -q[:, 1]])
+    jy = np.column_stack([np.zeros(n), np.ones(n), q[:, 0]])
+    js = nv[:, :1] * jx + nv[:, 1:] * jy
+    # Per pair: first row (x, or across the line), second row (y; zero for segments).
+    J1 = np.where(seg[:, None], js, jx)
+    J2 = np.where(seg[:, None], 0.0, jy)
+    r1 = np.where(seg, np.einsum("nd,nd->n", nv, r), r[:, 0])
+    r2 = np.where(seg, 0.0, r[:, 1])
+    s1 = np.where(seg, np.einsum("nd,nd->n", nv, shift), shift[:, 0])
+    s2_ = np.where(seg, 0.0, shift[:, 1])
+    H = (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2
+    G = (w * s1) @ J1 + (w * s2_) @ J2
+    g = (J1 * r1[:, None] + J2 * r2[:, None]) * w[:, None]
+    B = g.T @ g
+    chi2 = float(np.sum(w * (r1 * r1 + r2 * r2)))
+    dof = float(np.sum(np.where(seg, 1.0, 2.0)))
     s2 = chi2 / max(dof - 3.0, 1.0)
     s2 = max(s2, 0.25)  # optimistic residuals from few points must not shrink the ellipse
     info_prior = np.zeros((3, 3)) if prior_info is None else prior_info

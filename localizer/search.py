@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from .geometry import LocalMap
 
@@ -48,15 +49,19 @@ def _sample_markings(local_map: LocalMap, step: float, sigma: float):
     same discount as in :func:`localizer.robust.data_score`).
     """
     point = local_map.half == 0
-    pts = [local_map.xy[point]]
-    amp = [np.ones(int(point.sum()))]
-    for i in np.flatnonzero(~point):
-        h = local_map.half[i]
-        n = max(2, int(math.ceil(2 * h / step)) + 1)
-        a = np.linspace(-h, h, n)
-        pts.append(local_map.xy[i] + a[:, None] * local_map.axis[i])
-        amp.append(np.full(n, min(1.0, math.sqrt(2 * math.pi) * sigma / (2 * h))))
-    return np.concatenate(pts), np.concatenate(amp)
+    line = np.flatnonzero(~point)
+    h = local_map.half[line]
+    n = np.maximum(2, np.ceil(2 * h / step).astype(np.int64) + 1)
+    # Evenly spaced along each line, ends included (as np.linspace), all lines at once.
+    owner = np.repeat(np.arange(line.size), n)
+    k = np.arange(owner.size) - np.repeat(np.cumsum(n) - n, n)
+    spacing = (2 * h / (n - 1))[owner]
+    a = k * spacing - h[owner]
+    a[k == n[owner] - 1] = h[owner][k == n[owner] - 1]
+    along = local_map.xy[line][owner] + a[:, None] * local_map.axis[line][owner]
+    amp_line = np.minimum(1.0, math.sqrt(2 * math.pi) * sigma / (2 * h))[owner]
+    return (np.concatenate([local_map.xy[point], along]),
+            np.concatenate([np.ones(int(point.sum())), amp_line]))
 
 
 def _local_maxima(volume: np.ndarray, half: int, top_k: int):
@@ -67,6 +72,14 @@ def _local_maxima(volume: np.ndarray, half: int, top_k: int):
     only the best cells are examined, a small fraction of the volume.
     """
     flat = volume.ravel()
+    if flat.size <= 3 * top_k:
+        # A small volume (a tight prior): one separable filter over all of it is
+        # cheaper than gathering the neighbourhoods of the best cells.
+        peak = maximum_filter(volume, size=2 * half + 1, mode="nearest")
+        found = (volume == peak) & np.isfinite(volume)
+        if flat.size > top_k:
+            found &= volume >= np.partition(flat, flat.size - top_k)[flat.size - top_k]
+        return np.nonzero(found)
     k = min(top_k, flat.size)
     idx = np.argpartition(-flat, k - 1)[:k] if k < flat.size else np.arange(flat.size)
     idx = idx[np.isfinite(flat[idx])]
@@ -76,12 +89,17 @@ def _local_maxima(volume: np.ndarray, half: int, top_k: int):
     base = ((a + half) * pi + (i + half)) * pj + (j + half)
     pf = padded.ravel()
     v = flat[idx]
-    keep = np.ones(idx.size, bool)
-    for da in range(-half, half + 1):
-        for di in range(-half, half + 1):
-            for dj in range(-half, half + 1):
-                if da or di or dj:
-                    keep &= pf[base + (da * pi + di) * pj + dj] <= v
+    # Offsets of the neighbourhood in the padded volume, nearest first: most
+    # cells lose to an adjacent one, so the farther offsets see few survivors.
+    r = np.arange(-half, half + 1)
+    da, di, dj = (g.ravel() for g in np.meshgrid(r, r, r, indexing="ij"))
+    ring = np.maximum(np.maximum(np.abs(da), np.abs(di)), np.abs(dj))
+    off = (da * pi + di) * pj + dj
+    keep = np.arange(idx.size)
+    for rr in range(1, half + 1):
+        o = off[ring == rr]
+        ok = np.all(pf[base[keep][None, :] + o[:, None]] <= v[keep][None, :], axis=0)
+        keep = keep[ok]
     return a[keep], i[keep], j[keep]
 
 
@@ -96,19 +114,22 @@ def likelihood_raster(
     ny, nx = shape
     r = int(math.ceil(3.0 * sigma / cell))
     off = np.arange(-r, r + 1)
-    oy, ox = np.meshgrid(off, off, indexing="ij")
     k = np.zeros(ny * nx)
     if len(points):
         amp = np.ones(len(points)) if amplitude is None else amplitude
         ci = np.rint((points[:, 1] - y0) / cell).astype(np.int64)
         cj = np.rint((points[:, 0] - x0) / cell).astype(np.int64)
-        ii = ci[:, None, None] + oy[None]
-        jj = cj[:, None, None] + ox[None]
-        dy = y0 + ii * cell - points[:, 1, None, None]
-        dx = x0 + jj * cell - points[:, 0, None, None]
-        val = amp[:, None, None] * np.exp(-0.5 * (dx * dx + dy * dy) / sigma**2)
-        ok = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
-        np.maximum.at(k, (ii * nx + jj)[ok], val[ok])
+        # The Gaussian kernel is separable: one exp per row and per column offset.
+        ii = ci[:, None] + off[None]  # (P, 2r+1)
+        jj = cj[:, None] + off[None]
+        dy = y0 + ii * cell - points[:, 1, None]
+        dx = x0 + jj * cell - points[:, 0, None]
+        gy = amp[:, None] * np.exp(-0.5 * dy * dy / sigma**2)
+        gx = np.exp(-0.5 * dx * dx / sigma**2)
+        val = gy[:, :, None] * gx[:, None, :]
+        ok = ((ii >= 0) & (ii < ny))[:, :, None] & ((jj >= 0) & (jj < nx))[:, None, :]
+        flat = ii[:, :, None] * nx + jj[:, None, :]
+        np.maximum.at(k, flat[ok], val[ok])
     return np.log1p(k / outlier_density).reshape(ny, nx).astype(np.float32)
 
 
@@ -160,19 +181,24 @@ def correlative_search(
     yaws = pyaw + step * np.arange(-k, k + 1)
     tx = (np.arange(n) - half) * cell  # offsets from the prior position
     prior_t = -0.5 * (tx[None, :] ** 2 + tx[:, None] ** 2) / sigma_p**2
-    volume = np.empty((len(yaws), n, n), np.float32)
     wf = (w_obs / temperature).astype(np.float32)
-    for a, yaw in enumerate(yaws):
-        c, s = math.cos(yaw), math.sin(yaw)
-        qx = c * obs_xy[:, 0] - s * obs_xy[:, 1] + px - half * cell
-        qy = s * obs_xy[:, 0] + c * obs_xy[:, 1] + py - half * cell
-        cj = np.rint((qx - x0) / cell).astype(np.int64)
-        ci = np.rint((qy - y0) / cell).astype(np.int64)
-        acc = np.zeros((n, n), np.float32)
-        for j in range(len(obs_xy)):
-            acc += wf[j] * raster[ci[j]:ci[j] + n, cj[j]:cj[j] + n]
-        dyaw = (yaw - pyaw) / sigma_yaw
-        volume[a] = acc + prior_t - 0.5 * dyaw * dyaw
+    # Every translation window of the raster as a view; the score volume at one
+    # heading is the weighted sum of the windows the observations fall into.
+    windows = np.lib.stride_tricks.sliding_window_view(raster, (n, n))
+    cos, sin = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    qx = cos * obs_xy[None, :, 0] - sin * obs_xy[None, :, 1] + px - half * cell
+    qy = sin * obs_xy[None, :, 0] + cos * obs_xy[None, :, 1] + py - half * cell
+    cj = np.rint((qx - x0) / cell).astype(np.int64)
+    ci = np.rint((qy - y0) / cell).astype(np.int64)
+    dyaw = (yaws - pyaw) / sigma_yaw
+    volume = np.empty((len(yaws), n, n), np.float32)
+    # Headings in chunks keep the gathered windows (chunk x N x n x n) small.
+    chunk = max(1, int(4_000_000 // max(1, len(obs_xy) * n * n)))
+    for a0 in range(0, len(yaws), chunk):
+        a1 = min(a0 + chunk, len(yaws))
+        block = windows[ci[a0:a1], cj[a0:a1]]  # (chunk, N, n, n)
+        acc = np.matmul(wf, block.reshape(a1 - a0, len(obs_xy), n * n)).reshape(a1 - a0, n, n)
+        volume[a0:a1] = acc + prior_t[None] - (0.5 * dyaw[a0:a1] ** 2)[:, None, None]
     # Inside the disc of the search radius only.
     volume[:, (tx[None, :] ** 2 + tx[:, None] ** 2) > radius**2] = -np.inf
     a, i, j = _local_maxima(volume, PEAK_HALF, PEAK_TOP_K)
