@@ -100,7 +100,6 @@ def main() -> None:
         e = evaluate(runs, mp, ms, T, opts.ambiguity_probability, null)
         rows.append((mp, ms, T, null, e))
     for mp, ms, T, null, e in rows:
-        thr = opts.ambiguity_probability
         nr, fr = e["near"], e["far"]
         mark = " <- current" if (mp, ms, T, null) == (opts.miss_probability, opts.solid_miss_probability,
                                                      opts.temperature, opts.null_score) else ""
