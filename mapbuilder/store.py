@@ -52,6 +52,7 @@ _MARKING_FIELDS = (
 EDITABLE_FIELDS = frozenset(_MARKING_FIELDS) | {"lon", "lat"}
 
 
+
 class StoreError(ValueError):
     """Base class of the store's errors; the message names the problem."""
 
@@ -359,6 +360,16 @@ def marking_to_json(m: Marking) -> dict[str, Any]:
 
 def _bounds_of(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float, float, float]:
     return (min(xs), min(ys), max(xs), max(ys))
+
+
+def _changeset_info(r) -> ChangesetInfo:
+    return ChangesetInfo(r.id, r.map_id, r.who, _utc(r.at), r.comment, r.n_create, r.n_update,
+                         r.n_delete, r.reverts)  # fmt: skip
+
+
+def _edit_info(r) -> EditInfo:
+    return EditInfo(r.id, r.changeset_id, r.marking_id, r.op, r.who, _utc(r.at), r.before, r.after,
+                    r.comment)  # fmt: skip
 
 
 class Store:
@@ -921,11 +932,16 @@ class Store:
                 select(changesets).where(changesets.c.map_id == map_id)
                 .order_by(changesets.c.id.desc()).limit(limit).offset(offset)
             ).all()  # fmt: skip
-        return [
-            ChangesetInfo(r.id, r.map_id, r.who, _utc(r.at), r.comment, r.n_create, r.n_update,
-                          r.n_delete, r.reverts)
-            for r in rows
-        ], total  # fmt: skip
+        return [_changeset_info(r) for r in rows], total
+
+    def get_changeset(self, map_id: str, changeset_id: int) -> ChangesetInfo | None:
+        """One changeset of a map, or None when the map has none of that id."""
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            r = conn.execute(
+                select(changesets).where(changesets.c.id == changeset_id, changesets.c.map_id == map_id)
+            ).first()
+        return _changeset_info(r) if r is not None else None
 
     def history(
         self, map_id: str, limit: int = 50, offset: int = 0, changeset_id: int | None = None,
@@ -943,11 +959,14 @@ class Store:
             rows = conn.execute(
                 select(edits).where(where).order_by(edits.c.id.desc()).limit(limit).offset(offset)
             ).all()
-        return [
-            EditInfo(r.id, r.changeset_id, r.marking_id, r.op, r.who, _utc(r.at), r.before,
-                     r.after, r.comment)
-            for r in rows
-        ], total  # fmt: skip
+        return [_edit_info(r) for r in rows], total
+
+    def get_edit(self, map_id: str, edit_id: int) -> EditInfo | None:
+        """One entry of a map's edit log, or None when the map has none of that id."""
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            r = conn.execute(select(edits).where(edits.c.id == edit_id, edits.c.map_id == map_id)).first()
+        return _edit_info(r) if r is not None else None
 
     def revert_changeset(self, map_id: str, changeset_id: int, who: str, comment: str = "") -> ChangesetResult:
         """Undo a changeset with a new changeset; conflicts if its markings changed since."""

@@ -229,6 +229,14 @@ def test_history_and_revert(store):
     assert upd.before["status"] == "unreviewed" and upd.after["status"] == "accepted"
     assert upd.before["version"] == 1 and upd.after["version"] == 2 and upd.who == "dave"
     assert next(e for e in edits if e.op == "delete").after is None
+    one = store.get_changeset("ka", cs.changeset_id)
+    assert (one.who, one.comment, one.n_create, one.n_update, one.n_delete) == ("dave", "edit", 1, 1, 1)
+    assert store.get_edit("ka", upd.id) == upd
+    store.create_map("other", crs="EPSG:25832")
+    assert store.get_changeset("other", cs.changeset_id) is None  # ids are per map
+    assert store.get_edit("other", upd.id) is None
+    with pytest.raises(UnknownMapError):
+        store.get_edit("nope", upd.id)
 
     rv = store.revert_changeset("ka", cs.changeset_id, who="erin")
     restored = store.get_marking("ka", a)

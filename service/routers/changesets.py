@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-from datetime import UTC
 from typing import Any, Literal
 
 from fastapi import APIRouter, Body, Depends, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
-from sqlalchemy import select
 
 from mapbuilder.model import Marking
-from mapbuilder.schema import changesets, edits
 from mapbuilder.store import (
     Change,
     ChangesetInfo,
@@ -210,22 +207,11 @@ def get_changeset(
         from mapbuilder.store import UnknownChangesetError
 
         raise UnknownChangesetError(mapId, cid)
-    info = _find_changeset(ctx, mapId, cid)
+    info = ctx.store.get_changeset(mapId, cid)
     out = _changeset_json(info, request) if info else {"id": str(cid)}
     out["edits"] = [_edit_json(e) for e in rows]
     out["numberOfEdits"] = total
     return out
-
-
-def _find_changeset(ctx: Context, map_id: str, cid: int) -> ChangesetInfo | None:
-    with ctx.store.engine.connect() as conn:
-        r = conn.execute(
-            select(changesets).where(changesets.c.id == cid, changesets.c.map_id == map_id)
-        ).first()
-    if r is None:
-        return None
-    at = r.at if r.at.tzinfo else r.at.replace(tzinfo=UTC)
-    return ChangesetInfo(r.id, r.map_id, r.who, at, r.comment, r.n_create, r.n_update, r.n_delete, r.reverts)
 
 
 @router.get("/collections/{mapId}/history", summary="The edit log, newest first")
@@ -270,15 +256,6 @@ _EDIT_FIELDS = (
 )  # fmt: skip
 
 
-def _get_edit(ctx: Context, map_id: str, edit_id: int) -> dict[str, Any]:
-    ctx.store.get_map(map_id)
-    with ctx.store.engine.connect() as conn:
-        row = conn.execute(select(edits).where(edits.c.id == edit_id, edits.c.map_id == map_id)).first()
-    if row is None:
-        raise Problem(404, f"map {map_id!r} has no edit {edit_id}", "unknown-edit")
-    return row._asdict()
-
-
 @router.post("/collections/{mapId}/history/{editId}/revert", summary="Revert one edit", status_code=201)
 def revert_edit(
     request: Request,
@@ -289,8 +266,10 @@ def revert_edit(
     who: str = Depends(require_write),
 ):
     eid = parse_id(editId, "editId")
-    e = _get_edit(ctx, mapId, eid)
-    op, before, after, mid = e["op"], e["before"], e["after"], e["marking_id"]
+    e = ctx.store.get_edit(mapId, eid)
+    if e is None:
+        raise Problem(404, f"map {mapId!r} has no edit {eid}", "unknown-edit")
+    op, before, after, mid = e.op, e.before, e.after, e.marking_id
     if op == "create":
         change = Change("delete", id=mid, version=after["version"])
     elif op == "delete":
