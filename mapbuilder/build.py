@@ -487,9 +487,14 @@ def _run_pool(runs: Sequence[list[TileTask]], workers: int) -> Iterator[TileResu
                 fut.cancel()
 
 
-def _run_dask(
-    runs: Sequence[list[TileTask]], address: str, timeout_s: float
-) -> Iterator[TileResult]:
+def _run_length(n_tiles: int, n_exec: int) -> int:
+    """Tiles per run: long enough to share decoded blocks, short enough to keep every
+    executor busy to the end (at least 16 runs each: the last run is the idle tail)."""
+    return max(1, min(MAX_RUN, n_tiles // (16 * max(1, n_exec))))
+
+
+def _run_dask(tasks: Sequence[TileTask], address: str, timeout_s: float) -> Iterator[TileResult]:
+    """Run ``tasks`` on a Dask cluster, in runs sized by the cluster's threads."""
     from distributed import Client, as_completed
 
     try:
@@ -498,6 +503,7 @@ def _run_dask(
         raise BuildError(f"cannot reach Dask scheduler at {address}: {exc}") from exc
     try:
         n_workers = max(1, sum(client.nthreads().values()))
+        runs = group_runs(tasks, _run_length(len(tasks), n_workers))
         in_flight_max = 2 * n_workers
         it = iter(runs)
         first = [
@@ -667,11 +673,9 @@ def build_map(
     todo = [t for t in all_tasks if t.key not in done]
     skipped = len(all_tasks) - len(todo)
     n_exec = 1 if inline else max(1, workers)
-    # Runs long enough to share decoded blocks, short enough to keep every worker
-    # busy to the end (at least 16 runs a worker: the last run is the idle tail).
-    runs = group_runs(todo, max(1, min(MAX_RUN, len(todo) // (16 * n_exec))))
+    runs = group_runs(todo, _run_length(len(todo), n_exec))
     if dask_address:
-        results = _run_dask(runs, dask_address, dask_timeout_s)
+        results = _run_dask(todo, dask_address, dask_timeout_s)
     elif inline or len(runs) <= 1:
         results = _run_inline(runs)
     else:

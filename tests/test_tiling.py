@@ -82,3 +82,18 @@ def test_runs_group_row_neighbours_of_one_image():
         assert len({(t.path, t.core[1]) for t in r}) == 1
         assert all(a.core[0] + a.core[2] == b.core[0] for a, b in zip(r, r[1:]))
     assert [len(r) for r in group_runs(tasks, 1)] == [1] * len(tasks)
+
+
+@pytest.mark.parametrize("n_exec", [1, 2, 16])
+def test_runs_keep_every_executor_busy_to_the_end(n_exec):
+    """Every executor (a pool process or a Dask worker thread) gets many runs of tiles."""
+    from mapbuilder.build import TileTask, _run_length, group_runs
+    from mapbuilder.cluster import ClusterParams
+    from mapbuilder.raster import PixelGrid
+
+    grid = tile_grid(64 * 256, 16 * 256, 256, 40)  # 1024 tiles in rows of 64
+    pg = PixelGrid("EPSG:25832", (0.1, 0, 0, 0, -0.1, 0), 64 * 256, 16 * 256)
+    tasks = [TileTask("a.tif", pg, f"{t.row}/{t.col}", t.core, t.read, None, ClusterParams()) for t in grid]
+    runs = group_runs(tasks, _run_length(len(tasks), n_exec))
+    assert len(runs) >= 16 * n_exec
+    assert max(len(r) for r in runs) > 1 or n_exec == 16  # neighbours still share a run when they can
