@@ -245,6 +245,27 @@ def _save_onnx(onx, path: str | Path, meta: dict[str, str], metadata: dict | Non
 
 # --------------------------------------------------------------------------- synthetic data
 
+def _training_lanes(lanelet_map) -> list | None:
+    """Centrelines of the west half of a Lanelet2 map: the east half is kept for testing."""
+    if lanelet_map is None:
+        return None
+    xs = np.array([c[len(c) // 2, 0] for c in lanelet_map.centerlines])
+    cut = np.median(xs)
+    return [c for c, x in zip(lanelet_map.centerlines, xs) if x < cut and len(c) > 5]
+
+
+def _training_scene(i: int, seed: int, side: float, lanelet_map, lanes, rng: np.random.Generator):
+    """Scene ``i`` of a training set: every third one a window of the map's lanes, else procedural."""
+    from .synth import lanelet_scene, procedural_scene
+
+    if lanes and i % 3 == 2:
+        c = lanes[int(rng.integers(len(lanes)))]
+        x, y = c[len(c) // 2]
+        return lanelet_scene(lanelet_map, seed=seed, bounds=(x - side / 2, y - side / 2, x + side / 2, y + side / 2))
+    return procedural_scene((side, side), seed=seed)
+
+
+
 
 def synthetic_training_set(
     seeds: Sequence[int],
@@ -261,26 +282,15 @@ def synthetic_training_set(
     """
     from tqdm import tqdm
 
-    from .synth import lanelet_scene, procedural_scene, render_array
+    from .synth import render_array
 
     ts = TrainingSet()
     rng = np.random.default_rng(12345 + int(seeds[0]) if len(seeds) else 0)
-    lanes = None
-    if lanelet_map is not None:
-        # the west half of the map only: the east half is kept for testing
-        xs = np.array([c[len(c) // 2, 0] for c in lanelet_map.centerlines])
-        cut = np.median(xs)
-        lanes = [c for c, x in zip(lanelet_map.centerlines, xs) if x < cut and len(c) > 5]
+    lanes = _training_lanes(lanelet_map)
     for i, seed in enumerate(tqdm(list(seeds), desc="render+sample", disable=not progress)):
         res = float(resolutions[i % len(resolutions)])
         side = min(size_m, 1000 * res)  # at most 1000 px a side
-        if lanes and i % 3 == 2:
-            c = lanes[int(rng.integers(len(lanes)))]
-            x, y = c[len(c) // 2]
-            scene = lanelet_scene(lanelet_map, seed=int(seed),
-                                  bounds=(x - side / 2, y - side / 2, x + side / 2, y + side / 2))
-        else:
-            scene = procedural_scene((side, side), seed=int(seed))
+        scene = _training_scene(i, int(seed), side, lanelet_map, lanes, rng)
         jpeg = int(rng.integers(60, 95)) if i % 2 else None
         rgb, label, _ = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
         X, y = sample_pixels(rgb, label, None, res, rng, neg_per_pos=neg_per_pos)
@@ -524,27 +534,17 @@ def verifier_training_set(
 
     from .classify import load_model
     from .cluster import ClusterParams, context_features, detect_markings
-    from .synth import lanelet_scene, procedural_scene, render_array
+    from .synth import render_array
 
     model = model or load_model()
     params = ClusterParams(verify=False)
     rng = np.random.default_rng(777 + int(seeds[0]) if len(seeds) else 0)
-    lanes = None
-    if lanelet_map is not None:
-        xs = np.array([c[len(c) // 2, 0] for c in lanelet_map.centerlines])
-        cut = np.median(xs)
-        lanes = [c for c, x in zip(lanelet_map.centerlines, xs) if x < cut and len(c) > 5]
+    lanes = _training_lanes(lanelet_map)
     Xs, ys = [], []
     for i, seed in enumerate(tqdm(list(seeds), desc="render+cluster", disable=not progress)):
         res = float(resolutions[i % len(resolutions)])
         side = min(size_m, 1500 * res)
-        if lanes and i % 3 == 2:
-            c = lanes[int(rng.integers(len(lanes)))]
-            x, y = c[len(c) // 2]
-            scene = lanelet_scene(lanelet_map, seed=int(seed),
-                                  bounds=(x - side / 2, y - side / 2, x + side / 2, y + side / 2))
-        else:
-            scene = procedural_scene((side, side), seed=int(seed))
+        scene = _training_scene(i, int(seed), side, lanelet_map, lanes, rng)
         jpeg = int(rng.integers(60, 95)) if i % 2 else None
         rgb, label, transform = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
         prob = model.predict(rgb, None, res)
