@@ -157,3 +157,14 @@ def test_dockerfile_runs_lanemap_serve_as_non_root_with_a_health_check(dockerfil
     serve_help = _help(str(BIN / "lanemap"), "serve")
     for opt in ("--host", "--port", "--workers", "--demo"):
         assert opt in serve_help
+
+
+def test_hadolint_finds_nothing_in_the_dockerfile():
+    hadolint = BIN / "hadolint"
+    out = subprocess.run([str(hadolint), "--no-color", str(DOCKER / "Dockerfile")],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    # It does lint: a Dockerfile with a known fault is reported.
+    bad = subprocess.run([str(hadolint), "--no-color", "-"], input="FROM debian\nRUN cd /tmp && apt-get install curl\n",
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert bad.returncode != 0 and "DL3006" in bad.stdout
