@@ -214,6 +214,7 @@ def localize(
         res = pink2008_icp(local, obs_xy, gamma, prior_pose, options)
         pose, iterations, trace = res.pose, res.iterations, res.trace
         hyps: list[tuple[tuple[float, float, float], float]] = [(pose, 1.0)]
+        log_scores = [None]
         fits = {}
         status = "ok"
         diagnostics = {}
@@ -311,6 +312,7 @@ def localize(
             again = robust_refine(local, obs_xy, w_data, sig, [start], kept[0][3], record=True)[0]
             trace = [prior_pose] + again.trace
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
+        log_scores = [float(v) for v in scores]
         diagnostics = {"search": all_search}
         if options.record_candidates:
             n_pt, n_sol = missed_counts(local, obs_xy, kept_poses, options, view)
@@ -348,15 +350,16 @@ def localize(
     out.inliers = fit.inliers
     out.rms_m = fit.rms_m
     out.diagnostics = diagnostics
+    out.log_score = log_scores[0]
     if options.record_trace:
         out.trace = [(t[0] + local.origin[0], t[1] + local.origin[1], t[2]) for t in trace]
     if status == "ambiguous":
-        for hp, p in hyps[: options.max_hypotheses]:
+        for (hp, p), ls in zip(hyps[: options.max_hypotheses], log_scores):
             if p < options.min_hypothesis_probability:
                 break
             h = _make_pose(frame, local.origin, hp, "ok", crs)
             out.hypotheses.append(
-                Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p)
+                Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p, log_score=ls)
             )
     return out
 

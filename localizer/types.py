@@ -38,7 +38,8 @@ class Prior:
 class Hypothesis:
     """One candidate pose of an ambiguous result.
 
-    ``score`` is the posterior probability of the candidate among all candidates found.
+    ``score`` is the posterior probability of the candidate among all candidates found;
+    ``log_score`` its unnormalised log posterior (see :attr:`Pose.log_score`).
     """
 
     lat: float
@@ -47,6 +48,7 @@ class Hypothesis:
     easting: float
     northing: float
     score: float
+    log_score: float | None = None
 
     def to_dict(self) -> dict[str, float]:
         return {
@@ -99,6 +101,13 @@ class Pose:
         Pose after each iteration (only when the options ask for it).
     diagnostics : dict
         Method internals (the scored candidates of the default method); not part of the API.
+    log_score : float or None
+        Default method: the returned pose's unnormalised log posterior, the
+        log-likelihood ratio of its matches against "every observation is
+        clutter" (divided by ``Options.temperature``) plus the prior's
+        log-density without its normalising constant. Comparable between calls
+        on the same observations; :func:`localizer.track.localize_sequence`
+        chains it over frames. Not part of the API.
     """
 
     status: Status
@@ -119,6 +128,7 @@ class Pose:
     transformation: np.ndarray | None = None
     trace: list[tuple[float, float, float]] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    log_score: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary for the API (no NaN, plain floats and lists)."""
