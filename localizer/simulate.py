@@ -321,6 +321,82 @@ def sample_poses(
     return np.array(out, float).reshape(-1, 3)
 
 
+def _drive(lines: list[np.ndarray], starts: np.ndarray, li: int, s0: float, length: float) -> np.ndarray | None:
+    """Polyline of ``length`` metres from arc length ``s0`` of centreline ``li``, continuing into
+    the centreline that starts where one ends (within 0.5 m, turning less than 30°); None at a dead end."""
+    pts, line, s = [], lines[li], s0
+    left = length
+    while True:
+        seg = np.hypot(*np.diff(line, axis=0).T)
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        stop = min(cum[-1], s + left)
+        inner = line[(cum > s) & (cum < stop)]
+        at = [np.array([np.interp(v, cum, line[:, 0]), np.interp(v, cum, line[:, 1])]) for v in (s, stop)]
+        pts.extend([at[0], *inner, at[1]])
+        left -= stop - s
+        if left <= 1e-6:
+            return np.array(pts)
+        end_dir = line[-1] - line[-2]
+        near = np.flatnonzero(np.hypot(*(starts - line[-1]).T) < 0.5)
+        nxt = [k for k in near if len(lines[k]) >= 2 and abs(math.remainder(
+            math.atan2(*(lines[k][1] - lines[k][0])[::-1]) - math.atan2(end_dir[1], end_dir[0]), 2 * math.pi))
+            < math.radians(30)]
+        if not nxt:
+            return None
+        line, s = lines[nxt[0]], 0.0
+
+
+def sample_trajectories(
+    scene_map: SceneMap,
+    n: int,
+    frames: int,
+    step_m: float,
+    rng: np.random.Generator,
+    camera: Camera = Camera(),
+    min_visible: int = 0,
+    max_tries: int = 100_000,
+) -> np.ndarray:
+    """Drives along lanelet centrelines: ``(n, frames, 3)`` poses (x, y, grid yaw), ``step_m`` apart.
+
+    A drive follows one centreline into the next where one ends; it is kept when
+    the first frame sees at least ``min_visible`` point-like map markings.
+    """
+    lines = [c for c in scene_map.centerlines if len(c) >= 2]
+    if not lines:
+        raise ValueError("scene_map has no centrelines")
+    starts = np.array([c[0] for c in lines])
+    lengths = np.array([np.sum(np.hypot(*np.diff(c, axis=0).T)) for c in lines])
+    p = lengths / lengths.sum()
+    length = step_m * (frames - 1)
+    out = []
+    for _ in range(max_tries):
+        li = int(rng.choice(len(lines), p=p))
+        path = _drive(lines, starts, li, float(rng.uniform(0, lengths[li])), length + 0.5)
+        if path is None:
+            continue
+        seg = np.hypot(*np.diff(path, axis=0).T)
+        keep = seg > 1e-9
+        path = np.vstack([path[:1], path[1:][keep]])
+        cum = np.concatenate([[0.0], np.cumsum(seg[keep])])
+        at = np.arange(frames) * step_m
+        x, y = np.interp(at, cum, path[:, 0]), np.interp(at, cum, path[:, 1])
+        ahead = np.minimum(at + 0.5, cum[-1])
+        yaw = np.arctan2(np.interp(ahead, cum, path[:, 1]) - y, np.interp(ahead, cum, path[:, 0]) - x)
+        poses = np.column_stack([x, y, yaw])
+        if visible_markings(scene_map, poses[0], camera) >= min_visible:
+            out.append(poses)
+            if len(out) == n:
+                break
+    return np.array(out, float).reshape(-1, frames, 3)
+
+
+def odometry(a, b) -> tuple[float, float, float]:
+    """Motion from pose ``a`` to pose ``b`` in ``a``'s vehicle frame: (forward m, left m, dyaw rad)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (float(c * dx + s * dy), float(-s * dx + c * dy), math.remainder(float(b[2] - a[2]), 2 * math.pi))
+
+
 def oracle_pose(
     scene: Scene, sigma_m: np.ndarray | None = None, line_aware: bool = True
 ) -> tuple[float, float, float] | None:
