@@ -105,3 +105,50 @@ def test_cli_unknown_map_and_missing_file(stored_map, tmp_path, monkeypatch, cap
         assert exc.value.code == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and needle in err[0], err
+
+
+def test_cli_localizes_a_drive_of_frames(stored_map, tmp_path, monkeypatch):
+    from localizer.simulate import odometry, sample_trajectories
+
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    _, smap = karlsruhe()
+    rng = np.random.default_rng(2)
+    drive = sample_trajectories(smap, 1, 6, 1.5, rng, min_visible=6)[0]
+    frames = []
+    for k, p in enumerate(drive):
+        scene = simulate_scene(smap, tuple(p), rng, Camera(), Clutter())
+        f = {"observations": [{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]}
+        if k:
+            dx, dy, dyaw = odometry(drive[k - 1], p)
+            f["motion"] = {"dx": dx, "dy": dy, "dyaw_deg": math.degrees(dyaw)}
+        frames.append(f)
+    path = tmp_path / "drive.json"
+    path.write_text(json.dumps({"frames": frames}))
+    frame = GeoFrame("EPSG:25832")
+    lon, lat = frame.to_lonlat(drive[0][0] + 1.0, drive[0][1] - 0.5)
+    heading = float(frame.grid_yaw_to_heading(drive[0][2] + math.radians(4), lon, lat))
+    res = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+        "--frames", str(path), "--position-sigma", "2", "--heading-sigma", "8",
+    ])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert len(out["poses"]) == 6 and out["tracks"] >= 1
+    last = out["poses"][-1]
+    assert last["status"] == "ok"
+    assert math.hypot(last["easting"] - drive[-1][0], last["northing"] - drive[-1][1]) < 0.5
+
+    for content, extra, needle in [
+        (json.dumps({"frames": frames}), ["--observations", str(path)], "either --observations"),
+        (json.dumps({"frames": [frames[0], {"observations": []}]}), [], "frames[1].motion"),
+        (json.dumps({"frames": []}), [], "non-empty 'frames'"),
+        (json.dumps({"frames": frames}), ["--method", "pink2008"], "default method only"),
+    ]:
+        path.write_text(content)
+        res = CliRunner().invoke(app, [
+            "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+            "--frames", str(path), *extra,
+        ])
+        assert res.exit_code == 1, res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines

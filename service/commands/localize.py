@@ -29,6 +29,39 @@ def load_observations(path: Path):
     return data
 
 
+def load_frames(path: Path):
+    """Frames from a JSON file: ``{"frames": [{"observations": [...], "motion": {...}}, ...]}``.
+
+    ``motion`` is the odometry since the previous frame in the previous vehicle
+    frame: ``dx`` metres forward, ``dy`` metres left, ``dyaw_deg`` degrees
+    counter-clockwise (a left turn is positive); the first frame's is ignored.
+    """
+    from localizer.track import Frame
+
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        fail(f"cannot read {path}: {exc.strerror or exc}")
+    except json.JSONDecodeError as exc:
+        fail(f"{path} is not valid JSON: {exc.msg} (line {exc.lineno})")
+    frames = data.get("frames") if isinstance(data, dict) else data
+    if not isinstance(frames, list) or not frames:
+        fail(f"{path}: expected a non-empty 'frames' list")
+    out = []
+    for k, f in enumerate(frames):
+        if not isinstance(f, dict) or not isinstance(f.get("observations"), list):
+            fail(f"{path}: frames[{k}] needs an 'observations' list")
+        m = f.get("motion") or {}
+        if not isinstance(m, dict) or (k > 0 and not {"dx", "dy"} <= set(m)):
+            fail(f"{path}: frames[{k}].motion needs 'dx' and 'dy' (metres) and optionally 'dyaw_deg'")
+        try:
+            motion = (float(m.get("dx", 0.0)), float(m.get("dy", 0.0)), np.radians(float(m.get("dyaw_deg", 0.0))))
+        except (TypeError, ValueError):
+            fail(f"{path}: frames[{k}].motion values must be numbers")
+        out.append(Frame(f["observations"], motion))
+    return out
+
+
 def register(app: typer.Typer) -> None:
     @app.command("localize")
     def localize_cmd(
@@ -39,19 +72,33 @@ def register(app: typer.Typer) -> None:
             ..., "--heading", help="GPS heading, degrees clockwise from true north."
         ),
         observations: Path = typer.Option(
-            ..., "--observations", help="JSON file: {\"observations\": [{\"x\", \"y\", \"weight\"}]} "
+            None, "--observations", help="JSON file: {\"observations\": [{\"x\", \"y\", \"weight\"}]} "
             "in the vehicle frame (x forward, y left, metres).",
+        ),
+        frames: Path = typer.Option(
+            None, "--frames", help="JSON file of consecutive frames with odometry, oldest first: "
+            "{\"frames\": [{\"observations\": [...], \"motion\": {\"dx\", \"dy\", \"dyaw_deg\"}}]}; "
+            "the GPS fix is the first frame's. Prints the pose of every frame.",
         ),
         method: str = typer.Option("default", "--method", help=f"One of: {', '.join(METHODS)}."),
         position_sigma: float = typer.Option(5.0, "--position-sigma", help="GPS position sigma, metres."),
         heading_sigma: float = typer.Option(10.0, "--heading-sigma", help="GPS heading sigma, degrees."),
     ) -> None:
-        """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed)."""
+        """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed).
+
+        With --frames, a drive of several frames is localized with the
+        multi-hypothesis filter of localizer.track (default method only).
+        """
         from mapbuilder.store import Store
 
-        obs = load_observations(observations)
+        if (observations is None) == (frames is None):
+            fail("give either --observations (one frame) or --frames (a sequence)")
+        seq = load_frames(frames) if frames is not None else None
+        obs = load_observations(observations) if observations is not None else None
         if method not in METHODS:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+        if seq is not None and method != "default":
+            fail("--frames works with the default method only")
         store = Store()
         info = store.get_map(map_id)
         if info.crs is None:
@@ -72,7 +119,13 @@ def register(app: typer.Typer) -> None:
                 lat=lat, lon=lon, heading_deg=heading,
                 position_sigma_m=position_sigma, heading_sigma_deg=heading_sigma,
             )
-            pose = localize(index, obs, prior, method=method)
+            if seq is not None:
+                from localizer.track import localize_sequence
+
+                result = localize_sequence(index, seq, prior)
+                out = {"poses": [p.to_dict() for p in result.poses], "tracks": result.tracks}
+            else:
+                out = localize(index, obs, prior, method=method).to_dict()
         except LocalizationInputError as exc:
             fail(str(exc))
-        typer.echo(json.dumps(pose.to_dict(), indent=2, allow_nan=False))
+        typer.echo(json.dumps(out, indent=2, allow_nan=False))
