@@ -50,6 +50,11 @@ Methods
        information fill directions the map leaves open (along a solid line).
     5. Fewer than 3 observations within 0.75 m (or 3σ) of the map → ``failed``.
 
+    Over a drive, :func:`localize_sequence` (``localizer/track.py``) follows
+    every hypothesis through consecutive frames with the vehicle's odometry (a
+    multi-hypothesis filter, the paper's future work): rivals one dash period
+    apart stop explaining the camera's view as the road changes.
+
     Temperature, weight cap and thresholds were calibrated with
     ``benchmarks/localize_calibrate.py``; figures in ``benchmarks/RESULTS-localizer.md``.
 
@@ -76,6 +81,7 @@ from .core import METHODS, localize, parse_observations
 from .errors import LocalizationInputError
 from .frames import GeoFrame, bearing_to_yaw, wrap_angle, yaw_to_bearing
 from .index import MapIndex
+from .track import Frame, SequenceResult, TrackOptions, localize_sequence
 from .types import Hypothesis, Options, Pose, Prior
 
 __all__ = [
@@ -85,10 +91,14 @@ __all__ = [
     "LocalizationInputError",
     "MapIndex",
     "Options",
+    "Frame",
     "Pose",
     "Prior",
+    "SequenceResult",
+    "TrackOptions",
     "bearing_to_yaw",
     "localize",
+    "localize_sequence",
     "parse_observations",
     "wrap_angle",
     "yaw_to_bearing",
