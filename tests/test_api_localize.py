@@ -203,3 +203,47 @@ def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: 
         assert "Traceback" not in server.log()
     finally:
         server.stop()
+
+
+def test_a_drive_is_localized_frame_by_frame(api, kmap):
+    map_id, feats = kmap
+    yaw = along_lane(feats, 400)
+    step = 1.5
+    frames, truth = [], []
+    for k in range(5):
+        off = (1.0 + k * step * math.cos(yaw), 0.5 + k * step * math.sin(yaw))
+        p, lon, lat, heading, obs = scene(feats, 400, yaw, offset=off)
+        frame = {"observations": obs}
+        if k:
+            frame["motion"] = {"dx": step, "dy": 0.0, "dyaw_deg": 0.0}
+        frames.append(frame)
+        truth.append((p, heading))
+    p0, h0 = truth[0]
+    body = {"gps": {**gps_near(p0, h0), "position_sigma_m": 8.0}, "frames": frames}
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize/sequence", json=body, timeout=60)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert len(out["poses"]) == 5 and out["tracks"] >= 1
+    assert "localize;dur=" in r.headers["server-timing"]
+    for pose, (p, heading) in zip(out["poses"], truth):
+        assert pose["status"] == "ok", pose
+        assert math.hypot(pose["easting"] - p[0], pose["northing"] - p[1]) < 0.3
+        assert abs((pose["heading_deg"] - heading + 180) % 360 - 180) < 0.5
+        assert np.array(pose["covariance"]).shape == (3, 3)
+
+
+@pytest.mark.parametrize("frames, words", [
+    ([], "frames"),
+    ([{"observations": [{"x": 10, "y": 1}]}] * 51, "frames"),
+    ([{"observations": [{"x": 10, "y": 1}]}, {"observations": [{"x": 10, "y": 1}]}], "frames[1].motion"),
+    ([{"observations": [{"x": 10, "y": 1}]}, {"observations": [], "motion": {"dx": 1.0}}], "dy"),
+    ([{"observations": [{"x": 10, "y": 1}]}, {"observations": [], "motion": {"dx": 1.0, "dy": 0, "dyaw_deg": 500}}],
+     "dyaw_deg"),
+    ([{"observations": [{"x": 1, "y": 0}] * 501}], "frames[0].observations: 501 given"),
+    ([{"observations": [{"x": 200, "y": 0}]}], "farther than"),
+])  # fmt: skip
+def test_bad_drive_input_is_named(api, kmap, frames, words):
+    map_id, _ = kmap
+    body = {"gps": {"lat": 49.0071, "lon": 8.428, "heading_deg": 87.5}, "frames": frames}
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/localize/sequence", json=body, timeout=60),
+                   422, words)  # fmt: skip

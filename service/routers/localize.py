@@ -65,6 +65,36 @@ class LocalizeIn(BaseModel):
     method: Literal["default", "pink2008"] = "default"
 
 
+class MotionIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    dx: float = Field(..., ge=-100, le=100, description="Metres forward since the previous frame (vehicle frame)")
+    dy: float = Field(..., ge=-100, le=100, description="Metres to the left since the previous frame")
+    dyaw_deg: float = Field(0.0, ge=-180, le=180,
+                            description="Turn since the previous frame, degrees counter-clockwise (left positive)")
+
+
+class FrameIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    observations: list[ObservationIn] = Field(..., max_length=10_000)
+    motion: MotionIn | None = Field(None, description="Odometry from the previous frame; required but for the first")
+
+
+class SequenceIn(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "example": {
+                "gps": {"lat": 49.0071, "lon": 8.4280, "heading_deg": 87.5, "position_sigma_m": 8.0},
+                "frames": [{"observations": [{"x": 12.3, "y": -1.6, "weight": 140}]},
+                           {"observations": [{"x": 10.8, "y": -1.6, "weight": 150}],
+                            "motion": {"dx": 1.5, "dy": 0.0, "dyaw_deg": 0.2}}],
+            }
+        },
+    )  # fmt: skip
+    gps: GpsIn = Field(..., description="GPS fix at the first frame")
+    frames: list[FrameIn] = Field(..., min_length=1, max_length=50, description="Consecutive frames, oldest first")
+
+
 def map_index(ctx: Context, map_id: str):
     """The map's spatial index, rebuilt when the map's revision moved on."""
     from localizer import MapIndex
@@ -98,10 +128,37 @@ async def localize_vehicle(
     mapId: str = PathParam(..., max_length=64),
     ctx: Context = Depends(get_ctx),
 ):
+    _check_count(ctx, len(body.observations), "observations")
+    return await _admit(ctx, _localize, mapId, body)
+
+
+@router.post("/collections/{mapId}/localize/sequence", summary="Localize a vehicle over a drive of frames")
+async def localize_drive(
+    body: SequenceIn,
+    mapId: str = PathParam(..., max_length=64),
+    ctx: Context = Depends(get_ctx),
+):
+    """The pose at every frame of a drive, following every hypothesis with the odometry.
+
+    A single frame on a straight road with repeating dashes is often
+    ``ambiguous``; over a drive the rivals stop explaining what the camera sees.
+    """
+    for k, f in enumerate(body.frames):
+        _check_count(ctx, len(f.observations), f"frames[{k}].observations")
+        if k and f.motion is None:
+            raise Problem(422, f"frames[{k}].motion: the odometry since the previous frame is required",
+                          "missing-motion")  # fmt: skip
+    return await _admit(ctx, _localize_drive, mapId, body)
+
+
+def _check_count(ctx: Context, n: int, field: str) -> None:
     limit = ctx.settings.max_observations
-    if len(body.observations) > limit:
-        raise Problem(422, f"observations: {len(body.observations)} given, at most {limit} accepted",
-                      "too-many-observations")  # fmt: skip
+    if n > limit:
+        raise Problem(422, f"{field}: {n} given, at most {limit} accepted", "too-many-observations")
+
+
+async def _admit(ctx: Context, fn, map_id: str, body):
+    """Run a localization in the worker thread, or shed it when too many are pending."""
     # Admission runs on the event loop, so it counts the requests still waiting
     # for a worker thread as well as the running ones.
     cap = ctx.settings.localize_max_pending
@@ -112,7 +169,7 @@ async def localize_vehicle(
         ctx.localize_limiter = anyio.CapacityLimiter(LOCALIZE_THREADS)
     ctx.localize_pending += 1
     try:
-        return await anyio.to_thread.run_sync(_localize, ctx, mapId, body, time.perf_counter(),
+        return await anyio.to_thread.run_sync(fn, ctx, map_id, body, time.perf_counter(),
                                               limiter=ctx.localize_limiter)  # fmt: skip
     finally:
         ctx.localize_pending -= 1
@@ -120,33 +177,70 @@ async def localize_vehicle(
 
 def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> JSONResponse:
     """The CPU-bound part of a localization, run in a worker thread."""
-    from localizer import Prior, localize
+    from localizer import localize
 
     t0 = time.perf_counter()
     index = map_index(ctx, map_id)
     t1 = time.perf_counter()
-    g = body.gps
-    prior_kw = {"lat": g.lat, "lon": g.lon, "heading_deg": g.heading_deg % 360.0}
-    if g.position_sigma_m is not None:
-        prior_kw["position_sigma_m"] = g.position_sigma_m
-    if g.heading_sigma_deg is not None:
-        prior_kw["heading_sigma_deg"] = g.heading_sigma_deg
-    obs = np.array([[o.x, o.y, o.weight] for o in body.observations], dtype=float).reshape(-1, 3)
+    obs = _observations(body.observations)
     try:
-        pose = localize(index, obs, Prior(**prior_kw), method=body.method)
+        pose = localize(index, obs, _prior(body.gps), method=body.method)
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("localization on %s failed numerically: %r", map_id, exc)
         return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
                              "reason": f"numerical failure ({exc.__class__.__name__})"},
                             headers=_server_timing(admitted, t0, t1))  # fmt: skip
     headers = _server_timing(admitted, t0, t1)
+    return JSONResponse(_pose_json(pose), headers=headers)
+
+
+def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float) -> JSONResponse:
+    """The CPU-bound part of a drive's localization, run in a worker thread."""
+    from localizer import Frame, localize_sequence
+
+    t0 = time.perf_counter()
+    index = map_index(ctx, map_id)
+    t1 = time.perf_counter()
+    frames = [
+        Frame(_observations(f.observations),
+              (0.0, 0.0, 0.0) if f.motion is None else (f.motion.dx, f.motion.dy, math.radians(f.motion.dyaw_deg)))
+        for f in body.frames
+    ]  # fmt: skip
+    try:
+        result = localize_sequence(index, frames, _prior(body.gps))
+    except (ArithmeticError, np.linalg.LinAlgError) as exc:
+        log.warning("drive localization on %s failed numerically: %r", map_id, exc)
+        failed = {"status": "failed", "crs": index.crs, "hypotheses": [],
+                  "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
+        return JSONResponse({"poses": [failed] * len(frames), "tracks": 0},
+                            headers=_server_timing(admitted, t0, t1))  # fmt: skip
+    out = {"poses": [_pose_json(p) for p in result.poses], "tracks": result.tracks}
+    return JSONResponse(out, headers=_server_timing(admitted, t0, t1))
+
+
+def _prior(g: GpsIn):
+    from localizer import Prior
+
+    kw = {"lat": g.lat, "lon": g.lon, "heading_deg": g.heading_deg % 360.0}
+    if g.position_sigma_m is not None:
+        kw["position_sigma_m"] = g.position_sigma_m
+    if g.heading_sigma_deg is not None:
+        kw["heading_sigma_deg"] = g.heading_sigma_deg
+    return Prior(**kw)
+
+
+def _observations(items: list[ObservationIn]) -> np.ndarray:
+    return np.array([[o.x, o.y, o.weight] for o in items], dtype=float).reshape(-1, 3)
+
+
+def _pose_json(pose) -> dict:
     out = pose.to_dict()
     if out.get("reason") is None:
         out.pop("reason", None)
     for k, v in out.items():
         if isinstance(v, float) and not math.isfinite(v):
             out[k] = None
-    return JSONResponse(out, headers=headers)
+    return out
 
 
 def _server_timing(admitted: float, t0: float, t1: float) -> dict[str, str]:
