@@ -285,6 +285,14 @@ def simulate_scene(
     )
 
 
+def _centrelines(scene_map: SceneMap) -> tuple[list[np.ndarray], np.ndarray]:
+    """The map's centrelines of two points or more, and their lengths (m)."""
+    lines = [c for c in scene_map.centerlines if len(c) >= 2]
+    if not lines:
+        raise ValueError("scene_map has no centrelines")
+    return lines, np.array([np.sum(np.hypot(*np.diff(c, axis=0).T)) for c in lines])
+
+
 def sample_poses(
     scene_map: SceneMap,
     n: int,
@@ -299,10 +307,7 @@ def sample_poses(
 
     A pose is kept when at least ``min_visible`` point-like map markings are in view.
     """
-    lines = [c for c in scene_map.centerlines if len(c) >= 2]
-    if not lines:
-        raise ValueError("scene_map has no centrelines")
-    lengths = np.array([np.sum(np.hypot(*np.diff(c, axis=0).T)) for c in lines])
+    lines, lengths = _centrelines(scene_map)
     p = lengths / lengths.sum()
     out = []
     for _ in range(max_tries):
@@ -361,11 +366,8 @@ def sample_trajectories(
     A drive follows one centreline into the next where one ends; it is kept when
     the first frame sees at least ``min_visible`` point-like map markings.
     """
-    lines = [c for c in scene_map.centerlines if len(c) >= 2]
-    if not lines:
-        raise ValueError("scene_map has no centrelines")
+    lines, lengths = _centrelines(scene_map)
     starts = np.array([c[0] for c in lines])
-    lengths = np.array([np.sum(np.hypot(*np.diff(c, axis=0).T)) for c in lines])
     p = lengths / lengths.sum()
     length = step_m * (frames - 1)
     out = []

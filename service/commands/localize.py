@@ -12,14 +12,18 @@ from localizer import METHODS, GeoFrame, LocalizationInputError, MapIndex, Prior
 from service.cli_errors import fail
 
 
-def load_observations(path: Path):
-    """Observations from a JSON file: ``{"observations": [...]}`` or a bare list."""
+def _read_json(path: Path):
     try:
-        data = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except OSError as exc:
         fail(f"cannot read {path}: {exc.strerror or exc}")
     except json.JSONDecodeError as exc:
         fail(f"{path} is not valid JSON: {exc.msg} (line {exc.lineno})")
+
+
+def load_observations(path: Path):
+    """Observations from a JSON file: ``{"observations": [...]}`` or a bare list."""
+    data = _read_json(path)
     if isinstance(data, dict):
         if "observations" not in data:
             fail(f"{path}: expected a list or an object with an 'observations' list")
@@ -38,12 +42,7 @@ def load_frames(path: Path):
     """
     from localizer.track import Frame
 
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        fail(f"cannot read {path}: {exc.strerror or exc}")
-    except json.JSONDecodeError as exc:
-        fail(f"{path} is not valid JSON: {exc.msg} (line {exc.lineno})")
+    data = _read_json(path)
     frames = data.get("frames") if isinstance(data, dict) else data
     if not isinstance(frames, list) or not frames:
         fail(f"{path}: expected a non-empty 'frames' list")
