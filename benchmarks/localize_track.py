@@ -12,7 +12,9 @@ Compared at the last frame, on the same scenes:
 * ``single frame``: :func:`localizer.localize` on the last frame alone, with
   the first frame's GPS fix carried to it by the same noisy odometry (the same
   information about GPS as the filter has);
-* ``sequence``: :func:`localizer.track.localize_sequence` over all frames.
+* ``sequence``: :func:`localizer.track.localize_sequence` over all frames;
+* ``oracle``: weighted least squares on the last frame's true inliers (the
+  single-frame noise floor of ``localize_paper.py``).
 
 Success: status ``ok`` within 0.5 m and 1°; confidently wrong: ``ok`` off by
 more than 1 m. Also the success rate after each frame (a PNG) and the time per
@@ -43,6 +45,7 @@ from localizer.simulate import (  # noqa: E402
     Camera,
     Clutter,
     odometry,
+    oracle_pose,
     perturb,
     sample_trajectories,
     simulate_scene,
@@ -104,7 +107,7 @@ def main() -> None:
     rows, curves = [], {}
     for name, dist, hdg, sig_m, sig_deg, clutter in SCENARIOS:
         rng = np.random.default_rng([args.seed, sum(map(ord, name))])
-        single, seq, per_frame, ms = [], [], np.zeros(args.frames), []
+        single, seq, oracle, per_frame, ms = [], [], [], np.zeros(args.frames), []
         for drive in tqdm(drives, desc=name, leave=False):
             scenes = [simulate_scene(smap, tuple(p), rng, cam, clutter) for p in drive]
             motions = [(0.0, 0.0, 0.0)] + [noisy(odometry(drive[k - 1], drive[k]), rng)
@@ -113,6 +116,10 @@ def main() -> None:
             prior = prior_at(index.frame, start, sig_m, sig_deg)
             last_prior = prior_at(index.frame, carry(start, motions[1:]), sig_m, sig_deg)
             single.append(grade(localize(index, scenes[-1].observations, last_prior), drive[-1]))
+            last = scenes[-1]
+            o = oracle_pose(last, cam.range_noise_m + cam.range_noise_coeff * np.sum(last.observations[:, :2] ** 2, 1))
+            oracle.append(("failed", math.inf, math.inf) if o is None else
+                          ("ok", math.hypot(o[0] - drive[-1][0], o[1] - drive[-1][1]), heading_err_deg(o[2], drive[-1][2])))
             t0 = time.perf_counter()
             r = localize_sequence(index, [Frame(s.observations, m) for s, m in zip(scenes, motions)], prior)
             ms.append(1000 * (time.perf_counter() - t0) / len(drive))
@@ -121,7 +128,7 @@ def main() -> None:
                 st, e, h = grade(p, drive[k])
                 per_frame[k] += st == "ok" and e <= 0.5 and h <= 1.0
         curves[name] = per_frame / len(drives)
-        for method, res in (("single frame", single), ("sequence", seq)):
+        for method, res in (("oracle", oracle), ("single frame", single), ("sequence", seq)):
             st = np.array([r[0] for r in res])
             e = np.array([r[1] for r in res])
             h = np.array([r[2] for r in res])
