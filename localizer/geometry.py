@@ -125,20 +125,22 @@ class LocalMap:
         i = np.where(np.isfinite(d), i, -1)
         return d, i
 
-    def closest_c(self, p: np.ndarray, max_dist: float):
+    def closest_c(self, p: np.ndarray, max_dist: float, full: bool = True):
         """:meth:`closest` of complex points ``p`` (x + iy, contiguous (N,)).
 
         Returns ``(dist, target, axis, index)``: complex targets, the complex unit
         axis of the matched marking (0 for point-like markings and no match) and
-        the local index, ``len(self)`` where nothing lies within ``max_dist``.
+        the local index, ``len(self)`` where nothing lies within ``max_dist``;
+        only ``(dist, target)`` unless ``full``.
         """
         n = len(p)
         if self.tree is None or n == 0:
-            return np.full(n, np.inf), np.zeros(n, complex), np.zeros(n, complex), np.full(n, len(self))
+            out = np.full(n, np.inf), np.zeros(n, complex), np.zeros(n, complex), np.full(n, len(self))
+            return out if full else out[:2]
         pr = p.view(float).reshape(n, 2)
         if self.max_half == 0.0:
             d, i = self.tree.query(pr, distance_upper_bound=max_dist)
-            return d, self._c[i], np.zeros(n, complex), i
+            return (d, self._c[i], np.zeros(n, complex), i) if full else (d, self._c[i])
         k = min(3, len(self))
         _, ii = self.tree.query(pr, k=k, distance_upper_bound=max_dist + self.max_half)
         if k == 1:
@@ -153,6 +155,8 @@ class LocalMap:
         best += self._row_offsets(n, k)
         d = dist.ravel()[best]
         d[d > max_dist] = np.inf
+        if not full:
+            return d, p - e.ravel()[best]
         return d, p - e.ravel()[best], uc.ravel()[best].conjugate(), ii.ravel()[best]
 
     def _row_offsets(self, n: int, k: int) -> np.ndarray:

@@ -94,12 +94,15 @@ def robust_refine(
             P, Y = pos[idx], yaw[idx]
             pts = np.multiply.outer(np.exp(1j * Y), obs)
             pts += P[:, None]
-            d, tgt, _, _ = local_map.closest_c(pts.ravel(), gmax)
+            d, tgt = local_map.closest_c(pts.ravel(), gmax, full=False)
             d, tgt = d.reshape(-1, N), tgt.reshape(-1, N)
             m = d <= gate
-            dd = np.where(m, d, 0.0)
-            t = 1.0 + dd * dd * inv_s2
-            w = np.where(m, wo_s2 / (t * t), 0.0)
+            # Unmatched observations (d = inf) get t = inf and so weight 0.
+            t = d * d
+            t *= inv_s2
+            t += 1.0
+            w = wo_s2 / (t * t)
+            w *= m
             wsum = np.add.reduce(w, 1)
             ok = (np.add.reduce(m, 1) >= 2) & (wsum > 0)
             w /= np.where(wsum > 0, wsum, 1.0)[:, None]
