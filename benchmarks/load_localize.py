@@ -34,8 +34,8 @@ pre-generated bodies; Debian package ``wrk``). Both share the machine's cores
 with the server; the generator's own CPU share is printed. The Python client
 needs about a millisecond of CPU per request, which on 2 cores is capacity the
 server loses; wrk needs a few percent of that, so it measures what the server
-can do. With wrk, latency percentiles cover all answers (503s included) and a
-503 is not waited on.
+can do. With wrk, latency percentiles cover all answers (503s included); both
+wait ``Retry-After`` after a 503.
 
 Usage::
 
@@ -232,7 +232,7 @@ def run_level_wrk(base_url: str, bodies_path: Path, c: int, duration: float, tim
 
     The request bodies are read from ``bodies_path`` (one per line); latency
     percentiles are wrk's, over every answer (below saturation all are 200s).
-    A 503 is counted but not waited on (wrk sends the next request at once).
+    After a 503 the connection waits ``Retry-After`` (the script's ``delay()``).
     """
     import subprocess
 

@@ -1,6 +1,7 @@
 -- wrk script of benchmarks/load_localize.py (--generator wrk): each connection
 -- posts the pre-generated request bodies of LANEMAP_BODIES (one JSON document
--- per line) in turn to LANEMAP_PATH, closed loop. At the end it prints one line
+-- per line) in turn to LANEMAP_PATH, closed loop; after a 503 the connection
+-- waits Retry-After, as the Python client and a vehicle do. At the end it prints one line
 -- "RESULT {json}" with the latency percentiles of all answers, counts per
 -- status, the socket errors and the localizer's median time from Server-Timing.
 -- The counters live in each wrk thread; done() (in wrk's main Lua state) reads
@@ -28,8 +29,22 @@ request = function()
   return wrk.format("POST", path, headers, bodies[i])
 end
 
+-- wrk asks delay() before each connection's next request, after that
+-- connection's response(). delay() knows no connection: when two answers
+-- arrive in one turn of wrk's event loop, the wait may go to the other one
+-- (the number of waits stays that of the 503s).
+local backoff = 0
+delay = function()
+  local d = backoff
+  backoff = 0
+  return d
+end
+
 response = function(status, hdrs, body)
   statuses[status] = (statuses[status] or 0) + 1
+  if status == 503 then
+    backoff = 1000 * (tonumber(hdrs["Retry-After"] or hdrs["retry-after"]) or 1)
+  end
   if status == 200 then
     local st = hdrs["Server-Timing"] or hdrs["server-timing"]
     if st then
