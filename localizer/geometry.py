@@ -133,6 +133,7 @@ class LocalMap:
         the local index, ``len(self)`` where nothing lies within ``max_dist``;
         only ``(dist, target)`` unless ``full``.
         """
+        p = np.ascontiguousarray(p, complex)
         n = len(p)
         if self.tree is None or n == 0:
             out = np.full(n, np.inf), np.zeros(n, complex), np.zeros(n, complex), np.full(n, len(self))
