@@ -27,15 +27,20 @@ server process listens on its own ``SO_REUSEPORT`` socket and the kernel
 spreads connections over them), and the load average; it marks the first level with errors, the first with
 shedding, and the level where throughput stops growing (saturation).
 
-The load generator is an asyncio ``httpx`` client in this process. It shares
-the 2 cores with the server; its own CPU share is printed so that it can be
-taken into account (``wrk`` would cost less, but is not part of the project's
-dependencies).
+The load generator (``--generator``) is either an asyncio ``httpx`` client in
+this process (``python``, the default) or ``wrk`` (``wrk``: a C client, one
+thread, with ``benchmarks/wrk_localize.lua`` cycling through the same
+pre-generated bodies; Debian package ``wrk``). Both share the machine's cores
+with the server; the generator's own CPU share is printed. The Python client
+needs about a millisecond of CPU per request, which on 2 cores is capacity the
+server loses; wrk needs a few percent of that, so it measures what the server
+can do. With wrk, latency percentiles cover all answers (503s included); both
+wait ``Retry-After`` after a 503.
 
 Usage::
 
     .venv/bin/python benchmarks/load_localize.py [--workers 1 2] [--levels 1 2 4 8 16 32 64]
-        [--duration 10] [--gps-sigma 1.5] [--heading-sigma 2] [--postgres URL]
+        [--duration 10] [--gps-sigma 1.5] [--heading-sigma 2] [--postgres URL] [--generator wrk]
     .venv/bin/python benchmarks/load_localize.py --prior-sweep   # localizer time vs prior, 1 client
 """
 
@@ -129,16 +134,21 @@ class Level:
     #: established connections per server process halfway through, most first
     connections: list[int] = field(default_factory=list)
     load: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: with ``--generator wrk``: its latency percentiles (ms, all answers) and 200s
+    wrk_pct: dict[float, float] | None = None
+    wrk_ok: int = 0
 
     @property
     def ok(self) -> int:
-        return len(self.latencies_ms)
+        return self.wrk_ok if self.wrk_pct is not None else len(self.latencies_ms)
 
     @property
     def rps(self) -> float:
         return self.ok / self.seconds if self.seconds else 0.0
 
     def pct(self, q: float) -> float:
+        if self.wrk_pct is not None:
+            return self.wrk_pct.get(q, float("nan"))
         return float(np.percentile(self.latencies_ms, q)) if self.latencies_ms else float("nan")
 
 
@@ -209,6 +219,52 @@ async def run_level(base_url: str, bodies: list[bytes], c: int, duration: float,
         await asyncio.gather(*tasks)
         lvl.seconds = time.perf_counter() - t0
         lvl.client_cpu = (time.process_time() - cpu0) / lvl.seconds
+    lvl.load = os.getloadavg()
+    return lvl
+
+
+WRK_SCRIPT = REPO / "benchmarks" / "wrk_localize.lua"
+
+
+def run_level_wrk(base_url: str, bodies_path: Path, c: int, duration: float, timeout: float,
+                  server_pid: int | None = None) -> Level:  # fmt: skip
+    """``c`` closed-loop connections of ``wrk`` (one thread) for ``duration`` seconds.
+
+    The request bodies are read from ``bodies_path`` (one per line); latency
+    percentiles are wrk's, over every answer (below saturation all are 200s).
+    After a 503 the connection waits ``Retry-After`` (the script's ``delay()``).
+    """
+    import subprocess
+
+    lvl = Level(c)
+    env = dict(os.environ, LANEMAP_BODIES=str(bodies_path), LANEMAP_PATH=f"/collections/{MAP_ID}/localize")
+    cmd = ["wrk", "-t", "1", "-c", str(c), "-d", f"{duration:g}s", "--timeout", f"{timeout:g}s",
+           "-s", str(WRK_SCRIPT), base_url]  # fmt: skip
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if server_pid:
+        time.sleep(duration / 2)
+        per_process = _connections_by_process(server_pid, int(base_url.rsplit(":", 1)[1]))
+        lvl.connections = sorted(per_process.values(), reverse=True)
+    out = proc.stdout.read()
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    line = next((ln for ln in out.splitlines() if ln.startswith("RESULT ")), None)
+    if line is None:
+        raise RuntimeError(f"wrk failed ({proc.returncode}):\n{out}")
+    res = json.loads(line[len("RESULT "):])
+    lvl.seconds = res["duration_us"] / 1e6
+    lvl.client_cpu = (usage.ru_utime + usage.ru_stime) / lvl.seconds
+    lvl.wrk_pct = {50: res["p50_us"] / 1e3, 90: res["p90_us"] / 1e3, 99: res["p99_us"] / 1e3}
+    statuses = {int(k): v for k, v in res["statuses"].items()}
+    lvl.wrk_ok = statuses.pop(200, 0)
+    lvl.shed = statuses.pop(503, 0)
+    errs = {k: v for k, v in res["errors"].items() if v and k != "status"}
+    errs.update({str(k): v for k, v in statuses.items()})
+    lvl.error_kinds = errs
+    lvl.errors = sum(errs.values())
+    if res["localize_p50_ms"] >= 0:
+        lvl.localize_ms = [res["localize_p50_ms"]]
+    lvl.statuses = {"200": lvl.wrk_ok}
     lvl.load = os.getloadavg()
     return lvl
 
@@ -323,14 +379,22 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--postgres", default=None, help="use a fresh database on this PostgreSQL server")
     ap.add_argument("--prior-sweep", action="store_true", help="also time 1 client over four priors")
+    ap.add_argument("--generator", choices=("python", "wrk"), default="python",
+                    help="load generator: this process's asyncio client, or wrk (C, needs the wrk binary)")
     args = ap.parse_args()
+    if args.generator == "wrk" and shutil.which("wrk") is None:
+        ap.error("--generator wrk: no wrk on PATH (Debian: apt-get install wrk)")
 
     print(f"lanemap localization load test, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
           f"{os.cpu_count()} cores, load average {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")  # fmt: skip
     bodies = make_bodies(args.frames, args.seed, args.gps_sigma, args.heading_sigma)
     nobs = [len(json.loads(b)["observations"]) for b in bodies]
     print(f"{len(bodies)} frames, observations per frame min/median/max {min(nobs)}/{int(np.median(nobs))}/"
-          f"{max(nobs)}; prior sigma {args.gps_sigma} m, {args.heading_sigma}°")  # fmt: skip
+          f"{max(nobs)}; prior sigma {args.gps_sigma} m, {args.heading_sigma}°; "
+          f"load generator: {args.generator}")  # fmt: skip
+    bodies_dir = Path(tempfile.mkdtemp(prefix="lanemap-load-bodies-"))
+    bodies_path = bodies_dir / "bodies.jsonl"
+    bodies_path.write_bytes(b"\n".join(bodies) + b"\n")
     for workers in args.workers:
         tmp = Path(tempfile.mkdtemp(prefix="lanemap-load-"))
         drop = None
@@ -348,8 +412,12 @@ def main() -> None:
             levels = []
             for c in args.levels:
                 before = _cpu_by_process(server.proc.pid)
-                levels.append(asyncio.run(run_level(server.base_url, bodies, c, args.duration, args.timeout,
-                                                    server.proc.pid)))  # fmt: skip
+                if args.generator == "wrk":
+                    levels.append(run_level_wrk(server.base_url, bodies_path, c, args.duration, args.timeout,
+                                                server.proc.pid))  # fmt: skip
+                else:
+                    levels.append(asyncio.run(run_level(server.base_url, bodies, c, args.duration,
+                                                        args.timeout, server.proc.pid)))  # fmt: skip
                 lv = levels[-1]
                 after = _cpu_by_process(server.proc.pid)
                 lv.server_cpu = sorted((after[p] - before.get(p, 0.0) for p in after), reverse=True)
@@ -365,6 +433,7 @@ def main() -> None:
             if drop is not None:
                 drop()
             shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(bodies_dir, ignore_errors=True)
     print(f"\nload average at the end: {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
 
 

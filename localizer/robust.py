@@ -71,9 +71,12 @@ def robust_refine(
     trace = [tuple(poses[0])] if record else []
     var = sigma_obs**2
     start = np.zeros(K, int) if start_scale is None else np.asarray(start_scale, int).reshape(K)
-    ox, oy = obs_xy[None, :, 0], obs_xy[None, :, 1]
-    # Component arrays and per-scale constants: each iteration is a few dozen
-    # operations on small (K, N) arrays, so the number of operations is the cost.
+    # Positions and observations as complex numbers, rotations as unit complex
+    # factors: each iteration is a few dozen operations on small (K, N) arrays,
+    # so the number of numpy calls is the cost.
+    pos = poses[:, 0] + 1j * poses[:, 1]
+    yaw = poses[:, 2].copy()
+    obs = obs_xy[:, 0] + 1j * obs_xy[:, 1]
     for si, c in enumerate(options.anneal_m):
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
@@ -81,51 +84,45 @@ def robust_refine(
         last = c == options.anneal_m[-1]
         tol = options.tolerance_m if last else max(options.tolerance_m, 0.01)
         wo = np.ones_like(w_obs) if last else w_obs
-        wo_s2 = (wo / s2)[None]
-        inv_s2 = (1.0 / s2)[None]
+        wo_s2 = wo / s2
+        inv_s2 = 1.0 / s2
         active = start <= si
         for _ in range(iterations_per_scale):
             idx = np.flatnonzero(active)
             if idx.size == 0:
                 break
-            P = poses[idx]
-            cos, sin = np.cos(P[:, 2])[:, None], np.sin(P[:, 2])[:, None]
-            pts = np.empty((len(idx), N, 2))
-            px, py = pts[..., 0], pts[..., 1]
-            np.add(cos * ox - sin * oy, P[:, 0, None], out=px)
-            np.add(sin * ox + cos * oy, P[:, 1, None], out=py)
-            d, tgt, _ = local_map.closest(pts.reshape(-1, 2), gmax)
-            d = d.reshape(-1, N)
-            gx, gy = tgt[:, 0].reshape(-1, N), tgt[:, 1].reshape(-1, N)
-            m = d <= gate[None]
-            dd = np.where(m, d, 0.0)
-            t = 1.0 + dd * dd * inv_s2
-            w = np.where(m, wo_s2 / (t * t), 0.0)
-            wsum = w.sum(1)
-            ok = (m.sum(1) >= 2) & (wsum > 0)
-            ws = w / np.where(wsum > 0, wsum, 1.0)[:, None]
-            csx, csy = (ws * px).sum(1), (ws * py).sum(1)
-            cdx, cdy = (ws * gx).sum(1), (ws * gy).sum(1)
-            ax, ay = px - csx[:, None], py - csy[:, None]
-            bx, by = gx - cdx[:, None], gy - cdy[:, None]
-            sxx = (ws * (ax * bx + ay * by)).sum(1)
-            sxy = (ws * (ax * by - ay * bx)).sum(1)
-            th = np.where(ok, np.arctan2(sxy, sxx), 0.0)
-            ct, st = np.cos(th), np.sin(th)
-            tx = cdx - (ct * csx - st * csy)
-            ty = cdy - (st * csx + ct * csy)
-            new = np.empty_like(P)
-            new[:, 0] = ct * P[:, 0] - st * P[:, 1] + tx
-            new[:, 1] = st * P[:, 0] + ct * P[:, 1] + ty
-            new[:, 2] = P[:, 2] + th
-            new[~ok] = P[~ok]
-            step = np.hypot(new[:, 0] - P[:, 0], new[:, 1] - P[:, 1])
-            poses[idx] = new
+            P, Y = pos[idx], yaw[idx]
+            pts = np.multiply.outer(np.exp(1j * Y), obs)
+            pts += P[:, None]
+            d, tgt = local_map.closest_c(pts.ravel(), gmax, full=False)
+            d, tgt = d.reshape(-1, N), tgt.reshape(-1, N)
+            m = d <= gate
+            # Unmatched observations (d = inf) get t = inf and so weight 0.
+            t = d * d
+            t *= inv_s2
+            t += 1.0
+            w = wo_s2 / (t * t)
+            w *= m
+            wsum = np.add.reduce(w, 1)
+            ok = (np.add.reduce(m, 1) >= 2) & (wsum > 0)
+            w /= np.where(wsum > 0, wsum, 1.0)[:, None]
+            cs = np.add.reduce(w * pts, 1)
+            cd = np.add.reduce(w * tgt, 1)
+            # Weighted 2D Procrustes: the rotation is the angle of
+            # sum w conj(p - cs) (g - cd).
+            pts -= cs[:, None]
+            tgt -= cd[:, None]
+            th = np.where(ok, np.angle(np.add.reduce(w * pts.conjugate() * tgt, 1)), 0.0)
+            new = np.where(ok, np.exp(1j * th) * (P - cs) + cd, P)
+            step = np.abs(new - P)
+            pos[idx] = new
+            yaw[idx] = Y + th
             iters[idx[ok]] += 1
             if record and idx[0] == 0 and ok[0]:
-                trace.append(tuple(new[0]))
+                trace.append((float(new[0].real), float(new[0].imag), float(Y[0] + th[0])))
             done = ~ok | ((step < tol) & (np.abs(th) < options.tolerance_rad))
             active[idx[done]] = False
+    poses = np.column_stack([pos.real, pos.imag, yaw])
     return [
         RefineResult(pose=tuple(float(v) for v in poses[k]), iterations=int(iters[k]),
                      trace=trace if k == 0 else [])

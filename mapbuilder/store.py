@@ -559,8 +559,34 @@ class Store:
             conn.execute(delete(maps).where(maps.c.id == map_id))
 
     def map_revision(self, map_id: str) -> int:
-        with self._read() as conn:
-            return self._map_row(conn, map_id).revision
+        """The map's revision (it grows with every change of its markings).
+
+        Every localization asks for it (the service rebuilds its cached index
+        when it moved on), so it is one statement on a pooled driver connection,
+        without SQLAlchemy's transaction round trips: a single SELECT reads one
+        committed snapshot by itself. Any driver failure takes the regular path,
+        which reports it as every other read does.
+        """
+        row = None
+        try:
+            conn = self.engine.raw_connection()
+            try:
+                cur = conn.cursor()
+                cur.execute(self._revision_sql, (map_id,))
+                row = cur.fetchone()
+                cur.close()
+            finally:
+                conn.close()
+        except Exception:  # noqa: BLE001 - the regular path raises the store's own errors
+            with self._read() as c:
+                return int(self._map_row(c, map_id).revision)
+        if row is None:
+            raise UnknownMapError(map_id)
+        return int(row[0])
+
+    @property
+    def _revision_sql(self) -> str:
+        return "SELECT revision FROM maps WHERE id = " + ("?" if self.dialect == "sqlite" else "%s")
 
     def _touch_map(self, conn: Connection, map_id: str, xs=(), ys=()) -> None:
         row = self._map_row(conn, map_id)

@@ -35,7 +35,9 @@ class Context:
     localize_limiter: Any = None  # anyio.CapacityLimiter, made on the event loop at first use
 
 
-def get_ctx(request: Request) -> Context:
+# The dependencies are coroutines: FastAPI runs a plain ``def`` dependency in
+# its thread pool, two thread hops per request for nothing that blocks.
+async def get_ctx(request: Request) -> Context:
     return request.app.state.ctx
 
 
@@ -55,7 +57,7 @@ def _unauthorized(detail: str) -> Problem:
     return Problem(401, detail, "unauthorized", headers={"WWW-Authenticate": 'Bearer realm="lanemap"'})
 
 
-def require_write(
+async def require_write(
     ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(bearer)
 ) -> str:
     """Check the bearer token of a write; returns who is writing (for the edit log)."""
@@ -67,7 +69,7 @@ def require_write(
     return who
 
 
-def require_read(
+async def require_read(
     ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(bearer)
 ) -> None:
     """Reads are open unless ``LANEMAP_READ_TOKEN_REQUIRED=1``."""

@@ -49,6 +49,66 @@ def observe(xy, pose, cam=EXACT, rng=None, clutter=NONE):
 # ---------------------------------------------------------------- numerics
 
 
+def _closest_reference(local: LocalMap, p: np.ndarray, max_dist: float):
+    """LocalMap.closest spelled out: of the three nearest centroids closer than
+    ``max_dist`` plus the longest half length, the nearest point or segment."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(local.xy)
+    d0, ii = tree.query(p, k=3, distance_upper_bound=max_dist + local.max_half)
+    dist = np.full(len(p), np.inf)
+    target = np.zeros((len(p), 2))
+    which = np.full(len(p), -1)
+    for r in range(len(p)):
+        for d_c, i in zip(d0[r], ii[r]):
+            if not np.isfinite(d_c):
+                continue
+            u, h = local.axis[i], local.half[i]
+            a = float(np.clip((p[r] - local.xy[i]) @ u, -h, h))
+            q = local.xy[i] + a * u
+            d = float(np.hypot(*(p[r] - q)))
+            if d < dist[r]:
+                dist[r], target[r], which[r] = d, q, i
+    far = dist > max_dist
+    dist[far], which[far] = np.inf, -1
+    return dist, target, which
+
+
+def test_nearest_marking_queries_match_the_plain_definition():
+    index, _ = karlsruhe()
+    rng = np.random.default_rng(3)
+    for k in range(5):
+        local = LocalMap(index, index.xy[rng.integers(len(index))], 45.0)
+        assert local.max_half > 0
+        p = np.concatenate([local.xy[rng.integers(len(local), size=150)] + rng.normal(0, 1.0, (150, 2)),
+                            rng.uniform(-50, 50, (50, 2))])  # fmt: skip
+        for max_dist in (0.5, 2.4, 4.0):
+            d, tgt, normal, which = local.closest(p, max_dist, return_index=True)
+            rd, rtgt, rwhich = _closest_reference(local, p, max_dist)
+            ok = np.isfinite(rd)
+            assert np.array_equal(np.isfinite(d), ok)
+            assert np.allclose(d[ok], rd[ok], atol=1e-9) and np.allclose(tgt[ok], rtgt[ok], atol=1e-9)
+            assert np.array_equal(which, rwhich)
+            seg = local.half[np.maximum(which, 0)] > 0
+            # unit normals across matched segments, none for points
+            assert np.allclose(np.hypot(*normal[ok & seg].T), 1.0)
+            assert not normal[ok & ~seg].any() and not normal[~ok].any()
+
+
+def test_small_volume_maximum_filter_is_scipys():
+    from scipy.ndimage import maximum_filter
+
+    from localizer.search import _maximum_filter
+
+    rng = np.random.default_rng(0)
+    for shape in [(17, 19, 19), (1, 19, 19), (3, 5, 7), (2, 1, 4)]:
+        v = rng.normal(size=shape).astype(np.float32)
+        v[v < -1] = -np.inf
+        for half in (1, 2, 3):
+            assert np.array_equal(_maximum_filter(v, half), maximum_filter(v, size=2 * half + 1, mode="nearest"))
+
+
+
 def test_weighted_rigid_fit_recovers_transform_and_ignores_zero_weights():
     rng = np.random.default_rng(1)
     src = rng.normal(0, 10, (20, 2))

@@ -80,6 +80,8 @@ def test_map_lifecycle(store):
     store.delete_map("ka")
     with pytest.raises(UnknownMapError, match="unknown map 'ka'"):
         store.get_map("ka")
+    with pytest.raises(UnknownMapError, match="unknown map 'ka'"):
+        store.map_revision("ka")
     with store.engine.connect() as conn:  # cascaded, nothing left behind
         assert conn.execute(text("SELECT count(*) FROM markings")).scalar() == 0
         assert conn.execute(text("SELECT count(*) FROM edits")).scalar() == 0
