@@ -292,7 +292,7 @@ def _children(r: Pose, parent: _Track, base: float, weight: float, frame_geo,
     frame's evidence (its log score less the prior term) times ``weight``, plus
     the prior term (how well it agrees with the prediction). The track also goes
     on at its prediction, "this frame's observations are all clutter", its
-    weight lowered by ``parent_miss`` times ``weight`` (a frame under heavy
+    weight changed by ``parent_miss`` (≤ 0) times ``weight`` (a frame under heavy
     clutter, or one whose answer jumped away from the prediction, must not end a
     good track, but a track that stops explaining what the camera sees fades).
     """
