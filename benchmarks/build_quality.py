@@ -219,6 +219,8 @@ def main() -> None:
     ap.add_argument("--verify", action="store_true",
                     help="check clusters with the cluster verifier (ClusterParams.verify)")
     ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
+    ap.add_argument("--no-continuation", action="store_true",
+                    help="drop what the verifier rejects even when it continues what it keeps")
     ap.add_argument("--usgs-only", action="store_true")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
@@ -226,7 +228,8 @@ def main() -> None:
     cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
                             min_area_m2=args.min_area, link_m=args.link,
                             threshold_low=args.threshold_low, join_gap_m=args.join_gap,
-                            verify=args.verify, verify_threshold=args.verify_threshold)
+                            verify=args.verify, verify_threshold=args.verify_threshold,
+                            verify_continuation=not args.no_continuation)
     params = BuildParams(model=args.model, cluster=cluster, verifier=args.verifier)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}
