@@ -785,18 +785,23 @@ def cluster_crops(
     k00 = r0 * w + c0
     corners = (k00, k00 + dc, k00 + dr, k00 + dr + dc)
     wts = ((1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc)
-    pix = rgb.reshape(-1, 3)
+    # channel sum and max - min of the window once: cheaper than per sample
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    lum_w = r.astype(np.uint16)
+    lum_w += g
+    lum_w += b
+    sat_w = np.maximum(np.maximum(r, g), b)
+    sat_w -= np.minimum(np.minimum(r, g), b)
+    lum_w, sat_w = lum_w.ravel(), sat_w.ravel()
     pflat = np.asarray(prob, np.float32).ravel()
     lum = np.zeros(col.shape, np.float32)
     sat = np.zeros(col.shape, np.float32)
     pr = np.zeros(col.shape, np.float32)
     for k, wt in zip(corners, wts):
-        v = pix[k]
-        lo = v.min(axis=-1)
-        hi = v.max(axis=-1)
-        lum += wt * v.sum(axis=-1, dtype=np.uint16) * np.float32(1 / 3)
-        sat += wt * (hi - lo)
+        lum += wt * lum_w[k]
+        sat += wt * sat_w[k]
         pr += wt * pflat[k]
+    lum *= np.float32(1 / 3)
     ok = inside
     if valid is not None and not np.all(valid):
         vflat = np.asarray(valid, bool).ravel()
@@ -804,10 +809,14 @@ def cluster_crops(
     okf = ok.astype(np.float32)
     import warnings
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a crop wholly in nodata
-        ml = np.nanmedian(np.where(ok, lum, np.nan).reshape(n, -1), axis=1)
-        ms = np.nanmedian(np.where(ok, sat, np.nan).reshape(n, -1), axis=1)
+    if ok.all():
+        ml = np.median(lum.reshape(n, -1), axis=1)
+        ms = np.median(sat.reshape(n, -1), axis=1)
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a crop wholly in nodata
+            ml = np.nanmedian(np.where(ok, lum, np.nan).reshape(n, -1), axis=1)
+            ms = np.nanmedian(np.where(ok, sat, np.nan).reshape(n, -1), axis=1)
     ml = np.nan_to_num(ml, nan=0.0).astype(np.float32)
     ms = np.nan_to_num(ms, nan=0.0).astype(np.float32)
     crops = np.empty((n, nc, na, nx_), np.float32)
