@@ -21,11 +21,13 @@ The USGS crop (15 cm, real) is built in its three variants (plain, alpha,
 nodata): the figures are the detections on the stall lines and elsewhere.
 Overlays of detections on the imagery and the figures go to
 ``benchmarks/out/build_quality*.{png,json}`` (``build_quality_verified*`` with
-``--verify``, which turns the cluster verifier on).
+``--verify``, which turns the cluster verifier on: the CNN of
+``mapbuilder/data/cluster_cnn.onnx`` at pixel threshold 0.2, unless told otherwise).
 
 Usage::
 
     .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx] [--verify]
+        [--verifier V.onnx] [--threshold T] [--verify-threshold T] [--no-continuation] [--seed S]
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ import rasterio
 from scipy.optimize import linear_sum_assignment
 
 from mapbuilder.build import BuildParams, build_map
-from mapbuilder.cluster import ClusterParams
+from mapbuilder.classify import load_verifier
+from mapbuilder.cluster import CNN_PIXEL_THRESHOLD, ClusterParams
 from mapbuilder.lanelet2 import read_lanelet2
 from mapbuilder.store import Store
 from mapbuilder.synth import lanelet_scene, procedural_scene, render
@@ -209,7 +212,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count())
     ap.add_argument("--seed", type=int, default=HELDOUT_SEED,
                     help="first scene seed; tune on others than the held-out 9000+")
-    ap.add_argument("--threshold", type=float, default=ClusterParams.threshold)
+    ap.add_argument("--threshold", type=float, default=None,
+                    help="pixel threshold (default: 0.5; with --verify and a CNN verifier, "
+                    "CNN_PIXEL_THRESHOLD, as lanemap build)")
     ap.add_argument("--min-length", type=float, default=ClusterParams.min_length_m)
     ap.add_argument("--min-area", type=float, default=ClusterParams.min_area_m2)
     ap.add_argument("--link", type=float, default=ClusterParams.link_m)
@@ -219,14 +224,21 @@ def main() -> None:
     ap.add_argument("--verify", action="store_true",
                     help="check clusters with the cluster verifier (ClusterParams.verify)")
     ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
+    ap.add_argument("--no-continuation", action="store_true",
+                    help="drop what the verifier rejects even when it continues what it keeps")
     ap.add_argument("--usgs-only", action="store_true")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     tag = "_verified" if args.verify else ""
+    if args.threshold is None:
+        args.threshold = ClusterParams.threshold
+        if args.verify and load_verifier(args.verifier).kind == "crops":
+            args.threshold = CNN_PIXEL_THRESHOLD
     cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
                             min_area_m2=args.min_area, link_m=args.link,
                             threshold_low=args.threshold_low, join_gap_m=args.join_gap,
-                            verify=args.verify, verify_threshold=args.verify_threshold)
+                            verify=args.verify, verify_threshold=args.verify_threshold,
+                            verify_continuation=not args.no_continuation)
     params = BuildParams(model=args.model, cluster=cluster, verifier=args.verifier)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}

@@ -38,6 +38,7 @@ from rasterio.windows import Window
 
 from mapbuilder import synth
 from mapbuilder.build import BuildParams, build_map
+from mapbuilder.cluster import ClusterParams
 from mapbuilder.raster import inspect_imagery, make_reader
 from mapbuilder.store import Store
 from mapbuilder.tiling import tile_grid
@@ -134,13 +135,21 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count())
     ap.add_argument("--tile-size", type=int, default=BuildParams.tile_px)
     ap.add_argument("--model", default=None, help="ONNX model (default: shipped model)")
+    ap.add_argument("--threshold", type=float, default=None,
+                    help="pixel threshold (default: that of ClusterParams)")
+    ap.add_argument("--verify", action=argparse.BooleanOptionalAction, default=None,
+                    help="check clusters with the cluster verifier (default: ClusterParams)")
+    ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
     args = ap.parse_args()
 
     OUT.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     image = make_mosaic(OUT / f"throughput_{int(args.mpx)}mpx.tif", args.mpx)
     print(f"image {image} ready in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    params = BuildParams(tile_px=args.tile_size, model=args.model)
+    cluster = {k: v for k, v in (("threshold", args.threshold), ("verify", args.verify))
+               if v is not None}
+    params = BuildParams(tile_px=args.tile_size, model=args.model,
+                         cluster=ClusterParams(**cluster), verifier=args.verifier)
 
     load_before = os.getloadavg()
     # In a child process, so that its memory does not count against the build.
@@ -173,6 +182,9 @@ def main() -> None:
         "mpx_per_s_on_2_idle_cores": round(
             2 * mpx / max(result.cpu_seconds + parent_cpu, 1e-9), 2),
         "markings": result.markings,
+        "threshold": params.cluster.threshold,
+        "verify": params.cluster.verify,
+        "verifier": Path(params.verifier).name if params.verifier else None,
         "tile_cpu_share": {k: round(v / max(sum(result.timings.values()), 1e-9), 3)
                            for k, v in result.timings.items()},
         "classify_mpx_per_s_per_process": round(

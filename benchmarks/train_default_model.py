@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from mapbuilder.classify import MarkingModel, default_model_path, default_verifier_path
+from mapbuilder.classify import MarkingModel, default_model_path, context_verifier_path
 from mapbuilder.lanelet2 import read_lanelet2
 from mapbuilder.train import train_synthetic, train_synthetic_verifier
 
@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--C", type=float, default=0.5, help="SVM regularisation")
     ap.add_argument("--n-verifier", type=int, default=160, help="renders for the verifier")
     ap.add_argument("--out", default=str(default_model_path()))
-    ap.add_argument("--verifier-out", default=str(default_verifier_path()))
+    ap.add_argument("--verifier-out", default=str(context_verifier_path()))
     ap.add_argument("--only", choices=("pixel", "verifier"), default=None)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

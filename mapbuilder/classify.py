@@ -24,8 +24,12 @@ log = logging.getLogger(__name__)
 #: File name of the default model inside ``mapbuilder/data``.
 DEFAULT_MODEL = "marking_svm.onnx"
 
-#: File name of the default cluster verifier inside ``mapbuilder/data``.
-DEFAULT_VERIFIER = "cluster_verifier.onnx"
+#: File name of the default cluster verifier inside ``mapbuilder/data``: a small
+#: CNN on oriented crops around each cluster (:mod:`mapbuilder.train_cnn`).
+DEFAULT_VERIFIER = "cluster_cnn.onnx"
+
+#: File name of the earlier verifier on hand-made context features (boosted trees).
+CONTEXT_VERIFIER = "cluster_verifier.onnx"
 
 
 class ModelError(ValueError):
@@ -40,6 +44,11 @@ def default_model_path() -> Path:
 def default_verifier_path() -> Path:
     """Path of the default cluster verifier shipped with the package."""
     return Path(str(resources.files("mapbuilder") / "data" / DEFAULT_VERIFIER))
+
+
+def context_verifier_path() -> Path:
+    """Path of the context-feature cluster verifier shipped with the package."""
+    return Path(str(resources.files("mapbuilder") / "data" / CONTEXT_VERIFIER))
 
 
 def _session(path: Path, threads: int):
@@ -76,7 +85,8 @@ class ClusterVerifier:
     """
 
     def __init__(self, path: str | Path, threads: int = 1):
-        from .cluster import CONTEXT_FEATURES, CONTEXT_VERSION
+        from .cluster import (CONTEXT_FEATURES, CONTEXT_VERSION, CROP_ACROSS, CROP_ALONG,
+                              CROP_CHANNELS, CROP_SCALARS, CROP_VERSION)
 
         self.path = Path(path)
         if not self.path.is_file():
@@ -84,15 +94,34 @@ class ClusterVerifier:
         self._session = _session(self.path, threads)
         meta = self._session.get_modelmeta().custom_metadata_map
         self.metadata = dict(meta)
-        version = meta.get("lanemap.context_version")
-        if version != CONTEXT_VERSION:
-            raise ModelError(
-                f"verifier {self.path} was made for context features v{version}, "
-                f"this lanemap computes v{CONTEXT_VERSION}")
         inputs = self._session.get_inputs()
-        if len(inputs) != 1 or inputs[0].shape[-1] not in (len(CONTEXT_FEATURES), None, "None"):
-            raise ModelError(f"verifier {self.path} must take one (N, {len(CONTEXT_FEATURES)}) input")
-        self._input = inputs[0].name
+        #: "crops" for a CNN on oriented crops, "context" for context features
+        self.kind = "crops" if meta.get("lanemap.kind") == "marking-cluster-cnn" else "context"
+        if self.kind == "crops":
+            version = meta.get("lanemap.crop_version")
+            if version != CROP_VERSION:
+                raise ModelError(
+                    f"verifier {self.path} was made for crops v{version}, "
+                    f"this lanemap samples v{CROP_VERSION}")
+            names = {i.name: i for i in inputs}
+            if set(names) != {"crops", "scalars"} or list(names["crops"].shape[1:]) != [
+                    len(CROP_CHANNELS), CROP_ACROSS, CROP_ALONG] \
+                    or names["scalars"].shape[-1] != len(CROP_SCALARS):
+                raise ModelError(
+                    f"verifier {self.path} must take crops (N, {len(CROP_CHANNELS)}, "
+                    f"{CROP_ACROSS}, {CROP_ALONG}) and scalars (N, {len(CROP_SCALARS)})")
+            self._input = None
+        else:
+            version = meta.get("lanemap.context_version")
+            if version != CONTEXT_VERSION:
+                raise ModelError(
+                    f"verifier {self.path} was made for context features v{version}, "
+                    f"this lanemap computes v{CONTEXT_VERSION}")
+            if len(inputs) != 1 or inputs[0].shape[-1] not in (
+                    len(CONTEXT_FEATURES), None, "None"):
+                raise ModelError(
+                    f"verifier {self.path} must take one (N, {len(CONTEXT_FEATURES)}) input")
+            self._input = inputs[0].name
         outs = self._session.get_outputs()
         prob = [o for o in outs if "prob" in o.name.lower()]
         self._output = (prob[0] if prob else outs[-1]).name
@@ -100,14 +129,40 @@ class ClusterVerifier:
     def __repr__(self) -> str:
         return f"ClusterVerifier({str(self.path)!r})"
 
+    def _run(self, feeds: dict) -> np.ndarray:
+        out = np.asarray(self._session.run([self._output], feeds)[0])
+        if out.ndim == 2 and out.shape[1] == 2:
+            out = out[:, 1]
+        return out.reshape(-1).astype(np.float32)
+
     def predict(self, feats: np.ndarray) -> np.ndarray:
-        """P(paint) per cluster, (N,) float32."""
+        """P(paint) per cluster from context features, (N,) float32 (context verifiers)."""
+        if self.kind != "context":
+            raise ModelError(f"verifier {self.path} classifies crops, not context features")
         if len(feats) == 0:
             return np.zeros(0, np.float32)
-        out = self._session.run([self._output],
-                                {self._input: np.ascontiguousarray(feats, np.float32)})[0]
-        out = np.asarray(out)
-        return (out[:, 1] if out.ndim == 2 else out).astype(np.float32)
+        return self._run({self._input: np.ascontiguousarray(feats, np.float32)})
+
+    def predict_crops(self, crops: np.ndarray, scalars: np.ndarray,
+                      batch: int = 512) -> np.ndarray:
+        """P(paint) per cluster from oriented crops and scalars (CNN verifiers)."""
+        if self.kind != "crops":
+            raise ModelError(f"verifier {self.path} classifies context features, not crops")
+        out = [self._run({"crops": np.ascontiguousarray(crops[i:i + batch], np.float32),
+                          "scalars": np.ascontiguousarray(scalars[i:i + batch], np.float32)})
+               for i in range(0, len(crops), batch)]
+        return np.concatenate(out) if out else np.zeros(0, np.float32)
+
+    def predict_clusters(self, clusters, rgb: np.ndarray, valid: np.ndarray | None,
+                         transform, prob: np.ndarray) -> np.ndarray:
+        """P(paint) of measured clusters of one window, (N,) float32."""
+        from .cluster import cluster_crops, context_features
+
+        if len(clusters) == 0:
+            return np.zeros(0, np.float32)
+        if self.kind == "crops":
+            return self.predict_crops(*cluster_crops(clusters, rgb, valid, transform, prob))
+        return self.predict(context_features(clusters, rgb, valid, transform))
 
 
 _verifiers: dict[str, ClusterVerifier] = {}

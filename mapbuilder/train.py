@@ -626,3 +626,71 @@ def train_synthetic_verifier(
         "lanemap.trained_on": f"synthetic renders, seeds {seeds[0]}..{seeds[-1]}",
         "lanemap.n_clusters": len(y),
     })
+
+
+# --------------------------------------------------------------------------- CNN cluster verifier
+
+
+def crop_training_set(
+    seeds: Sequence[int],
+    model=None,
+    params=None,
+    resolutions: Sequence[float] = (0.05, 0.075, 0.1, 0.15, 0.2),
+    size_m: float = 100.0,
+    lanelet_map=None,
+    progress: bool = False,
+    min_share: float = 0.6,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Oriented crops, scalars and paint labels of the clusters the pixel model finds in renders.
+
+    Renders the scenes of :func:`verifier_training_set` (same seeds, same
+    scenes), classifies each with ``model`` (default: the shipped pixel
+    model), clusters with ``params`` (default: :class:`~mapbuilder.cluster.ClusterParams`
+    with :data:`mapbuilder.cluster.CNN_PIXEL_THRESHOLD`, the pixel threshold
+    builds with the CNN verifier use) without verification, and labels a
+    cluster paint when at least ``min_share`` of its pixels lie on (one pixel
+    around) a painted marking.
+
+    Returns
+    -------
+    crops : (N, C, A, L) float16
+        :func:`mapbuilder.cluster.cluster_crops` of every cluster.
+    scalars : (N, S) float32
+    y : (N,) bool
+    """
+    from scipy import ndimage
+    from tqdm import tqdm
+
+    from .classify import load_model
+    from .cluster import CNN_PIXEL_THRESHOLD, ClusterParams, cluster_crops, detect_markings
+    from .synth import render_array
+
+    model = model or load_model()
+    params = params or ClusterParams(threshold=CNN_PIXEL_THRESHOLD, verify=False)
+    lanes = _training_lanes(lanelet_map)
+    Cs, Ss, ys = [], [], []
+    for seed in tqdm(list(seeds), desc="render+crop", disable=not progress):
+        # everything random about a render follows from its seed alone, so a set
+        # made in parts (ranges of seeds) equals the set made at once
+        i = int(seed)
+        rng = np.random.default_rng(777 + i)
+        res = float(resolutions[i % len(resolutions)])
+        side = min(size_m, 1500 * res)
+        scene = _training_scene(i, int(seed), side, lanelet_map, lanes, rng)
+        jpeg = int(rng.integers(60, 95)) if i % 2 else None
+        rgb, label, transform = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
+        prob = model.predict(rgb, None, res)
+        # paint: most of a cluster's pixels on (one pixel around) a painted marking;
+        # unlike the axis test of cluster_labels, this holds for pieces of curved lines
+        grown = ndimage.binary_dilation(np.asarray(label, bool), iterations=1)
+        clusters = detect_markings(prob, None, transform, params, pixel_share=grown)
+        # half the crops turned (up to 20 degrees) and moved off the cluster's axis
+        n = len(clusters)
+        jit = rng.random(n) < 0.5
+        rot = np.where(jit, rng.uniform(-20, 20, n), 0.0)
+        shift = np.where(jit[:, None], rng.uniform(-1, 1, (n, 2)) * [0.2, 0.06], 0.0)
+        c, s = cluster_crops(clusters, rgb, None, transform, prob, rot, shift)
+        Cs.append(c.astype(np.float16))
+        Ss.append(s)
+        ys.append(clusters.share >= min_share)
+    return np.concatenate(Cs), np.concatenate(Ss), np.concatenate(ys)

@@ -156,11 +156,16 @@ def test_bad_model_files(tmp_path):
 
 
 def test_default_cluster_verifier_ships_and_loads(tmp_path):
-    from mapbuilder.classify import ClusterVerifier, default_verifier_path, load_verifier
-    from mapbuilder.cluster import CONTEXT_FEATURES, CONTEXT_VERSION
+    from mapbuilder.classify import (ClusterVerifier, context_verifier_path,
+                                     default_verifier_path, load_verifier)
+    from mapbuilder.cluster import CONTEXT_FEATURES, CONTEXT_VERSION, CROP_VERSION
 
     v = load_verifier()
-    assert v.path == default_verifier_path()
+    assert v.path == default_verifier_path() and v.kind == "crops"
+    assert v.metadata["lanemap.crop_version"] == CROP_VERSION
+    # the context-feature verifier still ships, for --verifier
+    v = load_verifier(context_verifier_path())
+    assert v.kind == "context"
     assert v.metadata["lanemap.context_version"] == CONTEXT_VERSION
     p = v.predict(np.zeros((3, len(CONTEXT_FEATURES)), np.float32))
     assert p.shape == (3,) and np.all((p >= 0) & (p <= 1))

@@ -286,3 +286,31 @@ def test_detect_markings_applies_a_verifier_only_when_asked():
     assert len(detect_markings(img, None, t, ClusterParams(), rgb=rgb, verifier=Half())) == 4
     kept = detect_markings(img, None, t, ClusterParams(verify=True), rgb=rgb, verifier=Half())
     assert len(kept) == 2
+
+
+def test_rejected_pieces_that_continue_an_accepted_line_are_taken_back():
+    from mapbuilder.cluster import Clusters, continues_accepted
+
+    def clusters(segs):
+        segs = np.array(segs, float)
+        x0, y0, x1, y1 = segs.T
+        length = np.hypot(x1 - x0, y1 - y0)
+        z = np.zeros(len(segs))
+        return Clusters(x=(x0 + x1) / 2, y=(y0 + y1) / 2, col=z, row=z,
+                        weight=np.ones(len(segs), np.int64), length_m=length,
+                        width_m=z + 0.15,
+                        bearing_deg=np.degrees(np.arctan2(x1 - x0, y1 - y0)) % 180,
+                        x0=x0, y0=y0, x1=x1, y1=y1, score=z + 0.8, spread_m=z + 0.15)
+
+    c = clusters([
+        (0, 0, 3, 0), (3.2, 0, 6.2, 0), (6.4, 0.02, 9.4, 0.02),  # one line, three pieces
+        (9.7, 0.5, 12.7, 0.5),  # beyond its end but 0.5 m to the side: another line
+        (3.5, 0.4, 3.5, 2.4),  # across it
+        (20, 0, 23, 0), (23.2, 0, 26.2, 0),  # a kerb: both pieces rejected
+    ])
+    keep = np.array([True, False, False, False, False, False, False])
+    got = continues_accepted(c, keep)
+    # the second piece continues the first, the third the second
+    assert got.tolist() == [True, True, True, False, False, False, False]
+    assert continues_accepted(c, keep, rounds=1).tolist()[:3] == [True, True, False]
+    assert not continues_accepted(c, np.zeros(7, bool)).any()

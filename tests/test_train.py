@@ -194,3 +194,20 @@ def test_cluster_labels_follow_the_painted_axis():
     c = detect_markings(prob, None, t)
     lab = cluster_labels(c, label, t)
     assert sorted(zip(np.round(c.x, 1), lab)) == [(10.1, True), (20.1, False)]
+
+
+def test_crop_training_set_from_renders_is_the_same_made_in_parts():
+    """Crops and labels of the CNN verifier's training set depend on each render's seed
+    alone, so the set the training script renders in several processes is the same."""
+    from mapbuilder.cluster import CROP_ACROSS, CROP_ALONG, CROP_CHANNELS, CROP_SCALARS
+    from mapbuilder.train import crop_training_set
+
+    C, S, y = crop_training_set([1000, 1001], resolutions=(0.1,), size_m=50.0)
+    assert C.shape == (len(y), len(CROP_CHANNELS), CROP_ACROSS, CROP_ALONG)
+    assert S.shape == (len(y), len(CROP_SCALARS)) and np.isfinite(S).all()
+    assert np.isfinite(C.astype(np.float32)).all()
+    # the renders hold both paint and other bright things
+    assert 20 <= y.sum() <= len(y) - 20
+    parts = [crop_training_set([s], resolutions=(0.1,), size_m=50.0) for s in (1000, 1001)]
+    for whole, k in ((C, 0), (S, 1), (y, 2)):
+        np.testing.assert_array_equal(whole, np.concatenate([p[k] for p in parts]))

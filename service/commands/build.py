@@ -31,14 +31,17 @@ def build(
     ),
     tile_px: int = typer.Option(2048, "--tile-size", help="Tile core size, pixels."),
     halo_m: float = typer.Option(4.0, "--halo", help="Halo around each tile, metres."),
-    threshold: float = typer.Option(0.5, help="Marking probability threshold."),
+    threshold: Optional[float] = typer.Option(
+        None, help="Marking probability threshold (default: 0.5; with --verify and a CNN "
+        "verifier, the lower threshold that verifier was trained at)."),
     piece_m: float = typer.Option(
         3.0, "--piece-length", help="Long markings are cut into pieces of this length, metres."
     ),
     verify: bool = typer.Option(
         False, "--verify/--no-verify",
-        help="Check each detected marking's shape and road-surface context with the cluster "
-        "verifier (drops kerbs and car outlines; may drop short fragments between cars).",
+        help="Check each detected marking with the cluster verifier, a small CNN on an "
+        "oriented crop around it (drops kerbs and car outlines; may drop short fragments "
+        "between cars).",
     ),
     verifier: Optional[Path] = typer.Option(
         None, "--verifier", help="ONNX cluster verifier (default: the one shipped with lanemap)."
@@ -57,6 +60,8 @@ def build(
     """
     from mapbuilder.store import Store
 
+    if threshold is None:
+        threshold = _default_threshold(verify, verifier)
     try:
         params = BuildParams(
             tile_px=tile_px,
@@ -85,6 +90,21 @@ def build(
     finally:
         store.close()
     typer.echo(result.summary())
+
+
+def _default_threshold(verify: bool, verifier: Optional[Path]) -> float:
+    """The pixel threshold of a build: lower when a CNN verifier checks the clusters."""
+    from mapbuilder.cluster import CNN_PIXEL_THRESHOLD
+
+    if not verify:
+        return ClusterParams.threshold
+    from mapbuilder.classify import ModelError, load_verifier
+
+    try:
+        kind = load_verifier(verifier).kind
+    except ModelError as exc:
+        fail(str(exc))
+    return CNN_PIXEL_THRESHOLD if kind == "crops" else ClusterParams.threshold
 
 
 def register(app: typer.Typer) -> None:
