@@ -16,9 +16,11 @@ The parent process only supervises, it serves nothing:
 
 * it binds the sockets itself (a busy port is reported before any process
   starts) and keeps them open, so a socket is never left without a server;
-* a process that ends before it has started serving (the application or its
+* a process that exits before it has started serving (the application or its
   database cannot start) stops the whole server: the others are terminated and
-  :func:`serve` raises :class:`WorkerStartError`;
+  :func:`serve` raises :class:`WorkerStartError`. One killed by a signal while
+  starting (an out-of-memory kill, an operator's ``kill``) says nothing about
+  the application and is started again, up to ``MAX_START_KILLS`` times in a row;
 * a process that ends later (a crash, an out-of-memory kill) is logged as an
   error and replaced by a new one on the same socket; connections the kernel
   queued on that socket meanwhile are answered by the new process. If the
@@ -46,6 +48,10 @@ log = logging.getLogger("service.multiprocess")
 
 #: Exit status of a server process whose application did not start (uvicorn's).
 STARTUP_FAILURE = 3
+#: Times in a row a server process may be killed by a signal before it starts
+#: serving before the server gives up (a process killed at every start would
+#: otherwise be restarted for ever).
+MAX_START_KILLS = 3
 
 _spawn = multiprocessing.get_context("spawn")
 
@@ -136,6 +142,7 @@ class _Slot:
     ready: multiprocessing.connection.Connection | None = None
     started: bool = False
     restarts: int = 0
+    start_kills: int = 0
     started_at: float = field(default=0.0)
 
 
@@ -201,12 +208,18 @@ class Supervisor:
                 if not slot.started and slot.ready.poll():
                     try:
                         slot.ready.recv()
-                        slot.started = True
+                        slot.started, slot.start_kills = True, 0
                     except EOFError:
                         pass  # it ended before it started: handled below
                 if slot.process.is_alive():
                     continue
                 code = slot.process.exitcode
+                if not slot.started and code is not None and code < 0 and slot.start_kills < MAX_START_KILLS:
+                    slot.start_kills += 1
+                    log.error("server process %d (pid %d) ended with exit code %s before it started serving; "
+                              "starting a new one", slot.index, slot.process.pid, code)  # fmt: skip
+                    self._start(slot)
+                    continue
                 if not slot.started:
                     raise WorkerStartError(
                         f"server process {slot.index} (pid {slot.process.pid}) ended with exit code {code} "
