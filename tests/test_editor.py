@@ -403,7 +403,8 @@ def test_review_queue_steps_through_detections_by_score(editor, fx):
     page.click("#review-start")
     q = fx.detected
     page.wait_for_function(f"lanemapEditor.state.selection.has('{q[0]}')")
-    assert page.evaluate("lanemapEditor.map.getZoom()") == 21
+    # Leaflet may animate the zoom: the view is final once the animation ends.
+    page.wait_for_function("lanemapEditor.map.getZoom() === 21 && !lanemapEditor.map._animatingZoom")
     c = page.evaluate("lanemapEditor.map.getCenter()")
     assert metres_between(c["lng"], c["lat"], *fx.lonlat(q[0])) < 0.05
     assert f"1 of {len(q)}" in page.text_content("#review-status")
