@@ -489,8 +489,6 @@ def join_collinear(
     ndarray
         New labels for the pixels.
     """
-    from scipy.spatial import cKDTree
-
     if lab.size == 0 or gap_m <= 0:
         return lab
     c = _measure(rows, cols, lab, np.zeros(lab.size), transform)
@@ -499,19 +497,7 @@ def join_collinear(
     idx = np.flatnonzero(elongated)
     if idx.size < 2:
         return lab
-    ends = np.concatenate([np.column_stack([c.x0[idx], c.y0[idx]]),
-                           np.column_stack([c.x1[idx], c.y1[idx]])])
-    owner = np.concatenate([idx, idx])
-    pairs = cKDTree(ends).query_pairs(gap_m + offset_m, output_type="ndarray")
-    if len(pairs) == 0:
-        return lab
-    i, j = pairs[:, 0], pairs[:, 1]
-    a, b = owner[i], owner[j]
-    ok = a != b
-    i, j, a, b = i[ok], j[ok], a[ok], b[ok]
-    diff = np.abs(c.bearing_deg[a] - c.bearing_deg[b]) % 180.0
-    ok = np.minimum(diff, 180.0 - diff) <= angle_deg
-    i, j, a, b = i[ok], j[ok], a[ok], b[ok]
+    ends, i, j, a, b = _aligned_end_pairs(c, idx, gap_m + offset_m, angle_deg)
     if len(i) == 0:
         return lab
     # Each end must face the other cluster: it is the end nearer to it.
@@ -857,25 +843,13 @@ def continues_accepted(clusters: Clusters, keep: np.ndarray, gap_m: float = 0.6,
     (N,) bool
         ``keep`` with the clusters taken back.
     """
-    from scipy.spatial import cKDTree
-
     keep = np.asarray(keep, bool).copy()
     n = len(clusters)
     if n < 2 or keep.all() or not keep.any():
         return keep
-    ends = np.concatenate([np.column_stack([clusters.x0, clusters.y0]),
-                           np.column_stack([clusters.x1, clusters.y1])])
-    owner = np.concatenate([np.arange(n), np.arange(n)])
-    pairs = cKDTree(ends).query_pairs(gap_m, output_type="ndarray")
-    if len(pairs) == 0:
+    ends, i, j, a, b = _aligned_end_pairs(clusters, np.arange(n), gap_m, angle_deg)
+    if len(i) == 0:
         return keep
-    i, j = pairs[:, 0], pairs[:, 1]
-    a, b = owner[i], owner[j]
-    ok = a != b
-    i, j, a, b = i[ok], j[ok], a[ok], b[ok]
-    diff = np.abs(clusters.bearing_deg[a] - clusters.bearing_deg[b]) % 180.0
-    ok = np.minimum(diff, 180.0 - diff) <= angle_deg
-    i, j, a, b = i[ok], j[ok], a[ok], b[ok]
     length = np.maximum(clusters.length_m, 1e-9)
     ux = (clusters.x1 - clusters.x0) / length
     uy = (clusters.y1 - clusters.y0) / length
@@ -897,6 +871,27 @@ def continues_accepted(clusters: Clusters, keep: np.ndarray, gap_m: float = 0.6,
             break
         keep |= back
     return keep
+
+
+def _aligned_end_pairs(c: Clusters, idx: np.ndarray, radius_m: float, angle_deg: float):
+    """End points of different clusters among ``idx`` within ``radius_m`` whose axes agree.
+
+    Returns ``(ends, i, j, a, b)``: the ``(2 len(idx), 2)`` end points (first
+    ends, then second ends), the indices of each pair's two end points into
+    them and the two clusters (indices into ``c``), for pairs whose bearings
+    differ by at most ``angle_deg``.
+    """
+    from scipy.spatial import cKDTree
+
+    ends = np.concatenate([np.column_stack([c.x0[idx], c.y0[idx]]),
+                           np.column_stack([c.x1[idx], c.y1[idx]])])  # fmt: skip
+    owner = np.concatenate([idx, idx])
+    pairs = cKDTree(ends).query_pairs(radius_m, output_type="ndarray").reshape(-1, 2)
+    i, j = pairs[:, 0], pairs[:, 1]
+    a, b = owner[i], owner[j]
+    diff = np.abs(c.bearing_deg[a] - c.bearing_deg[b]) % 180.0
+    ok = (a != b) & (np.minimum(diff, 180.0 - diff) <= angle_deg)
+    return ends, i[ok], j[ok], a[ok], b[ok]
 
 
 def filter_clusters(clusters: Clusters, params: ClusterParams) -> Clusters:
