@@ -254,6 +254,21 @@ def _training_lanes(lanelet_map) -> list | None:
     return [c for c, x in zip(lanelet_map.centerlines, xs) if x < cut and len(c) > 5]
 
 
+def _render_training(i: int, seed: int, resolutions, size_m: float, lanelet_map, lanes, rng):
+    """Render the ``i``-th training scene: ``(resolution m, rgb, label, transform)``.
+
+    Resolutions cycle through ``resolutions``; every other render is JPEG-compressed.
+    """
+    from .synth import render_array
+
+    res = float(resolutions[i % len(resolutions)])
+    side = min(size_m, 1500 * res)
+    scene = _training_scene(i, seed, side, lanelet_map, lanes, rng)
+    jpeg = int(rng.integers(60, 95)) if i % 2 else None
+    rgb, label, transform = render_array(scene, res, seed=seed + 7, jpeg_quality=jpeg)
+    return res, rgb, label, transform
+
+
 def _training_scene(i: int, seed: int, side: float, lanelet_map, lanes, rng: np.random.Generator):
     """Scene ``i`` of a training set: every third one a window of the map's lanes, else procedural."""
     from .synth import lanelet_scene, procedural_scene
@@ -534,7 +549,6 @@ def verifier_training_set(
 
     from .classify import load_model
     from .cluster import ClusterParams, context_features, detect_markings
-    from .synth import render_array
 
     model = model or load_model()
     params = ClusterParams(verify=False)
@@ -542,11 +556,7 @@ def verifier_training_set(
     lanes = _training_lanes(lanelet_map)
     Xs, ys = [], []
     for i, seed in enumerate(tqdm(list(seeds), desc="render+cluster", disable=not progress)):
-        res = float(resolutions[i % len(resolutions)])
-        side = min(size_m, 1500 * res)
-        scene = _training_scene(i, int(seed), side, lanelet_map, lanes, rng)
-        jpeg = int(rng.integers(60, 95)) if i % 2 else None
-        rgb, label, transform = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
+        res, rgb, label, transform = _render_training(i, int(seed), resolutions, size_m, lanelet_map, lanes, rng)
         prob = model.predict(rgb, None, res)
         clusters = detect_markings(prob, None, transform, params)
         Xs.append(context_features(clusters, rgb, None, transform))
@@ -663,7 +673,6 @@ def crop_training_set(
 
     from .classify import load_model
     from .cluster import CNN_PIXEL_THRESHOLD, ClusterParams, cluster_crops, detect_markings
-    from .synth import render_array
 
     model = model or load_model()
     params = params or ClusterParams(threshold=CNN_PIXEL_THRESHOLD, verify=False)
@@ -674,11 +683,7 @@ def crop_training_set(
         # made in parts (ranges of seeds) equals the set made at once
         i = int(seed)
         rng = np.random.default_rng(777 + i)
-        res = float(resolutions[i % len(resolutions)])
-        side = min(size_m, 1500 * res)
-        scene = _training_scene(i, int(seed), side, lanelet_map, lanes, rng)
-        jpeg = int(rng.integers(60, 95)) if i % 2 else None
-        rgb, label, transform = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
+        res, rgb, label, transform = _render_training(i, int(seed), resolutions, size_m, lanelet_map, lanes, rng)
         prob = model.predict(rgb, None, res)
         # paint: most of a cluster's pixels on (one pixel around) a painted marking;
         # unlike the axis test of cluster_labels, this holds for pieces of curved lines
