@@ -39,6 +39,14 @@ METHODS = ("default", "pink2008")
 PRIOR_POSITION_SIGMA_RANGE_M = (0.01, 1000.0)
 PRIOR_HEADING_SIGMA_RANGE_DEG = (0.01, 180.0)
 
+#: Coarsest translation step of the global search, metres. The step grows with
+#: the search radius (a thirtieth of it) up to this: with 1.4 m cells a 20 m /
+#: ±30° prior found a candidate near the true pose in fewer than half of the
+#: scenes (the correlation kernel, as wide as a cell, blurs neighbouring
+#: markings together); with 0.75 m cells success from there rose from 38 % to
+#: 52 % on the calibration seed, at about twice the time (p50 40 ms).
+MAX_SEARCH_CELL_M = 0.75
+
 
 def parse_observations(
     observations, max_count: int = 500, max_range_m: float = 150.0
@@ -220,7 +228,7 @@ def localize(
         diagnostics = {}
     else:
         top = np.argsort(-w_data, kind="stable")[: options.max_search_observations]
-        cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, 1.5))
+        cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, MAX_SEARCH_CELL_M))
         cands = correlative_search(
             local, obs_xy[top], w_data[top], prior_pose, radius,
             min(options.search_sigmas * sigma_yaw, math.pi), sigma_p, sigma_yaw, cell,

@@ -183,7 +183,8 @@ class Options:
     max_search_radius_m, min_search_radius_m : float
         Clamp of the translation search radius, metres.
     search_cell_m : float or None
-        Translation step of the coarse search; None picks it from the search radius.
+        Translation step of the coarse search; None: a thirtieth of the search
+        radius, between 0.5 and 0.75 m.
     max_search_observations : int
         The coarse search uses at most this many observations (highest weight first).
     candidates : int
