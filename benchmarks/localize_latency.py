@@ -7,7 +7,8 @@
   options: typical requests with the API's default prior (5 m / 10°, the fix
   off by about 5 m / 10°) and ~30 observations, on a dense synthetic
   neighbourhood and on Karlsruhe scenes with paper-like clutter; and from a
-  tight 1 m / 9° prior and a GPS-like 1.5 m / 2° one; and the load test's own
+  tight 1 m / 9° prior, a GPS-like 1.5 m / 2° one and the widest prior of
+  ``localize_paper.py`` (14 m / 17°, the fix 20 m / ±30° off); and the load test's own
   frames (``benchmarks/load_localize.py``: a wider camera, 24–40 observations,
   GPS-like prior).
 
@@ -117,6 +118,9 @@ def main() -> None:
         ("all scenes", list(zip(poses, scenes)), 1.0, 9.0, 1.5, 10.0),
         # A GPS-like prior, as in the service's load test.
         ("all scenes", list(zip(poses, scenes)), 1.5, 2.0, 1.5, 2.0),
+        # The widest prior of the accuracy benchmark (20 m / ±30° off): the
+        # largest search volume a request is likely to ask for.
+        ("all scenes", list(zip(poses, scenes)), 14.0, 17.0, 20.0, 30.0),
     ):
         for method in ("default", "pink2008"):
             ms = []
