@@ -109,6 +109,28 @@ def test_small_volume_maximum_filter_is_scipys():
 
 
 
+def test_wide_search_scores_the_same_volume_either_way(monkeypatch):
+    """A wide prior's volume summed per observation equals the one-matmul sum."""
+    import localizer.search as search
+
+    rng = np.random.default_rng(5)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    local = LocalMap(index, ORIGIN, 80.0)
+    scene = observe(xy, (ORIGIN[0] + 3.0, ORIGIN[1] - 4.0, 0.7), Camera(), rng)
+    args = (local, scene.observations[:, :2], np.ones(len(scene.observations)), (0.0, 0.0, 0.6),
+            40.0, math.radians(45), 14.0, math.radians(17), 0.75, 0.05, 20, 1.5)
+    n = 2 * math.ceil(40.0 / 0.75) + 1
+    assert n * n >= search.LARGE_WINDOW_CELLS  # the per-observation path
+    per_observation = search.correlative_search(*args)
+    monkeypatch.setattr(search, "LARGE_WINDOW_CELLS", 10**9)
+    one_matmul = search.correlative_search(*args)
+    assert len(per_observation) == len(one_matmul) == 20
+    for a, b in zip(per_observation, one_matmul):
+        assert (a.x, a.y, a.yaw) == (b.x, b.y, b.yaw)
+        assert a.score == pytest.approx(b.score, abs=1e-3)
+
+
 def test_weighted_rigid_fit_recovers_transform_and_ignores_zero_weights():
     rng = np.random.default_rng(1)
     src = rng.normal(0, 10, (20, 2))
