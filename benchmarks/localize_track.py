@@ -20,7 +20,7 @@ Success: status ``ok`` within 0.5 m and 1°; confidently wrong: ``ok`` off by
 more than 1 m. Also the success rate after each frame (a PNG) and the time per
 frame.
 
-Run: ``.venv/bin/python benchmarks/localize_track.py [--runs 200] [--frames 10] [--seed 0]``
+Run: ``.venv/bin/python benchmarks/localize_track.py [--runs 200] [--frames 10] [--seed 0] [--only 8-10m --tag _20]``
 """
 
 from __future__ import annotations
@@ -99,6 +99,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--step", type=float, default=1.5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", default="", help="run only the scenarios whose name contains this")
+    ap.add_argument("--tag", default="", help="suffix of the plot's file name")
     args = ap.parse_args()
     index, smap = karlsruhe()
     cam = Camera()
@@ -106,6 +108,8 @@ def main() -> None:
                                  min_visible=4)
     rows, curves = [], {}
     for name, dist, hdg, sig_m, sig_deg, clutter in SCENARIOS:
+        if args.only not in name:
+            continue
         rng = np.random.default_rng([args.seed, sum(map(ord, name))])
         single, seq, oracle, per_frame, ms = [], [], [], np.zeros(args.frames), []
         for drive in tqdm(drives, desc=name, leave=False):
@@ -159,8 +163,9 @@ def main() -> None:
     ax.legend()
     ax.set_title("localize_sequence: success after each frame")
     fig.tight_layout()
-    fig.savefig(OUT / "localize_track.png", dpi=110)
-    print(f"plot: {OUT / 'localize_track.png'}")
+    png = OUT / f"localize_track{args.tag}.png"
+    fig.savefig(png, dpi=110)
+    print(f"plot: {png}")
 
 
 if __name__ == "__main__":
