@@ -95,7 +95,10 @@ class ClusterParams:
         cluster, and a gap or a car beside one end (stall lines between parked
         cars) can sink the whole. Like continuation, it keeps paint the
         verifier doubts in part; kerbs and car outlines are rejected along
-        their whole length. 0 disables it.
+        their whole length. Only clusters narrower than ``whole_width_m`` (lines,
+        not stop lines) are checked again: on held-out renders the wide ones it
+        took back were mostly a marking merged with something beside it. 0
+        disables it.
     """
 
     threshold: float = 0.5
@@ -851,7 +854,8 @@ def cluster_crops(
 
 def halves_accepted(clusters: Clusters, rejected: np.ndarray, verifier, rgb: np.ndarray,
                     valid: np.ndarray | None, transform: Affine, prob: np.ndarray,
-                    min_length_m: float = 2.0, threshold: float = 0.5) -> np.ndarray:
+                    min_length_m: float = 2.0, threshold: float = 0.5,
+                    max_width_m: float | None = None) -> np.ndarray:
     """Rejected long clusters the verifier accepts on one of their halves.
 
     Crops centred a quarter of the length before and after the centroid (on
@@ -867,7 +871,10 @@ def halves_accepted(clusters: Clusters, rejected: np.ndarray, verifier, rgb: np.
     out = np.zeros(len(clusters), bool)
     if getattr(verifier, "kind", None) != "crops":
         return out
-    idx = np.flatnonzero(np.asarray(rejected, bool) & (clusters.length_m >= min_length_m))
+    cand = np.asarray(rejected, bool) & (clusters.length_m >= min_length_m)
+    if max_width_m is not None:
+        cand &= clusters.width_m < max_width_m
+    idx = np.flatnonzero(cand)
     if idx.size == 0:
         return out
     sub = clusters.take(idx)
@@ -1032,7 +1039,8 @@ def detect_markings(
         keep = p > params.verify_threshold
         if params.verify_halves_m > 0 and hasattr(verifier, "predict_clusters"):
             keep |= halves_accepted(clusters, ~keep, verifier, rgb, valid, transform, prob,
-                                    params.verify_halves_m, params.verify_threshold)
+                                    params.verify_halves_m, params.verify_threshold,
+                                    params.whole_width_m)
         if params.verify_continuation:
             keep = continues_accepted(clusters, keep)
         clusters = clusters.take(keep)
