@@ -283,7 +283,7 @@ def _training_scene(i: int, seed: int, side: float, lanelet_map, lanes, rng: np.
                     parking: bool = False):
     """Scene ``i`` of a training set: every third one a window of the map's lanes, else procedural.
 
-    With ``parking``, every sixth one (``i % 6 == 1``) is a parking lot instead of a procedural scene.
+    With ``parking``, every sixth one (``i % 6 == 1``) is a parking lot, not a procedural scene.
     """
     from .synth import lanelet_scene, parking_scene, procedural_scene
 
