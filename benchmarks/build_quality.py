@@ -27,7 +27,8 @@ Overlays of detections on the imagery and the figures go to
 Usage::
 
     .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx] [--verify]
-        [--verifier V.onnx] [--threshold T] [--verify-threshold T] [--no-continuation] [--seed S]
+        [--verifier V.onnx] [--threshold T] [--verify-threshold T] [--no-continuation]
+        [--halves-m M] [--seed S]
 """
 
 from __future__ import annotations
@@ -116,7 +117,7 @@ def score(det, truth, bounds, border=2.0, min_visible=0.9) -> dict:
     det_ok = np.zeros(len(det), bool)
     det_kind = np.full(len(det), "", object)
     found = np.zeros(len(truth), bool)
-    errors, cross = [], []
+    errors, cross, error_kinds = [], [], []
     disc = np.flatnonzero(~cont)
     if len(det) and len(disc):
         d = np.hypot(dx[:, None] - tx[disc][None], dy[:, None] - ty[disc][None])
@@ -125,7 +126,9 @@ def score(det, truth, bounds, border=2.0, min_visible=0.9) -> dict:
         ok = cost[r, c] <= TOL
         det_ok[r[ok]] = True
         found[disc[c[ok]]] = True
-        errors = list(d[r[ok], c[ok]][counted[disc[c[ok]]]])
+        cnt = counted[disc[c[ok]]]
+        errors = list(d[r[ok], c[ok]][cnt])
+        error_kinds = [truth[i].kind for i in disc[c[ok]][cnt]]
     conti = np.flatnonzero(cont)
     if len(det) and len(conti):
         tseg = np.array([[truth[i].x0, truth[i].y0, truth[i].x1, truth[i].y1] for i in conti])
@@ -144,6 +147,7 @@ def score(det, truth, bounds, border=2.0, min_visible=0.9) -> dict:
         "tp_truth_discrete": int((found & counted & ~cont).sum()),
         "n_truth_discrete": int((counted & ~cont).sum()),
         "errors": errors,
+        "error_kinds": error_kinds,
         "cross": cross,
         "_det": det,
         "_det_kind": det_kind,
@@ -226,6 +230,8 @@ def main() -> None:
     ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
     ap.add_argument("--no-continuation", action="store_true",
                     help="drop what the verifier rejects even when it continues what it keeps")
+    ap.add_argument("--halves-m", type=float, default=ClusterParams.verify_halves_m,
+                    help="check rejected clusters this long again on each half (0: off)")
     ap.add_argument("--usgs-only", action="store_true")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
@@ -238,11 +244,12 @@ def main() -> None:
                             min_area_m2=args.min_area, link_m=args.link,
                             threshold_low=args.threshold_low, join_gap_m=args.join_gap,
                             verify=args.verify, verify_threshold=args.verify_threshold,
-                            verify_continuation=not args.no_continuation)
+                            verify_continuation=not args.no_continuation,
+                            verify_halves_m=args.halves_m)
     params = BuildParams(model=args.model, cluster=cluster, verifier=args.verifier)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",
                              "n_truth_discrete")}
-    errors, cross, per_scene = [], [], []
+    errors, cross, per_scene, error_kinds = [], [], [], []
     t_build = 0.0
     with tempfile.TemporaryDirectory() as tmp:
         store = Store(f"sqlite:///{tmp}/quality.sqlite")
@@ -261,6 +268,7 @@ def main() -> None:
             for k in totals:
                 totals[k] += s[k]
             errors += s["errors"]
+            error_kinds += s["error_kinds"]
             cross += s["cross"]
             p = s["tp_det"] / max(s["n_det"], 1)
             rc = s["tp_truth"] / max(s["n_truth"], 1)
@@ -272,6 +280,9 @@ def main() -> None:
         usgs = run_usgs(store, params, args.workers, tag)
         store.close()
     errors, cross = np.array(errors), np.array(cross)
+    error_kinds = np.array(error_kinds, object)
+    rmse_by_kind = {str(k): {"n": int((error_kinds == k).sum()), "rmse_m": round(float(
+        np.sqrt(np.mean(errors[error_kinds == k] ** 2))), 4)} for k in sorted(set(error_kinds))}
     figures = {
         "first_seed": args.seed,
         "verify": args.verify,
@@ -284,6 +295,7 @@ def main() -> None:
             totals["tp_truth_discrete"] / max(totals["n_truth_discrete"], 1), 4),
         "centroid_rmse_m": round(float(np.sqrt(np.mean(errors**2))), 4) if errors.size else None,
         "cross_track_rmse_m": round(float(np.sqrt(np.mean(cross**2))), 4) if cross.size else None,
+        "centroid_rmse_by_kind": rmse_by_kind,
         "detections": totals["n_det"],
         "true_countable": totals["n_truth"],
         "build_seconds": round(t_build, 1),

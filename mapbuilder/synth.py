@@ -411,8 +411,16 @@ def _crack(scene, pal, area):
     scene.add("crack", g, pal.asphalt * (0.45 if dark else 1.35), 0.8)
 
 
-def _parking_lot(scene, pal, cx, cy, angle_deg, n_stalls, rows, sun, wear, piece_m):
-    stall_w = pal.rng.uniform(2.4, 2.9)
+def _parking_lot(scene, pal, cx, cy, angle_deg, n_stalls, rows, sun, wear, piece_m,
+                 occupancy: float = 0.6, car_w=(1.7, 1.95), stall_w_range=(2.4, 2.9),
+                 curb: bool = True):
+    """Rows of stalls with parked cars; returns the lot's area.
+
+    ``occupancy`` is the share of stalls with a car, ``car_w`` the range of car
+    widths, ``curb`` whether a curb surrounds the lot; the random draws do not
+    depend on them, so a scene keeps its layout.
+    """
+    stall_w = pal.rng.uniform(*stall_w_range)
     stall_l = pal.rng.uniform(4.8, 5.6)
     line_w = pal.rng.choice([0.1, 0.12, 0.15])
     aisle = pal.rng.uniform(6.0, 7.5)
@@ -423,8 +431,9 @@ def _parking_lot(scene, pal, cx, cy, angle_deg, n_stalls, rows, sun, wear, piece
         shapely.affinity.rotate(g, angle_deg, origin=(0, 0)), cx, cy)
     lot_g = rot(lot)
     scene.add("lot", lot_g, pal.asphalt * pal.rng.uniform(0.85, 1.2))
-    scene.add("curb", lot_g.buffer(0.25).difference(lot_g),
-              np.minimum(pal.concrete * pal.rng.uniform(1.0, 1.2), 250))
+    curb_rgb = np.minimum(pal.concrete * pal.rng.uniform(1.0, 1.2), 250)
+    if curb:
+        scene.add("curb", lot_g.buffer(0.25).difference(lot_g), curb_rgb)
     colour = pal.paint()
     for r in range(rows):
         y0 = -depth / 2 + r * (stall_l + aisle)
@@ -438,9 +447,9 @@ def _parking_lot(scene, pal, cx, cy, angle_deg, n_stalls, rows, sun, wear, piece
                 m = _marking_from_polygon(poly, piece, line_w, "stall")
                 m.extra["continuous"] = len(pieces) > 1
                 scene.add_marking(m, poly, colour, alpha)
-            if i < n_stalls and pal.rng.random() < 0.6:
+            if i < n_stalls and pal.rng.random() < occupancy:
                 # parked anywhere in the stall, sometimes right beside the line
-                cw = pal.rng.uniform(1.7, 1.95)
+                cw = min(pal.rng.uniform(*car_w), stall_w - 0.12)
                 dx = pal.rng.uniform(-1, 1) * max(0.0, (stall_w - cw) / 2 - 0.05)
                 c = rot(Point(x + stall_w / 2 + dx, y0 + stall_l / 2 + pal.rng.normal(0, 0.2)))
                 _car(scene, pal, c.x, c.y, math.radians(angle_deg + 90 + pal.rng.normal(0, 2)), sun,
@@ -607,6 +616,65 @@ def procedural_scene(
         occupied = lot if occupied is None else occupied.union(lot)
         n_lots -= 1
     _decorate(scene, pal, occupied, sun)
+    return scene
+
+
+def parking_scene(
+    size_m: tuple[float, float] = (45.0, 45.0),
+    origin: tuple[float, float] = (500000.0, 5400000.0),
+    crs: str = "EPSG:25832",
+    seed: int = 0,
+    piece_m: float = 3.0,
+) -> Scene:
+    """A scene that is mostly a parking lot: full rows of stalls between cars.
+
+    Short stall lines (thin, often worn) with cars parked close beside them on
+    both sides, rows ending at planted islands with curbs, an access road
+    around the lot, trees overhanging it. Procedural scenes hold smaller,
+    emptier lots; real imagery of residential and commercial lots looks like
+    this one.
+
+    Parameters
+    ----------
+    size_m, origin, crs, seed, piece_m
+        As :func:`procedural_scene`.
+    """
+    w, h = size_m
+    if w <= 0 or h <= 0:
+        raise SynthError(f"size_m must be positive, got {size_m}")
+    rng = np.random.default_rng(seed)
+    pal = _Palette(rng)
+    x0, y0 = origin
+    scene = Scene(crs=crs, bounds=(x0, y0, x0 + w, y0 + h), seed=seed)
+    sun = _sun(rng)
+    wear = rng.uniform(0.0, 0.5)
+    _ground(scene, pal)
+    cx, cy = x0 + w / 2 + rng.uniform(-0.1, 0.1) * w, y0 + h / 2 + rng.uniform(-0.1, 0.1) * h
+    ang = rng.uniform(0, 180) if rng.random() < 0.6 else float(rng.choice([0.0, 90.0]))
+    # the asphalt all round the lot, as the loop road of a residential court
+    apron = shapely.affinity.rotate(box(cx - w, cy - h, cx + w, cy + h), ang, origin=(cx, cy))
+    scene.add("road", apron, pal.asphalt * rng.uniform(0.9, 1.1))
+    n_lots = int(rng.integers(1, 3))
+    occupied = None
+    for k in range(n_lots):
+        n_st = int(rng.integers(3, 10))
+        rows = int(rng.integers(1, 3))
+        dx, dy = rng.uniform(-0.15, 0.15) * w, (k - (n_lots - 1) / 2) * 21.0
+        px = cx + dx * math.cos(math.radians(ang)) - dy * math.sin(math.radians(ang))
+        py = cy + dx * math.sin(math.radians(ang)) + dy * math.cos(math.radians(ang))
+        lot = _parking_lot(scene, pal, px, py, ang, n_st, rows, sun, wear, piece_m,
+                           occupancy=rng.uniform(0.7, 1.0), car_w=(1.75, 2.2),
+                           stall_w_range=(2.4, 3.1), curb=False)
+        occupied = lot if occupied is None else occupied.union(lot)
+    for _ in range(int(rng.integers(0, 4))):
+        # cars driving or parked on the access road
+        p = Point(rng.uniform(x0, x0 + w), rng.uniform(y0, y0 + h))
+        if occupied is None or not p.buffer(3).intersects(occupied):
+            _car(scene, pal, p.x, p.y, math.radians(ang + rng.choice([0.0, 90.0])), sun)
+    for _ in range(int(w * h / 60)):
+        _crack(scene, pal, apron)
+    _decorate(scene, pal, occupied.buffer(-1.0) if occupied is not None else None, sun,
+              density=0.5)
     return scene
 
 
@@ -827,12 +895,70 @@ def _draw(scene: Scene, prep: _Prepared, transform: Affine, row0: int, col0: int
 
 
 def _sensor(img: np.ndarray, look: dict, rng: np.random.Generator) -> np.ndarray:
-    """Optics and sensor: blur, colour balance, gamma, noise; returns uint8."""
+    """Optics and sensor: blur, colour balance, gamma, noise; returns uint8.
+
+    A look with the keys of :func:`camera_artefacts` also gets the processing
+    of real orthophotos after the noise: colour channels out of register,
+    colour at a lower resolution than brightness, and sharpening.
+    """
     out = ndimage.gaussian_filter(img, sigma=(look["blur_px"], look["blur_px"], 0), mode="nearest")
     out = out * look["gain"] + look["offset"]
     out = 255.0 * np.clip(out / 255.0, 0, 1) ** look["gamma"]
     out += rng.standard_normal(out.shape, dtype=np.float32) * np.float32(look["noise"])
+    if "channel_shift_px" in look:
+        out = _processing(out, look)
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def _processing(img: np.ndarray, look: dict) -> np.ndarray:
+    """Misregistered channels, low-resolution colour and unsharp masking (float (H, W, 3))."""
+    out = np.empty_like(img)
+    for k, (dr, dc) in enumerate(look["channel_shift_px"]):
+        out[..., k] = ndimage.shift(img[..., k], (float(dr), float(dc)), order=1, mode="nearest")
+    sigma = float(look["chroma_blur_px"])
+    if sigma > 0:
+        y = out.mean(axis=2, keepdims=True)
+        chroma = ndimage.gaussian_filter(out - y, sigma=(sigma, sigma, 0), mode="nearest")
+        out = y + chroma
+    amount = float(look["sharpen"])
+    if amount > 0:
+        s = float(look["sharpen_px"])
+        out += amount * (out - ndimage.gaussian_filter(out, sigma=(s, s, 0), mode="nearest"))
+    return out
+
+
+def camera_artefacts(rng: np.random.Generator, strength: float = 1.0) -> dict:
+    """Random processing artefacts of real aerial orthophotos, to add to a look.
+
+    Real survey imagery (e.g. the USGS 15 cm orthophotos) is sharpened, which
+    puts dark rims beside bright lines, and its colour channels are slightly
+    out of register or of lower resolution than its brightness (pan-sharpened,
+    demosaiced, JPEG with subsampled colour), which puts coloured fringes on
+    both edges of a white line on asphalt. :func:`random_look` draws none of
+    this; renders made with ``look | camera_artefacts(rng)`` have it.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    strength : float
+        Scales the channel offsets and the sharpening (1: up to about a pixel
+        of misregistration and an unsharp mask of amount 1.5).
+
+    Returns
+    -------
+    dict
+        ``channel_shift_px`` (3, 2) offsets (rows, columns) of R, G, B in
+        pixels, ``chroma_blur_px``, ``sharpen`` (amount) and ``sharpen_px``
+        (radius of the unsharp mask).
+    """
+    shift = rng.uniform(-1.0, 1.0, (3, 2)) * strength * rng.uniform(0.2, 1.0)
+    shift -= shift.mean(axis=0)  # brightness stays where the scene puts it
+    return {
+        "channel_shift_px": shift.astype(np.float32),
+        "chroma_blur_px": float(rng.uniform(0.0, 1.5) if rng.random() < 0.5 else 0.0),
+        "sharpen": float(rng.uniform(0.3, 1.5) * strength),
+        "sharpen_px": float(rng.uniform(0.8, 2.0)),
+    }
 
 
 def random_look(rng: np.random.Generator, resolution_m: float) -> dict:

@@ -434,6 +434,29 @@ def test_usgs_masked_variants_give_the_same_stall_lines(usgs_builds):
                 assert mask[int(r), int(c)] > 0
 
 
+#: Detections the CNN-verified build may make elsewhere in the USGS crop.
+FALSE_POSITIVES_USGS_VERIFIED = 4
+
+
+@pytest.mark.parametrize("tile_px", [128, 2048])
+def test_usgs_crop_verified_build_keeps_the_stall_lines(tmp_path, tile_px):
+    """The real 15 cm crop (never trained on): the CNN verifier keeps all four stall
+    lines between the parked cars in every variant, and drops most other detections."""
+    from mapbuilder.cluster import CNN_PIXEL_THRESHOLD, ClusterParams
+
+    store = Store(f"sqlite:///{tmp_path / 'v.sqlite'}")
+    params = BuildParams(tile_px=tile_px,
+                         cluster=ClusterParams(threshold=CNN_PIXEL_THRESHOLD, verify=True))
+    for name, path in [("plain", USGS_BASE), ("alpha", USGS_ALPHA), ("nodata", USGS_NODATA)]:
+        build_map(store, name, [path], params, workers=1, progress=False)
+        ms = _detected(store, name)
+        lines = _by_line(ms)
+        assert sorted(lines) == [0, 1, 2, 3], (name, sorted(lines))
+        n_on = sum(len(v) for v in lines.values())
+        assert len(ms) - n_on <= FALSE_POSITIVES_USGS_VERIFIED, (name, len(ms) - n_on)
+    store.close()
+
+
 def _kerb_and_line_tif(path: Path, sidewalk=(150, 150, 145)) -> Path:
     """A real GeoTIFF: asphalt with a 0.15 m painted line (asphalt on both sides) at
     x = 10 m, and a 0.25 m bright kerb at x = 25 m with a sidewalk beyond it."""

@@ -314,3 +314,76 @@ def test_rejected_pieces_that_continue_an_accepted_line_are_taken_back():
     assert got.tolist() == [True, True, True, False, False, False, False]
     assert continues_accepted(c, keep, rounds=1).tolist()[:3] == [True, True, False]
     assert not continues_accepted(c, np.zeros(7, bool)).any()
+
+
+def test_wide_short_clusters_stay_whole():
+    """A stop line (0.5 m wide, 6 m across the road) is one marking; a solid line of
+    the same length, or a wide line longer than a carriageway, is cut into pieces."""
+    res = 0.1
+    t = _grid(res)
+    img = np.zeros((300, 500), np.float32)
+    _draw(img, t, X0 + 10, Y0 - 5, 6.0, 0.5, 90.0)  # stop line
+    _draw(img, t, X0 + 10, Y0 - 12, 6.0, 0.15, 90.0)  # solid lane line
+    _draw(img, t, X0 + 25, Y0 - 20, 12.0, 0.5, 90.0)  # wide line, 12 m
+    c = detect_markings(img, None, t)
+    by_row = {round(Y0 - y): sorted(np.round(c.length_m[np.abs(c.y - y) < 0.5], 1).tolist())
+              for y in (Y0 - 5, Y0 - 12, Y0 - 20)}
+    assert by_row[5] == [6.0]
+    assert len(by_row[12]) >= 2 and max(by_row[12]) <= 3.6  # cut on the world grid
+    assert sum(by_row[12]) == pytest.approx(6.0, abs=0.2)
+    assert len(by_row[20]) >= 4 and max(by_row[20]) <= 3.6
+    assert abs(c.x[np.abs(c.y - (Y0 - 5)) < 0.5][0] - (X0 + 10)) < 0.05
+    # the old behaviour on request
+    cut = detect_markings(img, None, t, ClusterParams(whole_width_m=None))
+    assert np.sum(np.abs(cut.y - (Y0 - 5)) < 0.5) >= 2
+
+
+def test_long_clusters_rejected_in_the_middle_are_checked_on_their_halves():
+    """A 3.4 m line with a car beside one end: a crop verifier that rejects any crop with
+    something bright beside the line rejects the centre crop and the crop on that half,
+    accepts the crop on the other half, so the line is kept; a 1.5 m one is not re-checked."""
+    from mapbuilder.cluster import CROP_ACROSS, halves_accepted
+
+    class Clean:
+        """A crop verifier: paint when nothing bright lies beside the crop's middle rows."""
+
+        kind = "crops"
+
+        def __init__(self):
+            self.asked = 0
+
+        def predict_crops(self, crops, scalars):
+            self.asked += len(crops)
+            mid = CROP_ACROSS // 2
+            side = np.concatenate([crops[:, 0, :mid - 3], crops[:, 0, mid + 3:]], axis=1)
+            return np.where(side.max(axis=(1, 2)) > 0.5, 0.05, 0.95).astype(np.float32)
+
+        def predict_clusters(self, clusters, rgb, valid, transform, prob):
+            from mapbuilder.cluster import cluster_crops
+
+            return self.predict_crops(*cluster_crops(clusters, rgb, valid, transform, prob))
+
+    res = 0.1
+    t = _grid(res)
+    prob = np.zeros((200, 300), np.float32)
+    _draw(prob, t, X0 + 10, Y0 - 10, 3.4, 0.15, 90.0, 0.9)  # the line, x 8.3-11.7
+    _draw(prob, t, X0 + 20, Y0 - 10, 1.5, 0.15, 90.0, 0.9)  # a short one
+    rgb = np.full((200, 300, 3), 70, np.uint8)
+    rgb[prob > 0] = 210
+    car = np.zeros_like(prob)
+    _draw(car, t, X0 + 8.6, Y0 - 10.6, 0.6, 0.5, 90.0)  # bright car body beside its west end
+    _draw(car, t, X0 + 20, Y0 - 10.6, 1.0, 0.5, 90.0)  # and beside the short one
+    rgb[car > 0] = 230
+    v = Clean()
+    plain = ClusterParams(verify=True, verify_halves_m=0)
+    assert len(detect_markings(prob, None, t, plain, rgb=rgb, verifier=v)) == 0
+    kept = detect_markings(prob, None, t, ClusterParams(verify=True), rgb=rgb, verifier=v)
+    assert len(kept) == 1 and abs(kept.x[0] - (X0 + 10)) < 0.1
+    # only long rejected clusters cost extra crops: two per cluster
+    c = detect_markings(prob, None, t)
+    v.asked = 0
+    got = halves_accepted(c, np.ones(len(c), bool), v, rgb, None, t, prob)
+    assert got.tolist() == [abs(x - (X0 + 10)) < 0.1 for x in c.x] and v.asked == 2
+    # context verifiers are not asked
+    v.kind = "context"
+    assert not halves_accepted(c, np.ones(len(c), bool), v, rgb, None, t, prob).any()

@@ -198,3 +198,71 @@ def test_cli_synth_bad_input(tmp_path, args, message):
     assert res.exit_code == 1
     assert "error:" in res.output and message in res.output
     assert "Traceback" not in res.output
+
+
+def test_parking_scene_has_full_rows_of_stalls_between_cars():
+    from mapbuilder.synth import parking_scene
+
+    sc = parking_scene(seed=3)
+    stalls = [m for m in sc.markings if m.kind == "stall"]
+    assert len(stalls) >= 8 and len(stalls) == len(sc.markings)
+    cars = sc.layers["car"]
+    # stall lines of 4.8-5.6 m are two true pieces each; most stalls hold a car
+    assert len(cars) >= 0.6 * len(stalls) / 2
+    # cars are parked close to the lines: most lines have a car body within 0.6 m
+    polys = [marking_polygon(m) for m in stalls]
+    near = [min(p.distance(c.geom) for c in cars) < 0.6 for p in polys]
+    assert np.mean(near) >= 0.5
+    with pytest.raises(SynthError):
+        parking_scene((10.0, 0.0))
+
+
+def test_camera_artefacts_fringe_and_sharpen_the_edges_of_lines():
+    """The processing artefacts of real orthophotos: coloured fringes and dark rims beside
+    white lines, while the road away from them keeps its brightness."""
+    from scipy import ndimage
+
+    from mapbuilder.synth import camera_artefacts, markings_scene, random_look, render_array
+
+    lines = [_line(ORIGIN[0] + 5 + 2 * k, ORIGIN[1] + 5, 0.0, 0.15) for k in range(5)]
+    sc = markings_scene(lines, "EPSG:25832", seed=1,
+                        bounds=(ORIGIN[0], ORIGIN[1], ORIGIN[0] + 20, ORIGIN[1] + 12))
+    base = random_look(np.random.default_rng(0), 0.15) | {"noise": 0.5, "blur_px": 0.4}
+    art = camera_artefacts(np.random.default_rng(1))
+    assert set(art) == {"channel_shift_px", "chroma_blur_px", "sharpen", "sharpen_px"}
+    art["chroma_blur_px"] = 0.0
+    shifted = art | {"channel_shift_px": np.array([[0, 0.8], [0, 0], [0, -0.8]], np.float32),
+                     "sharpen": 0.0}
+    sharpened = art | {"channel_shift_px": np.zeros((3, 2), np.float32), "sharpen": 1.2,
+                       "sharpen_px": 1.0}
+    plain, label, _ = render_array(sc, 0.15, seed=2, look=base)
+    fringed, label2, _ = render_array(sc, 0.15, seed=2, look=base | shifted)
+    sharp, _, _ = render_array(sc, 0.15, seed=2, look=base | sharpened)
+    np.testing.assert_array_equal(label, label2)
+    rim = ndimage.binary_dilation(label, iterations=1) & ~label
+    ring = ndimage.binary_dilation(label, iterations=2) & ~ndimage.binary_dilation(label)
+    far = ~ndimage.binary_dilation(label, iterations=5)
+
+    def sat(img):
+        i = img.astype(int)
+        return i.max(axis=2) - i.min(axis=2)
+
+    def lum(img):
+        return img.astype(float).mean(axis=2)
+
+    # misregistered channels: coloured rims, the road away from the lines unchanged
+    assert sat(fringed)[rim].mean() > sat(plain)[rim].mean() + 15
+    assert abs(lum(fringed)[far].mean() - lum(plain)[far].mean()) < 2
+    # sharpening: brighter lines with darker road just beside them
+    assert lum(sharp)[label].mean() > lum(plain)[label].mean() + 5
+    assert lum(sharp)[ring].mean() < lum(plain)[ring].mean() - 3
+    assert abs(lum(sharp)[far].mean() - lum(plain)[far].mean()) < 2
+    again, _, _ = render_array(sc, 0.15, seed=2, look=base | shifted)
+    np.testing.assert_array_equal(again, fringed)
+
+
+def _line(x, y, bearing, width, length=5.0):
+    from mapbuilder.model import Marking
+
+    return Marking(kind="stall", x=x, y=y, bearing_deg=bearing, length_m=length,
+                   width_m=width)
