@@ -802,22 +802,39 @@ def cluster_crops(
     k00 = r0 * w + c0
     corners = (k00, k00 + dc, k00 + dr, k00 + dr + dc)
     wts = ((1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc)
-    # channel sum and max - min of the window once: cheaper than per sample
-    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    lum_w = r.astype(np.uint16)
-    lum_w += g
-    lum_w += b
-    sat_w = np.maximum(np.maximum(r, g), b)
-    sat_w -= np.minimum(np.minimum(r, g), b)
-    lum_w, sat_w = lum_w.ravel(), sat_w.ravel()
     pflat = np.asarray(prob, np.float32).ravel()
     lum = np.zeros(col.shape, np.float32)
     sat = np.zeros(col.shape, np.float32)
     pr = np.zeros(col.shape, np.float32)
-    for k, wt in zip(corners, wts):
-        lum += wt * lum_w[k]
-        sat += wt * sat_w[k]
-        pr += wt * pflat[k]
+    if 2 * 4 * col.size < h * w:
+        # A few clusters (a second look at some): the channel sum and max - min
+        # at their corner pixels only, not over the window's millions of pixels.
+        rgb_flat = rgb.reshape(-1, rgb.shape[-1])
+        for k, wt in zip(corners, wts):
+            px = rgb_flat[k]
+            r, g, b = px[..., 0], px[..., 1], px[..., 2]
+            lum_k = r.astype(np.uint16)
+            lum_k += g
+            lum_k += b
+            sat_k = np.maximum(np.maximum(r, g), b)
+            sat_k -= np.minimum(np.minimum(r, g), b)
+            lum += wt * lum_k
+            sat += wt * sat_k
+            pr += wt * pflat[k]
+    else:
+        # A tile's worth of clusters: channel sum and max - min of the window
+        # once, then four gathers per sample.
+        r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+        lum_w = r.astype(np.uint16)
+        lum_w += g
+        lum_w += b
+        sat_w = np.maximum(np.maximum(r, g), b)
+        sat_w -= np.minimum(np.minimum(r, g), b)
+        lum_w, sat_w = lum_w.ravel(), sat_w.ravel()
+        for k, wt in zip(corners, wts):
+            lum += wt * lum_w[k]
+            sat += wt * sat_w[k]
+            pr += wt * pflat[k]
     lum *= np.float32(1 / 3)
     ok = inside
     if valid is not None and not np.all(valid):
@@ -826,14 +843,21 @@ def cluster_crops(
     okf = ok.astype(np.float32)
     import warnings
 
-    if ok.all():
-        ml = np.median(lum.reshape(n, -1), axis=1)
-        ms = np.median(sat.reshape(n, -1), axis=1)
-    else:
+    # Medians over each crop's valid samples; nanmedian (a sort) only for the
+    # crops that reach past the image or into nodata, np.median (a partition)
+    # for the rest.
+    lum2, sat2, ok2 = lum.reshape(n, -1), sat.reshape(n, -1), ok.reshape(n, -1)
+    full = ok2.all(axis=1)
+    ml = np.empty(n, np.float64)
+    ms = np.empty(n, np.float64)
+    ml[full] = np.median(lum2[full], axis=1)
+    ms[full] = np.median(sat2[full], axis=1)
+    if not full.all():
+        part = ~full
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # a crop wholly in nodata
-            ml = np.nanmedian(np.where(ok, lum, np.nan).reshape(n, -1), axis=1)
-            ms = np.nanmedian(np.where(ok, sat, np.nan).reshape(n, -1), axis=1)
+            ml[part] = np.nanmedian(np.where(ok2[part], lum2[part], np.nan), axis=1)
+            ms[part] = np.nanmedian(np.where(ok2[part], sat2[part], np.nan), axis=1)
     ml = np.nan_to_num(ml, nan=0.0).astype(np.float32)
     ms = np.nan_to_num(ms, nan=0.0).astype(np.float32)
     crops = np.empty((n, nc, na, nx_), np.float32)
