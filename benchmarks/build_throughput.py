@@ -37,7 +37,7 @@ from rasterio.transform import from_origin
 from rasterio.windows import Window
 
 from mapbuilder import synth
-from mapbuilder.build import BuildParams, build_map
+from mapbuilder.build import BuildParams, build_map, default_threshold
 from mapbuilder.cluster import ClusterParams
 from mapbuilder.raster import inspect_imagery, make_reader
 from mapbuilder.store import Store
@@ -136,9 +136,9 @@ def main() -> None:
     ap.add_argument("--tile-size", type=int, default=BuildParams.tile_px)
     ap.add_argument("--model", default=None, help="ONNX model (default: shipped model)")
     ap.add_argument("--threshold", type=float, default=None,
-                    help="pixel threshold (default: that of ClusterParams)")
+                    help="pixel threshold (default: as lanemap build)")
     ap.add_argument("--verify", action=argparse.BooleanOptionalAction, default=None,
-                    help="check clusters with the cluster verifier (default: ClusterParams)")
+                    help="check clusters with the cluster verifier (default: yes, as lanemap build)")
     ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
     args = ap.parse_args()
 
@@ -146,10 +146,11 @@ def main() -> None:
     t0 = time.perf_counter()
     image = make_mosaic(OUT / f"throughput_{int(args.mpx)}mpx.tif", args.mpx)
     print(f"image {image} ready in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    cluster = {k: v for k, v in (("threshold", args.threshold), ("verify", args.verify))
-               if v is not None}
+    # The defaults of `lanemap build`: verified clusters at the verifier's threshold.
+    verify = True if args.verify is None else args.verify
+    threshold = args.threshold if args.threshold is not None else default_threshold(verify, args.verifier)
     params = BuildParams(tile_px=args.tile_size, model=args.model,
-                         cluster=ClusterParams(**cluster), verifier=args.verifier)
+                         cluster=ClusterParams(threshold=threshold, verify=verify), verifier=args.verifier)
 
     load_before = os.getloadavg()
     # In a child process, so that its memory does not count against the build.

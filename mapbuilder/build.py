@@ -266,6 +266,38 @@ def _model(spec):
     return model
 
 
+def default_threshold(verify: bool, verifier: str | os.PathLike | None = None) -> float:
+    """The pixel threshold a build uses unless told otherwise.
+
+    Parameters
+    ----------
+    verify : bool
+        Whether the cluster verifier checks the clusters.
+    verifier : path-like or None
+        The verifier file (None: the one shipped with lanemap).
+
+    Returns
+    -------
+    float
+        :data:`mapbuilder.cluster.CNN_PIXEL_THRESHOLD` when a CNN verifier
+        checks the clusters (it removes what the lower threshold lets in),
+        else ``ClusterParams.threshold``.
+
+    Raises
+    ------
+    mapbuilder.classify.ModelError
+        If the verifier file cannot be loaded.
+    """
+    from .cluster import CNN_PIXEL_THRESHOLD
+
+    if not verify:
+        return ClusterParams.threshold
+    from .classify import load_verifier
+
+    kind = load_verifier(None if verifier is None else str(verifier)).kind
+    return CNN_PIXEL_THRESHOLD if kind == "crops" else ClusterParams.threshold
+
+
 def _verifier(cluster: ClusterParams, path: str | None):
     """The cluster verifier of a build, or None when verification is off."""
     if not cluster.verify:

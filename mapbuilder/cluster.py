@@ -78,12 +78,15 @@ class ClusterParams:
         Check every cluster that passes the shape filter with the cluster
         verifier (by default the CNN on :func:`cluster_crops`; the earlier
         one on :func:`context_features`), when the image window and a
-        verifier are given to :func:`detect_markings`. Off by default: on
-        held-out renders the CNN at pixel threshold :data:`CNN_PIXEL_THRESHOLD`
-        lifts precision from 0.64 to 0.94 (kerbs, lot borders, car outlines)
-        at recall 0.88 (0.85 without), and on the real USGS crop it keeps
-        all four stall lines with one other detection (13 without), at
-        1.8 times the CPU time of a build without it (2048 px tiles).
+        verifier are given to :func:`detect_markings`. Off here, so that a
+        bare ``ClusterParams()`` keeps its pixel threshold's meaning; on in
+        ``lanemap build`` and the API's build jobs, which pair it with
+        :func:`mapbuilder.build.default_threshold`. On held-out renders the
+        CNN at pixel threshold :data:`CNN_PIXEL_THRESHOLD` lifts precision
+        from 0.64 to 0.94 (kerbs, lot borders, car outlines) at recall 0.88
+        (0.85 without), and on the real USGS crop it keeps all four stall
+        lines with one other detection (13 without), at about 1.3 times the
+        CPU time of a build without it (2048 px tiles).
     verify_threshold : float
         Verifier probability a cluster needs to be kept.
     verify_continuation : bool

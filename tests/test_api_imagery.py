@@ -125,8 +125,21 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     assert {f["properties"]["source"] for f in items["features"]} == {"detected"}
     jobs = httpx.get(f"{api.base_url}/jobs", params={"map": map_id}).json()["jobs"]
     assert [j["jobID"] for j in jobs] == [job_id]
+    # The default build verifies its clusters; without verification the same
+    # imagery gives the kerbs and car outlines back.
+    raw_map = api.new_map(crs="EPSG:26913")
+    raw_img = upload(api, raw_map, USGS).json()
+    r = httpx.post(f"{api.base_url}/collections/{raw_map}/builds",
+                   json={"imagery": raw_img["id"], "verify": False}, headers=api.auth)
+    assert r.status_code == 202, r.text
+    assert wait_job(api, r.headers["location"].rsplit("/", 1)[1])["status"] == "successful"
+    raw = httpx.get(f"{api.base_url}/collections/{raw_map}/items?limit=1000").json()["numberMatched"]
+    assert raw > items["numberMatched"] + 3
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": "999999"},
                               headers=api.auth), 422, "imagery")  # fmt: skip
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds",
+                              json={"imagery": img["id"], "verify": "sometimes"}, headers=api.auth),
+                   422, "verify")  # fmt: skip
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
                               "tile_px": 8}, headers=api.auth), 422, "tile_px")  # fmt: skip
 

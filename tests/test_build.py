@@ -313,8 +313,13 @@ def test_killed_build_resumes_without_duplicates(big_scene, tmp_path):
     assert [j.id for j in jobs] == [job.id] and jobs[0].status == "successful"
     assert len(store.done_tiles(job.id)) == n_total
 
-    ref = build_map(store, "ref", [big_scene.path], BuildParams(tile_px=96), workers=1,
-                    progress=False)
+    # The same build as the command line's defaults (verified clusters), uninterrupted.
+    from mapbuilder.build import default_threshold
+    from mapbuilder.cluster import ClusterParams
+
+    ref = build_map(store, "ref", [big_scene.path],
+                    BuildParams(tile_px=96, cluster=ClusterParams(threshold=default_threshold(True), verify=True)),
+                    workers=1, progress=False)
     resumed = sorted((round(m.x, 6), round(m.y, 6), m.weight, m.tile_key)
                      for m in _detected(store, "m"))
     uninterrupted = sorted((round(m.x, 6), round(m.y, 6), m.weight, m.tile_key)

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from mapbuilder.build import BuildParams, build_map
+from mapbuilder.build import BuildParams, build_map, default_threshold
 from mapbuilder.cluster import ClusterParams
 
 from ..cli_errors import fail
@@ -32,16 +32,16 @@ def build(
     tile_px: int = typer.Option(2048, "--tile-size", help="Tile core size, pixels."),
     halo_m: float = typer.Option(4.0, "--halo", help="Halo around each tile, metres."),
     threshold: Optional[float] = typer.Option(
-        None, help="Marking probability threshold (default: 0.5; with --verify and a CNN "
-        "verifier, the lower threshold that verifier was trained at)."),
+        None, help="Marking probability threshold (default: 0.2 with the shipped CNN "
+        "verifier, the threshold it was trained at; 0.5 with --no-verify)."),
     piece_m: float = typer.Option(
         3.0, "--piece-length", help="Long markings are cut into pieces of this length, metres."
     ),
     verify: bool = typer.Option(
-        False, "--verify/--no-verify",
+        True, "--verify/--no-verify",
         help="Check each detected marking with the cluster verifier, a small CNN on an "
-        "oriented crop around it (drops kerbs and car outlines; may drop short fragments "
-        "between cars).",
+        "oriented crop around it (drops kerbs, lot borders and car outlines). --no-verify "
+        "keeps every cluster the pixel classifier finds: faster, far more false detections.",
     ),
     verifier: Optional[Path] = typer.Option(
         None, "--verifier", help="ONNX cluster verifier (default: the one shipped with lanemap)."
@@ -61,7 +61,12 @@ def build(
     from mapbuilder.store import Store
 
     if threshold is None:
-        threshold = _default_threshold(verify, verifier)
+        from mapbuilder.classify import ModelError
+
+        try:
+            threshold = default_threshold(verify, verifier)
+        except ModelError as exc:
+            fail(str(exc))
     try:
         params = BuildParams(
             tile_px=tile_px,
@@ -90,21 +95,6 @@ def build(
     finally:
         store.close()
     typer.echo(result.summary())
-
-
-def _default_threshold(verify: bool, verifier: Optional[Path]) -> float:
-    """The pixel threshold of a build: lower when a CNN verifier checks the clusters."""
-    from mapbuilder.cluster import CNN_PIXEL_THRESHOLD
-
-    if not verify:
-        return ClusterParams.threshold
-    from mapbuilder.classify import ModelError, load_verifier
-
-    try:
-        kind = load_verifier(verifier).kind
-    except ModelError as exc:
-        fail(str(exc))
-    return CNN_PIXEL_THRESHOLD if kind == "crops" else ClusterParams.threshold
 
 
 def register(app: typer.Typer) -> None:

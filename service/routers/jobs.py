@@ -24,7 +24,12 @@ class BuildIn(BaseModel):
     imagery: str | int = Field(..., description="Id of imagery uploaded to this map")
     tile_px: int = Field(2048, ge=64, le=8192, description="Core size of a tile, pixels")
     halo_m: float = Field(4.0, gt=0, le=100, description="Halo read around each tile, metres")
-    threshold: float = Field(0.5, gt=0, lt=1, description="Marking probability threshold")
+    threshold: float | None = Field(
+        None, gt=0, lt=1,
+        description="Marking probability threshold (default: 0.2 when verifying, 0.5 when not)")
+    verify: bool = Field(
+        True, description="Check each detected marking with the cluster verifier (a small CNN on an "
+        "oriented crop around it); false keeps every cluster the pixel classifier finds")
 
 
 def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
@@ -67,7 +72,7 @@ def post_build(
     ctx: Context = Depends(get_ctx),
     who: str = Depends(require_write),
 ):
-    from mapbuilder.build import BuildParams
+    from mapbuilder.build import BuildParams, default_threshold
     from mapbuilder.cluster import ClusterParams
 
     info = ctx.store.get_map(mapId)
@@ -82,7 +87,9 @@ def post_build(
         raise Problem(409, f"map {mapId!r} has no storage CRS: create it with one (e.g. \"crs\": \"EPSG:25832\")",
                       "no-crs")  # fmt: skip
     try:
-        params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m, cluster=ClusterParams(threshold=body.threshold))
+        threshold = body.threshold if body.threshold is not None else default_threshold(body.verify)
+        params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m,
+                             cluster=ClusterParams(threshold=threshold, verify=body.verify))
     except ValueError as exc:
         raise Problem(422, f"body: {exc}", "invalid-build") from None
     try:
