@@ -733,6 +733,17 @@ CNN_PIXEL_THRESHOLD = 0.2
 CROP_VERSION = "1"
 
 
+def _sum_and_range(px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sum (uint16) and max − min (uint8) of the first three channels of ``px`` (..., C) uint8."""
+    r, g, b = px[..., 0], px[..., 1], px[..., 2]
+    total = r.astype(np.uint16)
+    total += g
+    total += b
+    spread = np.maximum(np.maximum(r, g), b)
+    spread -= np.minimum(np.minimum(r, g), b)
+    return total, spread
+
+
 def cluster_crops(
     clusters: Clusters,
     rgb: np.ndarray,
@@ -814,25 +825,14 @@ def cluster_crops(
         # at their corner pixels only, not over the window's millions of pixels.
         rgb_flat = rgb.reshape(-1, rgb.shape[-1])
         for k, wt in zip(corners, wts):
-            px = rgb_flat[k]
-            r, g, b = px[..., 0], px[..., 1], px[..., 2]
-            lum_k = r.astype(np.uint16)
-            lum_k += g
-            lum_k += b
-            sat_k = np.maximum(np.maximum(r, g), b)
-            sat_k -= np.minimum(np.minimum(r, g), b)
+            lum_k, sat_k = _sum_and_range(rgb_flat[k])
             lum += wt * lum_k
             sat += wt * sat_k
             pr += wt * pflat[k]
     else:
         # A tile's worth of clusters: channel sum and max - min of the window
         # once, then four gathers per sample.
-        r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-        lum_w = r.astype(np.uint16)
-        lum_w += g
-        lum_w += b
-        sat_w = np.maximum(np.maximum(r, g), b)
-        sat_w -= np.minimum(np.minimum(r, g), b)
+        lum_w, sat_w = _sum_and_range(rgb)
         lum_w, sat_w = lum_w.ravel(), sat_w.ravel()
         for k, wt in zip(corners, wts):
             lum += wt * lum_w[k]

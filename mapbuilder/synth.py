@@ -510,6 +510,25 @@ def _sun(rng) -> np.ndarray:
     return np.array([math.cos(a), math.sin(a)]) * rng.uniform(0.3, 0.8)
 
 
+def _new_scene(size_m, origin, crs: str, seed: int, max_wear: float):
+    """An empty scene with its ground, and the scene's random state.
+
+    Returns ``(scene, rng, palette, sun, wear)``; the random numbers are drawn
+    in a fixed order, so a seed gives the same scene whatever comes after.
+    """
+    w, h = size_m
+    if w <= 0 or h <= 0:
+        raise SynthError(f"size_m must be positive, got {size_m}")
+    rng = np.random.default_rng(seed)
+    pal = _Palette(rng)
+    x0, y0 = origin
+    scene = Scene(crs=crs, bounds=(x0, y0, x0 + w, y0 + h), seed=seed)
+    sun = _sun(rng)
+    wear = rng.uniform(0.0, max_wear)
+    _ground(scene, pal)
+    return scene, rng, pal, sun, wear
+
+
 def procedural_scene(
     size_m: tuple[float, float] = (60.0, 60.0),
     origin: tuple[float, float] = (500000.0, 5400000.0),
@@ -536,15 +555,8 @@ def procedural_scene(
         Spacing of the road grid for scenes larger than one block.
     """
     w, h = size_m
-    if w <= 0 or h <= 0:
-        raise SynthError(f"size_m must be positive, got {size_m}")
-    rng = np.random.default_rng(seed)
-    pal = _Palette(rng)
     x0, y0 = origin
-    scene = Scene(crs=crs, bounds=(x0, y0, x0 + w, y0 + h), seed=seed)
-    sun = _sun(rng)
-    wear = rng.uniform(0.0, 0.45)
-    _ground(scene, pal)
+    scene, rng, pal, sun, wear = _new_scene(size_m, origin, crs, seed, max_wear=0.45)
     centres: list[tuple[LineString, int, float]] = []
     if max(w, h) < 1.5 * road_spacing_m:
         n_roads = 1 if rng.random() < 0.6 else 2
@@ -640,15 +652,8 @@ def parking_scene(
         As :func:`procedural_scene`.
     """
     w, h = size_m
-    if w <= 0 or h <= 0:
-        raise SynthError(f"size_m must be positive, got {size_m}")
-    rng = np.random.default_rng(seed)
-    pal = _Palette(rng)
     x0, y0 = origin
-    scene = Scene(crs=crs, bounds=(x0, y0, x0 + w, y0 + h), seed=seed)
-    sun = _sun(rng)
-    wear = rng.uniform(0.0, 0.5)
-    _ground(scene, pal)
+    scene, rng, pal, sun, wear = _new_scene(size_m, origin, crs, seed, max_wear=0.5)
     cx, cy = x0 + w / 2 + rng.uniform(-0.1, 0.1) * w, y0 + h / 2 + rng.uniform(-0.1, 0.1) * h
     ang = rng.uniform(0, 180) if rng.random() < 0.6 else float(rng.choice([0.0, 90.0]))
     # the asphalt all round the lot, as the loop road of a residential court
