@@ -184,6 +184,10 @@ class BuildResult:
     cpu_seconds : float
         CPU seconds the workers spent on this run's tiles; unlike wall time,
         it hardly depends on what else the machine is running.
+    verified : bool
+        Whether the cluster verifier checked the detections.
+    threshold : float or None
+        The pixel threshold of the build.
     """
 
     map_id: str
@@ -198,6 +202,8 @@ class BuildResult:
     resumed: bool
     timings: dict[str, float] = field(default_factory=dict)
     cpu_seconds: float = 0.0
+    verified: bool = False
+    threshold: float | None = None
 
     @property
     def mpx_per_s(self) -> float:
@@ -205,10 +211,12 @@ class BuildResult:
 
     def summary(self) -> str:
         resumed = f", {self.tiles_skipped} resumed" if self.tiles_skipped else ""
+        check = "verified" if self.verified else "not verified"
+        at = f" at pixel threshold {self.threshold:g}" if self.threshold is not None else ""
         return (
             f"map {self.map_id}: {self.markings} markings from {self.tiles_run} tiles"
             f"{resumed} of {len(self.images)} image(s), {self.megapixels:.1f} Mpx in "
-            f"{self.seconds:.1f} s ({self.mpx_per_s:.1f} Mpx/s), job {self.job_id}"
+            f"{self.seconds:.1f} s ({self.mpx_per_s:.1f} Mpx/s), {check}{at}, job {self.job_id}"
         )
 
 
@@ -768,6 +776,8 @@ def build_map(
         resumed=skipped > 0,
         timings=timings,
         cpu_seconds=cpu,
+        verified=params.cluster.verify,
+        threshold=params.cluster.threshold,
     )
     log.info("%s", result.summary())
     return result

@@ -116,6 +116,7 @@ def test_build_summary_and_job(border_scene, sqlite_url):
     assert result.megapixels == pytest.approx(h * w / 1e6)
     assert result.mpx_per_s > 0
     assert "markings" in result.summary() and "Mpx/s" in result.summary()
+    assert "not verified at pixel threshold 0.5" in result.summary()
     assert not result.resumed and result.tiles_skipped == 0
     job = store.get_job(result.job_id)
     assert job.status == "successful" and job.progress == 100.0
@@ -309,6 +310,7 @@ def test_killed_build_resumes_without_duplicates(big_scene, tmp_path):
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     assert f"{done} resumed" in out
+    assert ", verified at pixel threshold 0.2" in out  # the command verifies by default
     jobs = store.find_jobs(kind="build", map_id="m")
     assert [j.id for j in jobs] == [job.id] and jobs[0].status == "successful"
     assert len(store.done_tiles(job.id)) == n_total
