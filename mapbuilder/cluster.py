@@ -653,7 +653,6 @@ def context_features(
         row = inv.d * x + inv.e * y + inv.f
         return row.ravel(), col.ravel()
 
-    pix = rgb.reshape(-1, 3)
     lum_img = None
     sat_img = None
 
@@ -662,7 +661,7 @@ def context_features(
         r = np.clip(np.floor(rows).astype(np.intp), 0, h - 1)
         c = np.clip(np.floor(cols).astype(np.intp), 0, w - 1)
         inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        v = pix[r * w + c].astype(np.float32)
+        v = rgb[r, c].astype(np.float32)
         lum = v.mean(axis=1) / 255.0
         sat = (v.max(axis=1) - v.min(axis=1)) / 255.0
         bad = ~inside | ~ok[r, c]
@@ -823,9 +822,8 @@ def cluster_crops(
     if 2 * 4 * col.size < h * w:
         # A few clusters (a second look at some): the channel sum and max - min
         # at their corner pixels only, not over the window's millions of pixels.
-        rgb_flat = rgb.reshape(-1, rgb.shape[-1])
         for k, wt in zip(corners, wts):
-            lum_k, sat_k = _sum_and_range(rgb_flat[k])
+            lum_k, sat_k = _sum_and_range(rgb[k // w, k % w])
             lum += wt * lum_k
             sat += wt * sat_k
             pr += wt * pflat[k]

@@ -359,7 +359,7 @@ def _features(rgb, valid, resolution_m, threshold):
         along[better] = np.minimum(ca, cb).astype(np.float32) * third
 
     # what the pixel adds to the local background colour
-    px = rgb.reshape(-1, 3)[idx]
+    px = rgb[rows, cols]  # any memory layout (the reader's is band-sequential)
     d0 = px[:, 0] - bg[:, 2]
     d1 = px[:, 1] - bg[:, 3]
     d2 = px[:, 2] - bg[:, 4]
