@@ -154,3 +154,33 @@ def test_cli_build_verifies_with_the_cnn(tmp_path, monkeypatch):
     res = runner.invoke(app, ["build", str(r.path), "--map", "m2", "--model",
                               str(default_verifier_path())])
     assert res.exit_code == 1 and "model" in res.stderr
+
+
+def test_detections_do_not_depend_on_the_image_memory_layout():
+    """The reader hands out band-sequential windows; renders and callers pass interleaved ones."""
+    from mapbuilder.build import detect_window
+    from mapbuilder.classify import load_model
+    from mapbuilder.raster import inspect_imagery, open_grid
+    from rasterio.windows import Window
+
+    from tests._build_helpers import USGS_BASE
+
+    info = inspect_imagery(USGS_BASE)
+    with open_grid(USGS_BASE, info.grid) as reader:
+        planar, valid = reader.read(Window(0, 0, info.grid.width, info.grid.height))
+    interleaved = np.ascontiguousarray(planar)
+    assert not planar.flags.c_contiguous and interleaved.flags.c_contiguous
+    params = ClusterParams(threshold=CNN_PIXEL_THRESHOLD, verify=True)
+    out = [detect_window(rgb, valid, info.grid.affine, info.grid.resolution_m, load_model(), params)
+           for rgb in (planar, interleaved)]
+    (c1, p1), (c2, p2) = out
+    np.testing.assert_array_equal(p1, p2)
+    assert len(c1) >= 4  # the stall lines
+    for f in ("x", "y", "weight", "length_m", "bearing_deg", "score"):
+        np.testing.assert_array_equal(getattr(c1, f), getattr(c2, f))
+    # both ways of sampling the crops: a few clusters (corner pixels), a tile's worth (whole window)
+    for k in (c1.take(np.arange(2)), c1.take(np.repeat(np.arange(len(c1)), 40))):
+        a = cluster_crops(k, planar, valid, info.grid.affine, p1)
+        b = cluster_crops(k, interleaved, valid, info.grid.affine, p1)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])

@@ -44,6 +44,8 @@ def test_plain_rgb_is_read_on_its_own_grid():
     assert info.grid.resolution_m == pytest.approx(0.15, abs=1e-3)
     with rasterio.open(USGS_BASE) as src:
         np.testing.assert_array_equal(rgb, src.read().transpose(1, 2, 0))
+    # band-sequential, as GDAL read it: no interleaved copy of the window
+    assert all(rgb[..., c].flags.c_contiguous for c in range(3))
 
 
 @pytest.mark.parametrize(
