@@ -353,10 +353,19 @@ def _insert_many(conn: Connection, table, rows: list[dict[str, Any]]) -> None:
     quote = dialect.identifier_preparer
     names = ", ".join(quote.quote(k) for k in keys)
     if copy:
-        with conn.connection.driver_connection.cursor() as cur:
-            with cur.copy(f"COPY {quote.format_table(table)} ({names}) FROM STDIN") as out:
+        sql = f"COPY {quote.format_table(table)} ({names}) FROM STDIN"
+        raw = conn.connection.dbapi_connection
+        try:
+            with raw.cursor() as cur, cur.copy(sql) as out:
                 for row in zip(*columns):
                     out.write_row(row)
+        except dialect.loaded_dbapi.Error as exc:
+            # as SQLAlchemy would raise it, so that the store maps an outage as usual
+            lost = dialect.is_disconnect(exc, raw, None)
+            if lost:
+                conn.invalidate()
+            raise DBAPIError.instance(sql, None, exc, dialect.loaded_dbapi.Error,
+                                      connection_invalidated=lost) from None
         return
     conn.exec_driver_sql(f"INSERT INTO {quote.format_table(table)} ({names}) "
                          f"VALUES ({', '.join('?' * len(keys))})", list(zip(*columns)))

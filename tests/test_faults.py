@@ -116,6 +116,48 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
     assert back and back[-1][2] in (200, 201)
 
 
+def test_postgres_lost_while_a_tile_is_stored_is_store_unavailable_and_stores_nothing(
+        monkeypatch):
+    """A tile's markings go to PostgreSQL by COPY, outside SQLAlchemy's own error
+    handling: a server lost in the middle is still the store's 'unavailable'."""
+    from mapbuilder import store as st
+
+    pg = PrivatePostgres()
+    pg.start()
+    try:
+        store = st.Store(pg.url)
+        store.create_map("m", crs="EPSG:25832")
+        marks = [st.Marking(x=456000.0 + i, y=5430000.0, weight=1.0) for i in range(50)]
+        assert store.replace_detected("m", "t0", marks) == 50
+        copy_rows = st._insert_many
+
+        def server_dies_first(conn, table, rows):
+            # a shutdown that ends every session (the test cluster commits
+            # asynchronously, so a crash could take the earlier tile with it)
+            pg.stop("fast")
+            return copy_rows(conn, table, rows)
+
+        monkeypatch.setattr(st, "_insert_many", server_dies_first)
+        with pytest.raises(st.StoreUnavailableError, match="unavailable"):
+            store.replace_detected("m", "t1", marks)
+        monkeypatch.undo()
+        pg.start()
+        wait_for(lambda: _answers(store), 30, what="the store after PostgreSQL came back")
+        # the tile in flight left nothing; the one before is whole
+        assert {m.tile_key for m in store.iter_markings("m")} == {"t0"}
+        assert store.replace_detected("m", "t1", marks) == 50
+    finally:
+        pg.destroy()
+
+
+def _answers(store) -> bool:
+    try:
+        store.get_map("m")
+        return True
+    except Exception:  # noqa: BLE001 - still coming back
+        return False
+
+
 def test_a_database_that_never_answers_fails_within_the_connect_timeout():
     """A PostgreSQL host that accepts TCP and then stays silent (a hung server, a
     firewall) fails in seconds, not after the operating system's TCP timeout."""
