@@ -37,10 +37,13 @@ OUT = ROOT / "mapbuilder" / "data" / "cluster_cnn.onnx"
 REFERENCE = ROOT / "tests" / "data" / "cluster_cnn_reference.npz"
 
 
-def _crops(seeds):
+def _crops(job):
+    from mapbuilder.classify import MarkingModel
     from mapbuilder.train import crop_training_set
 
-    return crop_training_set(seeds, lanelet_map=read_lanelet2(KARLSRUHE))
+    seeds, model = job
+    return crop_training_set(seeds, model=MarkingModel(model) if model else None,
+                             lanelet_map=read_lanelet2(KARLSRUHE))
 
 
 def main(argv=None) -> int:
@@ -51,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch threads")
     ap.add_argument("--jobs", type=int, default=2,
                     help="processes rendering the training set (the set does not depend on it)")
+    ap.add_argument("--model", default=None,
+                    help="pixel model whose clusters to learn (default: the shipped one)")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--reference", default=str(REFERENCE))
     ap.add_argument("--data", default=None,
@@ -70,7 +75,7 @@ def main(argv=None) -> int:
         m = -(-len(seeds) // args.jobs)
         chunks = [seeds[k:k + m] for k in range(0, len(seeds), m)]
         with multiprocessing.get_context("spawn").Pool(len(chunks)) as pool:
-            parts = pool.map(_crops, chunks)
+            parts = pool.map(_crops, [(c, args.model) for c in chunks])
         C, S, y = (np.concatenate([p[k] for p in parts]) for k in range(3))
         if cache is not None:
             np.savez(cache, C=C, S=S, y=y)

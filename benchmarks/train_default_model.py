@@ -36,13 +36,15 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(default_model_path()))
     ap.add_argument("--verifier-out", default=str(context_verifier_path()))
     ap.add_argument("--only", choices=("pixel", "verifier"), default=None)
+    ap.add_argument("--realism", action="store_true",
+                    help="add parking lots and orthophoto artefacts to the pixel model's renders")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     lmap = read_lanelet2(KARLSRUHE)
     if args.only != "verifier":
         t0 = time.perf_counter()
         path = train_synthetic(args.out, seeds=range(1000, 1000 + args.n), lanelet_map=lmap,
-                               C=args.C, progress=True)
+                               C=args.C, progress=True, realism=args.realism)
         print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB) "
               f"in {time.perf_counter() - t0:.0f} s")
     if args.only != "pixel":

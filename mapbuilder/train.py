@@ -255,7 +255,7 @@ def _training_lanes(lanelet_map) -> list | None:
 
 
 def _render_training(i: int, seed: int, resolutions, size_m: float, lanelet_map, lanes, rng,
-                     realism: bool = False):
+                     realism: bool = False, max_px: int = 1500):
     """Render the ``i``-th training scene: ``(resolution m, rgb, label, transform)``.
 
     Resolutions cycle through ``resolutions``; every other render is JPEG-compressed.
@@ -267,7 +267,7 @@ def _render_training(i: int, seed: int, resolutions, size_m: float, lanelet_map,
     from .synth import camera_artefacts, random_look, render_array
 
     res = float(resolutions[i % len(resolutions)])
-    side = min(size_m, 1500 * res)
+    side = min(size_m, max_px * res)
     scene = _training_scene(i, seed, side, lanelet_map, lanes, rng, parking=realism)
     jpeg = int(rng.integers(60, 95)) if i % 2 else None
     look = None
@@ -303,25 +303,23 @@ def synthetic_training_set(
     lanelet_map=None,
     progress: bool = False,
     neg_per_pos: float = 3.0,
+    realism: bool = False,
 ) -> TrainingSet:
     """Render procedural (and, with ``lanelet_map``, Karlsruhe) scenes and sample pixels.
 
     Each seed gives one scene at one resolution (cycling through
-    ``resolutions``), with JPEG compression on every other render.
+    ``resolutions``), at most 1000 px a side, with JPEG compression on every
+    other render; ``realism`` adds parking lots and orthophoto artefacts as
+    for the CNN verifier (:func:`_render_training`).
     """
     from tqdm import tqdm
-
-    from .synth import render_array
 
     ts = TrainingSet()
     rng = np.random.default_rng(12345 + int(seeds[0]) if len(seeds) else 0)
     lanes = _training_lanes(lanelet_map)
     for i, seed in enumerate(tqdm(list(seeds), desc="render+sample", disable=not progress)):
-        res = float(resolutions[i % len(resolutions)])
-        side = min(size_m, 1000 * res)  # at most 1000 px a side
-        scene = _training_scene(i, int(seed), side, lanelet_map, lanes, rng)
-        jpeg = int(rng.integers(60, 95)) if i % 2 else None
-        rgb, label, _ = render_array(scene, res, seed=int(seed) + 7, jpeg_quality=jpeg)
+        res, rgb, label, _ = _render_training(i, int(seed), resolutions, size_m, lanelet_map,
+                                              lanes, rng, realism=realism, max_px=1000)
         X, y = sample_pixels(rgb, label, None, res, rng, neg_per_pos=neg_per_pos)
         ts.add(X, y, int(label.sum()))
     return ts
@@ -498,10 +496,11 @@ def train_synthetic(
     lanelet_map=None,
     C: float = 0.5,
     progress: bool = False,
+    realism: bool = False,
 ) -> Path:
     """Train the default model on synthetic renders and write it as ONNX."""
     seeds = list(seeds)
-    ts = synthetic_training_set(seeds, lanelet_map=lanelet_map, progress=progress)
+    ts = synthetic_training_set(seeds, lanelet_map=lanelet_map, progress=progress, realism=realism)
     X, y = ts.arrays()
     log.info("training on %d pixels (%d marking)", len(y), int(y.sum()))
     model = fit_svm(X, y, C=C)
