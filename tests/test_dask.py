@@ -45,3 +45,36 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path, sqlite_url):
     job = store.find_jobs(kind="build")[0]
     assert job.status == "failed"
     store.close()
+
+
+_FAULTS = """
+import resource, sys
+import numpy as np
+from mapbuilder.build import process_tile, _restore_malloc_thresholds
+if sys.argv[1] == "tile worker":
+    _restore_malloc_thresholds()  # what process_tile does first
+faults = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+a = np.ones(2_000_000); del a
+f0 = faults()
+for _ in range(20):
+    a = np.ones(2_000_000); del a  # a tile-sized array, 16 MB, made and dropped
+print(faults() - f0)
+"""
+
+
+def test_tile_workers_undo_the_malloc_trim_threshold_dask_sets():
+    """Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which makes glibc
+    map every large array afresh; the tile function restores the thresholds, so a
+    worker reuses freed memory instead of faulting its pages in again."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="65536")
+    faults = {}
+    for mode in ("plain", "tile worker"):
+        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], env=env, capture_output=True,
+                             text=True, timeout=120, check=True)
+        faults[mode] = int(out.stdout.strip().splitlines()[-1])
+    assert faults["plain"] > 5000, faults  # the variable's effect, as Dask workers see it
+    assert faults["tile worker"] < faults["plain"] / 10, faults
