@@ -347,8 +347,12 @@ def _road(scene, pal, centre: LineString, n_lanes: int, lane_w: float, sun, wear
         curb_w = pal.rng.uniform(0.15, 0.3)
         walk = centre.buffer(half + curb_w + pal.rng.uniform(1.5, 3.0), cap_style="flat")
         scene.add("sidewalk", walk, pal.concrete * pal.rng.uniform(0.9, 1.05))
-        scene.add("curb", centre.buffer(half + curb_w, cap_style="flat").difference(surface),
-                  np.minimum(pal.concrete * pal.rng.uniform(1.0, 1.2), 250))
+        curb = centre.buffer(half + curb_w, cap_style="flat").difference(surface)
+        if avoid is not None:
+            # not across another road: drawn over its asphalt a curb is a white stripe
+            # that looks like paint and is in no truth
+            curb = curb.difference(avoid)
+        scene.add("curb", curb, np.minimum(pal.concrete * pal.rng.uniform(1.0, 1.2), 250))
     scene.add("road", surface, pal.asphalt * pal.rng.uniform(0.92, 1.08))
     edge_w = pal.rng.choice([0.12, 0.15, 0.25])
     for side in (-1, 1):
@@ -756,14 +760,21 @@ def lanelet_scene(lmap: LaneletMap, seed: int = 0,
         keep_clear = [c.buffer(1.5, cap_style="flat") for c in lanes] + [p.buffer(0.8) for p in paint_lines]
         if keep_clear:
             walk = walk.difference(shapely.union_all(keep_clear))
+            # and no slivers: a strip of pavement a few decimetres wide left between
+            # the cleared zones of a lane and a line looks exactly like a painted line
+            walk = walk.buffer(-0.3).buffer(0.3)
         scene.add("verge", walk, pal.concrete)
+    else:
+        walk = None
     if road is not None:
         scene.add("road", road, pal.asphalt)
         for _ in range(int(road.area / 40)):
             _crack(scene, pal, road.intersection(bb))
     if curbs:
-        scene.add("curb", shapely.union_all([c.buffer(0.12) for c in curbs]),
-                  np.minimum(pal.concrete * 1.1, 250))
+        # only where a sidewalk lies beside it: where the sidewalk had to give way
+        # to lanes, a curb alone on asphalt would look like a painted line
+        curb = shapely.union_all([c.buffer(0.12) for c in curbs]).intersection(walk.buffer(0.15))
+        scene.add("curb", curb, np.minimum(pal.concrete * 1.1, 250))
     ph = rng.uniform(0, 9) if phase_m is None else phase_m
     colour = pal.paint()
     for m in layout_markings(lmap, phase_m=ph):

@@ -266,3 +266,32 @@ def _line(x, y, bearing, width, length=5.0):
 
     return Marking(kind="stall", x=x, y=y, bearing_deg=bearing, length_m=length,
                    width_m=width)
+
+
+def _union(scene, layer):
+    import shapely
+
+    return shapely.union_all([p.geom for p in scene.layers[layer]])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 5])
+def test_procedural_curbs_stop_before_the_road_they_meet(seed):
+    """At a junction the curb of one road ends before the other road: drawn across its
+    asphalt it would be a bright stripe the truth does not list (a false "marking")."""
+    sc = procedural_scene((60.0, 60.0), seed=seed)
+    assert len(sc.layers["road"]) >= 2  # these seeds have a junction
+    road, curb = _union(sc, "road"), _union(sc, "curb")
+    assert curb.area > 10.0
+    assert curb.intersection(road).area < 1e-6
+
+
+def test_lanelet_pavement_has_no_slivers_and_every_curb_borders_it():
+    """Where the pavement gives way to lanes and painted lines, no strip of it narrower
+    than half a metre is left on the asphalt, and no curb stands alone there: both
+    would look like painted lines (the Karlsruhe crop below had 6 m² of such slivers)."""
+    lmap = read_lanelet2(KARLSRUHE_OSM)
+    sc = lanelet_scene(lmap, seed=3, bounds=(458046.0, 5428573.0, 458146.0, 5428633.0))
+    verge, curb = _union(sc, "verge"), _union(sc, "curb")
+    assert verge.area > 1000.0 and curb.area > 100.0
+    assert verge.difference(verge.buffer(-0.25).buffer(0.25)).area < 0.1
+    assert curb.difference(verge.buffer(0.2)).area < 1e-6
