@@ -83,12 +83,15 @@ class ClusterParams:
         ``lanemap build`` and the API's build jobs, which pair it with
         :func:`mapbuilder.build.default_threshold`. On held-out renders the
         CNN at pixel threshold :data:`CNN_PIXEL_THRESHOLD` lifts precision
-        from 0.64 to 0.94 (kerbs, lot borders, car outlines) at recall 0.88
-        (0.85 without), and on the real USGS crop it keeps all four stall
-        lines with one other detection (13 without), at about 1.3 times the
+        from 0.61 to 0.975 (kerbs, lot borders, car outlines) at recall 0.90
+        (0.91 without), and on the real USGS crop it keeps all four stall
+        lines with no other detection (14 without), at about 1.3 times the
         CPU time of a build without it (2048 px tiles).
     verify_threshold : float
-        Verifier probability a cluster needs to be kept.
+        Verifier probability a cluster needs to be kept. 0.6 for the shipped
+        CNN, chosen on the validation scenes (``benchmarks/build_quality.py
+        --seed 5000``): 0.5 / 0.6 / 0.7 / 0.8 gave precision 0.952 / 0.957 /
+        0.958 / 0.963 at recall 0.911 / 0.911 / 0.908 / 0.903.
     verify_continuation : bool
         Keep a cluster the verifier rejects when it continues one it accepts
         (:func:`continues_accepted`: pieces of one line).
@@ -121,7 +124,7 @@ class ClusterParams:
     join_angle_deg: float = 12.0
     join_offset_m: float = 0.12
     verify: bool = False
-    verify_threshold: float = 0.5
+    verify_threshold: float = 0.6
     verify_continuation: bool = True
     verify_halves_m: float = 2.0
 

@@ -65,11 +65,19 @@ def test_separates_markings_from_asphalt_on_a_heldout_render(model, heldout):
 
 
 def test_lights_up_the_stall_lines_of_the_usgs_crop(model):
+    """The real crop, at the pixel threshold of the default (verified) build and at
+    that of ``--no-verify``: every stall line is lit along much of its length, and
+    a good share of what is lit lies on them (the crop holds cars, a tree, kerbs)."""
+    from mapbuilder.cluster import CNN_PIXEL_THRESHOLD
+
     rgb, valid, transform, _ = read_rgb(USGS)
     prob = model.predict(rgb, valid, abs(transform.a))
-    near_share, cover = stall_line_scores(prob, transform)
-    assert near_share > 0.35, near_share
+    near_share, cover = stall_line_scores(prob, transform, CNN_PIXEL_THRESHOLD)
+    assert near_share > 0.15, near_share
     assert min(cover) > 0.15, cover
+    assert np.mean(cover) > 0.4, cover
+    near_share, cover = stall_line_scores(prob, transform, 0.5)
+    assert near_share > 0.25, near_share
     assert np.mean(cover) > 0.3, cover
 
 
