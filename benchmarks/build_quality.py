@@ -11,7 +11,10 @@ the store and compared with the renderer's truth:
 * pieces of continuous lines are cut at arbitrary places, so there a
   detection is correct when its centroid lies within 0.3 m of a true piece's
   axis, and a true piece is found when a detection's axis passes within 0.3 m
-  of its centroid;
+  of its centroid. A marking longer than the builder keeps whole
+  (``ClusterParams.whole_max_length_m``, 8 m: stop lines across three or more
+  lanes of the Karlsruhe map, up to 17 m) is cut into pieces by design and is
+  scored the same way;
 * precision = correct detections / detections; recall = found / countable
   truth (at least 90 % visible, centroid at least 2 m inside the image);
 * centroid RMSE over the matched discrete markings, and the cross-track RMSE
@@ -96,7 +99,8 @@ def _seg_dist(px, py, seg):
     return np.hypot(px[:, None] - (x0 + t * dx), py[:, None] - (y0 + t * dy))
 
 
-def score(det, truth, bounds, border=2.0, min_visible=0.9) -> dict:
+def score(det, truth, bounds, border=2.0, min_visible=0.9,
+          whole_max_length_m: float = ClusterParams.whole_max_length_m) -> dict:
     """Match detected markings to true ones (see the module docstring)."""
     xmin, ymin, xmax, ymax = bounds
 
@@ -111,7 +115,8 @@ def score(det, truth, bounds, border=2.0, min_visible=0.9) -> dict:
     dseg = np.array([[m.x0, m.y0, m.x1, m.y1] for m in det], float).reshape(-1, 4)
     tx = np.array([m.x for m in truth])
     ty = np.array([m.y for m in truth])
-    cont = np.array([bool(m.extra.get("continuous")) for m in truth], bool)
+    cont = np.array([bool(m.extra.get("continuous")) or m.length_m > whole_max_length_m
+                     for m in truth], bool)
     vis = np.array([float(m.extra.get("visible", 1.0)) for m in truth])
     counted = inside(tx, ty) & (vis >= min_visible)
     det_ok = np.zeros(len(det), bool)
