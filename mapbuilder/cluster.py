@@ -143,6 +143,8 @@ class ClusterParams:
             raise ValueError(f"link_m must be >= 0, got {self.link_m}")
         if self.join_gap_m < 0:
             raise ValueError(f"join_gap_m must be >= 0, got {self.join_gap_m}")
+        if not 0.0 < self.verify_threshold < 1.0:
+            raise ValueError(f"verify_threshold must be in (0, 1), got {self.verify_threshold}")
 
 
 @dataclass

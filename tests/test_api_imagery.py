@@ -142,6 +142,8 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
                    422, "verify")  # fmt: skip
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
                               "tile_px": 8}, headers=api.auth), 422, "tile_px")  # fmt: skip
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
+                              "verify_threshold": 1.5}, headers=api.auth), 422, "verify_threshold")  # fmt: skip
 
 
 def test_cancel_a_waiting_job_and_restart_resumes_interrupted_ones(tmp_path):

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from mapbuilder import synth
 from mapbuilder.build import BuildError, BuildParams, build_map
+from mapbuilder.cluster import ClusterParams
 from mapbuilder.model import Marking
 from mapbuilder.raster import ImageryError
 from mapbuilder.store import Change, Store
@@ -358,6 +359,7 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
         (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier",
           str(tmp_path / "none.onnx")], "verifier"),
         (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier", str(bad)], "model"),
+        (["build", str(USGS_BASE), "--map", "m", "--verify-threshold", "1.5"], "verify_threshold"),
     ]:
         res = runner.invoke(app, args)
         assert res.exit_code == 1, (args, res.output)
@@ -371,6 +373,32 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
     assert err.strip().startswith("error: ") and "cannot open image" in err
     assert len(err.strip().splitlines()) == 1
     assert Store(url).find_jobs(kind="build") == []
+
+
+def test_cli_verify_threshold_trades_markings_and_is_recorded(tmp_path, monkeypatch):
+    """``--verify-threshold``: a stricter verifier keeps fewer markings of the USGS crop,
+    and the threshold is part of the job's parameters (a build resumes only with the
+    threshold it was started with)."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    url = f"sqlite:///{tmp_path / 'vt.sqlite'}"
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", url)
+    runner = CliRunner()
+    counts = {}
+    for map_id, extra in (("loose", ["--verify-threshold", "0.05"]), ("default", []),
+                          ("strict", ["--verify-threshold", "0.999"])):
+        res = runner.invoke(app, ["build", str(USGS_BASE), "--map", map_id, "--no-progress", *extra])
+        assert res.exit_code == 0, res.output
+        store = Store(url)
+        counts[map_id] = len(list(store.iter_markings(map_id)))
+        (job,) = store.find_jobs(kind="build", map_id=map_id)
+        store.close()
+        want = float(extra[1]) if extra else ClusterParams.verify_threshold
+        assert job.params["params"]["cluster"]["verify_threshold"] == want
+    assert counts["loose"] > counts["default"] > counts["strict"], counts
+    assert counts["default"] >= 4  # the four visible stall lines
 
 
 @pytest.fixture(scope="module")

@@ -46,6 +46,10 @@ def build(
     verifier: Optional[Path] = typer.Option(
         None, "--verifier", help="ONNX cluster verifier (default: the one shipped with lanemap)."
     ),
+    verify_threshold: float = typer.Option(
+        ClusterParams.verify_threshold, "--verify-threshold",
+        help="Verifier probability a marking needs to be kept: lower keeps more (recall), "
+        "higher drops more (precision)."),
     restart: bool = typer.Option(
         False, "--restart", help="Start afresh instead of resuming an unfinished build."
     ),
@@ -72,7 +76,8 @@ def build(
             tile_px=tile_px,
             halo_m=halo_m,
             model=str(model) if model is not None else None,
-            cluster=ClusterParams(threshold=threshold, max_length_m=piece_m, verify=verify),
+            cluster=ClusterParams(threshold=threshold, max_length_m=piece_m, verify=verify,
+                                  verify_threshold=verify_threshold),
             verifier=str(verifier) if verifier is not None else None,
         )
     except ValueError as exc:
