@@ -78,12 +78,25 @@ def _etag_version(r: httpx.Response) -> int:
 
 
 def race(base_url: str, token: str, map_id: str, ids: list[str], *, clients: int = 20,
-         duration: float = 60.0, seed: int = 0, think_s: float = 0.005) -> RaceResult:  # fmt: skip
-    """``clients`` threads editing ``ids`` for ``duration`` seconds."""
+         duration: float = 60.0, seed: int = 0, think_s: float = 0.005,
+         min_accepted: int = 0, max_duration: float | None = None) -> RaceResult:  # fmt: skip
+    """``clients`` threads editing ``ids`` for ``duration`` seconds.
+
+    With ``min_accepted`` the race goes on past ``duration`` (up to
+    ``max_duration``, default four times ``duration``) until that many writes
+    were accepted: on a loaded machine a fixed few seconds may hold too few
+    writes to be a race at all.
+    """
     result = RaceResult()
     lock = threading.Lock()
     auth = {"Authorization": f"Bearer {token}"}
-    deadline = time.monotonic() + duration
+    t0 = time.monotonic()
+    deadline = t0 + duration
+    hard_deadline = t0 + (max_duration if max_duration is not None else 4 * duration)
+
+    def going() -> bool:
+        now = time.monotonic()
+        return now < deadline or (len(result.accepted) < min_accepted and now < hard_deadline)
 
     def note(kind: str, status: str, accepted: list[Accepted] = ()) -> None:
         with lock:
@@ -94,7 +107,7 @@ def race(base_url: str, token: str, map_id: str, ids: list[str], *, clients: int
         rng = random.Random(seed * 1000 + k)
         seq = 0
         with httpx.Client(base_url=base_url, headers=auth, timeout=60.0) as c:
-            while time.monotonic() < deadline:
+            while going():
                 seq += 1
                 tag = f"c{k}-{seq}"
                 roll = rng.random()

@@ -18,7 +18,8 @@ def test_concurrent_conditional_edits_lose_nothing(kind):
     map_id = api.new_map(prefix="race")
     with api.client(headers=api.auth) as c:
         ids = create_features(c, map_id, 4)
-    result = race(api.base_url, api.token, map_id, ids, clients=20, duration=4.0, seed=1)
+    result = race(api.base_url, api.token, map_id, ids, clients=20, duration=4.0, seed=1,
+                  min_accepted=20)
     problems = verify(api.base_url, map_id, ids, result)
     assert not problems, "\n".join(problems)
     # the race was real: writes were both accepted and rejected, of every kind
