@@ -31,10 +31,10 @@ class BuildIn(BaseModel):
     verify: bool = Field(
         True, description="Check each detected marking with the cluster verifier (a small CNN on an "
         "oriented crop around it); false keeps every cluster the pixel classifier finds")
-    verify_threshold: float | None = Field(
-        None, gt=0, lt=1,
-        description=f"Verifier probability a marking needs to be kept (default "
-        f"{ClusterParams.verify_threshold}): lower keeps more markings, higher drops more false ones")
+    verify_threshold: float = Field(
+        ClusterParams.verify_threshold, gt=0, lt=1,
+        description="Verifier probability a marking needs to be kept: lower keeps more markings, "
+        "higher drops more false ones")
 
 
 def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
@@ -92,9 +92,9 @@ def post_build(
                       "no-crs")  # fmt: skip
     try:
         threshold = body.threshold if body.threshold is not None else default_threshold(body.verify)
-        extra = {} if body.verify_threshold is None else {"verify_threshold": body.verify_threshold}
         params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m,
-                             cluster=ClusterParams(threshold=threshold, verify=body.verify, **extra))
+                             cluster=ClusterParams(threshold=threshold, verify=body.verify,
+                                                   verify_threshold=body.verify_threshold))
     except ValueError as exc:
         raise Problem(422, f"body: {exc}", "invalid-build") from None
     try:
