@@ -4,7 +4,9 @@ A probability image from the classifier becomes markings in three steps:
 
 1. :func:`label_pixels` thresholds it and groups the marking pixels into
    clusters (connected components, optionally joining pixels closer than a
-   link distance, the Euclidean clustering of Pink 2008).
+   link distance, the Euclidean clustering of Pink 2008);
+   :func:`split_junctions` cuts clusters where strokes of different
+   directions meet (a stall line and the line it ends on).
 2. :func:`split_long` cuts clusters longer than a piece length into pieces, so
    that the centroid of a long solid line is local. The cuts lie on a grid
    anchored in world coordinates along the cluster's (quantised) direction,
@@ -74,6 +76,11 @@ class ClusterParams:
         Largest difference of direction of clusters to join, degrees.
     join_offset_m : float
         Largest sideways offset of a facing end from the other cluster's axis, metres.
+    junction_angle_deg : float or None
+        Clusters that are not one straight stripe are cut where lines whose
+        directions differ by more than this meet (:func:`split_junctions`:
+        stall lines on the line or kerb they end at, a stop line and the lane
+        line beside it); None keeps them whole.
     verify : bool
         Check every cluster that passes the shape filter with the cluster
         verifier (by default the CNN on :func:`cluster_crops`; the earlier
@@ -102,9 +109,10 @@ class ClusterParams:
         cluster, and a gap or a car beside one end (stall lines between parked
         cars) can sink the whole. Like continuation, it keeps paint the
         verifier doubts in part; kerbs and car outlines are rejected along
-        their whole length. Only clusters narrower than ``whole_width_m`` (lines,
-        not stop lines) are checked again: on held-out renders the wide ones it
-        took back were mostly a marking merged with something beside it. 0
+        their whole length. Wide clusters are checked again too: blurred
+        stall lines measure 0.3–0.4 m wide and stay whole up to 8 m like stop
+        lines, and since junctions are cut (``junction_angle_deg``) a wide
+        cluster is seldom a marking merged with something beside it. 0
         disables it.
     """
 
@@ -123,6 +131,7 @@ class ClusterParams:
     join_gap_m: float = 0.6
     join_angle_deg: float = 12.0
     join_offset_m: float = 0.12
+    junction_angle_deg: float | None = 30.0
     verify: bool = False
     verify_threshold: float = 0.6
     verify_continuation: bool = True
@@ -388,8 +397,15 @@ def measure_clusters(
     return _measure(rows, cols, lab, prob[rows, cols], transform)
 
 
-def _components(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray) -> np.ndarray:
-    """8-connected parts of equal label among sparse pixels, as labels 0..m-1."""
+def _components(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray,
+                direction: np.ndarray | None = None, n_directions: int = 0,
+                direction_tol: int = 0) -> np.ndarray:
+    """8-connected parts of equal label among sparse pixels, as labels 0..m-1.
+
+    With ``direction`` (a bin 0..n_directions-1 per pixel, circular), two
+    neighbours are connected only when their bins differ by at most
+    ``direction_tol``.
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -405,12 +421,196 @@ def _components(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray) -> np.ndarr
         pos[pos == n] = 0
         j = order[pos]
         hit = (skey[pos] == nkey) & (lab[j] == lab)
+        if direction is not None:
+            diff = np.abs(direction[j] - direction)
+            hit &= np.minimum(diff, n_directions - diff) <= direction_tol
         src.append(np.flatnonzero(hit))
         dst.append(j[hit])
     src, dst = np.concatenate(src), np.concatenate(dst)
     graph = coo_matrix((np.ones(src.size, np.int8), (src, dst)), shape=(n, n))
     _, parts = connected_components(graph, directed=False)
     return parts
+
+
+def _direction_bins(rows: np.ndarray, cols: np.ndarray, mask: np.ndarray, reach_px: int,
+                    n_directions: int, max_across_px: float,
+                    ratio: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Direction of the longest straight run of ``mask`` through each pixel.
+
+    For each of ``n_directions`` directions over 180 degrees, counts the
+    consecutive mask pixels from each given pixel both ways, up to
+    ``reach_px`` each way; the direction with the longest run (smoothed over
+    neighbouring directions, so that ties between them take the middle) is
+    returned as a bin 0..n_directions-1, with a flag: True where that run is
+    at least ``ratio`` times the run across it (plus one) and the run across
+    is at most ``max_across_px``, and the stroke runs on beyond ``reach_px``
+    in total (not so in a blob's corner): the pixel clearly lies on one
+    stroke no wider than a marking. Not so in wide blobs (a car roof), in
+    the corners of wide strokes and where two long strokes cross. Rounded
+    sample positions follow a thin line only roughly, so the caller passes
+    the marking mask dilated by one pixel, with a margin of ``reach_px``
+    around every pixel.
+    """
+    runs = np.zeros((n_directions, rows.size), np.float32)
+    for t in range(n_directions):
+        a = math.pi * t / n_directions
+        sr, sc = -math.sin(a), math.cos(a)
+        for sign in (1.0, -1.0):
+            alive = np.ones(rows.size, bool)
+            for step in range(1, reach_px + 1):
+                rr = np.rint(rows + sign * step * sr).astype(np.intp)
+                cc = np.rint(cols + sign * step * sc).astype(np.intp)
+                alive &= mask[rr, cc]
+                runs[t] += alive
+    smooth = 2.0 * runs + np.roll(runs, 1, axis=0) + np.roll(runs, -1, axis=0)
+    best = np.argmax(smooth, axis=0)
+    i = np.arange(rows.size)
+    across = runs[(best + n_directions // 2) % n_directions, i]
+    along = runs[best, i]
+    clear = (along >= ratio * (across + 1.0)) & (across <= max_across_px) & (along > reach_px)
+    return best, clear
+
+
+def _adopt_neighbours(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray, bins: np.ndarray,
+                      n_directions: int, part: np.ndarray, assigned: np.ndarray,
+                      passes: int) -> np.ndarray:
+    """Give unassigned pixels the ``part`` of an assigned 8-neighbour of equal ``lab``.
+
+    In each pass every unassigned pixel next to an assigned one takes the part
+    of the neighbour nearest to it in direction bin (the first in a fixed
+    neighbour order on ties), so the result depends on the pixels' layout
+    only. Modifies ``part`` in place; returns which pixels have a part now.
+    """
+    width = int(cols.max()) + 3
+    key = (rows.astype(np.int64) + 1) * width + (cols.astype(np.int64) + 1)
+    order = np.argsort(key)
+    skey = key[order]
+    assigned = assigned.copy()
+    for _ in range(passes):
+        todo = np.flatnonzero(~assigned)
+        if todo.size == 0:
+            break
+        best = np.full(todo.size, n_directions + 1)
+        new = np.full(todo.size, -1, part.dtype)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr == 0 and dc == 0:
+                    continue
+                nkey = key[todo] + dr * width + dc
+                pos = np.minimum(np.searchsorted(skey, nkey), skey.size - 1)
+                j = order[pos]
+                ok = (skey[pos] == nkey) & assigned[j] & (lab[j] == lab[todo])
+                diff = np.abs(bins[j] - bins[todo])
+                diff = np.minimum(diff, n_directions - diff)
+                better = ok & (diff < best)
+                best[better] = diff[better]
+                new[better] = part[j[better]]
+        got = new >= 0
+        if not got.any():
+            break
+        part[todo[got]] = new[got]
+        assigned[todo[got]] = True
+    return assigned
+
+
+def split_junctions(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    lab: np.ndarray,
+    shape: tuple[int, int],
+    resolution_m: float,
+    angle_deg: float = 30.0,
+    min_spread_m: float = 0.7,
+    reach_m: float = 0.8,
+    n_directions: int = 16,
+    max_width_m: float = 0.6,
+) -> np.ndarray:
+    """Cut clusters where lines of different directions meet.
+
+    A stall line ends on the painted or kerb line it meets, a stop line on
+    the lane line beside it: the pixel classifier joins them into one
+    cluster whose centroid lies on neither, and the verifier judges the
+    combined shape. Every pixel of a cluster that is not a straight stripe
+    (its pixels spread across its major axis by more than ``min_spread_m``,
+    which no single marking is) takes the direction of the longest straight
+    run of marking pixels through it (:func:`_direction_bins`, within
+    ``reach_m``), and the cluster is re-split into 8-connected parts whose
+    neighbouring pixels differ in direction by less than ``angle_deg``.
+    A gently curved line changes direction little from pixel to pixel and
+    stays whole; at a junction the pixels take the direction of the line
+    that runs through. Directions come from the mask within ``reach_m`` of a
+    pixel only, so tiles that overlap by more than that cut alike.
+
+    Parameters
+    ----------
+    rows, cols, lab : ndarray
+        Marking pixels (array indices) and their cluster labels (> 0).
+    shape : (int, int)
+        Shape of the array the pixels index.
+    resolution_m : float
+        Metres per pixel.
+    max_width_m : float
+        Widest stroke, metres: wider blobs (a car roof) are not cut into strips.
+
+    Returns
+    -------
+    ndarray
+        New labels for the pixels, 1..m.
+    """
+    lab = lab.astype(np.int64, copy=True)
+    if lab.size == 0:
+        return lab
+    k = int(lab.max()) + 1
+    x = cols + 0.5
+    y = rows + 0.5
+    n, _, _, dx, dy, ux, uy = _moments(lab, x, y, k)
+    spread = np.sqrt(12.0 * _minor_var(lab, dx, dy, ux, uy, n, k)) * resolution_m
+    branched = spread > min_spread_m
+    branched[0] = False
+    if not branched.any():
+        return lab
+    sel = np.flatnonzero(branched[lab])
+    r, c = rows[sel], cols[sel]
+    # the selected clusters' pixels, dilated by one pixel, in their bounding
+    # box with room for every sample position
+    reach_px = max(2, int(round(reach_m / resolution_m)))
+    pad = reach_px + 2
+    r0, c0 = int(r.min()) - pad, int(c.min()) - pad
+    mask = np.zeros((int(r.max()) - r0 + pad + 1, int(c.max()) - c0 + pad + 1), bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            mask[r - r0 + dr, c - c0 + dc] = True
+    bins, clear = _direction_bins(r - r0, c - c0, mask, reach_px, n_directions,
+                                  max_width_m / resolution_m + 1.0)
+    tol = int(angle_deg / (180.0 / n_directions))
+    # Strokes are grown from the pixels whose direction is clear; pixels
+    # whose direction is not (a chain of them could bridge two strokes at
+    # any angle) then join the stroke of a neighbour, nearest in direction first.
+    ls = lab[sel]
+    part = _components(r, c, np.where(clear, ls, -1 - np.arange(ls.size)), bins,
+                       n_directions, tol)
+    # pixels farther from any clear pixel than half a marking's width are no
+    # part of a stroke through it
+    passes = int(math.ceil(0.5 * max_width_m / resolution_m)) + 1
+    done = _adopt_neighbours(r, c, ls, bins, n_directions, part, clear, passes=passes)
+    if not done.all():
+        # pixels no clear stroke reached (a blob without one) stay together
+        left = np.flatnonzero(~done)
+        part[left] = part.max() + 1 + _components(r[left], c[left], ls[left])
+    # A cut stands only where it leaves two strokes or more (a car roof's
+    # corners look like strokes too, but it yields no two long thin parts).
+    m = int(part.max()) + 1
+    pn, _, _, pdx, pdy, pux, puy = _moments(part, c + 0.5, r + 0.5, m)
+    smin, smax = _extent(part, pdx * pux[part] + pdy * puy[part], m)
+    plen = (smax - smin + 1.0) * resolution_m
+    pwidth = pn * resolution_m ** 2 / plen
+    stroke = (plen >= 1.0) & (plen >= 3.0 * pwidth)
+    ids, at = np.unique(part, return_index=True)
+    strokes = np.bincount(ls[at], stroke[ids], k)  # each part lies in one cluster
+    cut = strokes[ls] >= 2
+    lab[sel[cut]] = k + part[cut]
+    _, dense = np.unique(lab, return_inverse=True)
+    return dense.reshape(-1) + 1
 
 
 def _split_sparse(
@@ -1049,6 +1249,9 @@ def detect_markings(
     if idx.size == 0:
         return Clusters.empty()
     rows, cols = np.divmod(idx, labels.shape[1])
+    if params.junction_angle_deg is not None:
+        lab = split_junctions(rows, cols, lab, labels.shape, res, params.junction_angle_deg,
+                              max_width_m=params.max_width_m)
     if params.join_gap_m > 0:
         lab = join_collinear(rows, cols, lab, transform, params.join_gap_m,
                              params.join_angle_deg, params.join_offset_m)
@@ -1070,8 +1273,7 @@ def detect_markings(
         keep = p > params.verify_threshold
         if params.verify_halves_m > 0 and hasattr(verifier, "predict_clusters"):
             keep |= halves_accepted(clusters, ~keep, verifier, rgb, valid, transform, prob,
-                                    params.verify_halves_m, params.verify_threshold,
-                                    params.whole_width_m)
+                                    params.verify_halves_m, params.verify_threshold)
         if params.verify_continuation:
             keep = continues_accepted(clusters, keep)
         clusters = clusters.take(keep)

@@ -209,9 +209,12 @@ def test_a_hairpin_is_cut_into_single_strokes():
     _draw(img, t, X0 + 14.95, Y0 - 6.4, 0.95, 0.15, 0)   # the bend joining the legs
     c = detect_markings(img, None, t, ClusterParams(min_length_m=0.1, min_area_m2=0.005))
     assert len(c) >= 7
-    legs = c.width_m < 0.3
-    assert legs.sum() >= len(c) - 1
+    legs = (c.width_m < 0.3) & (_angle_diff(c.bearing_deg, 90.0) < 5.0)
     assert set(np.round(c.y[legs] - Y0, 1)) <= {-6.0, -6.8}
+    # what is not a piece of a leg is the bend, a stroke of its own
+    bend = ~legs
+    assert bend.sum() <= 1
+    assert np.all(np.abs(c.x[bend] - (X0 + 14.95)) < 0.1)
 
 
 def test_hysteresis_keeps_faint_parts_attached_to_a_marking():
@@ -387,3 +390,105 @@ def test_long_clusters_rejected_in_the_middle_are_checked_on_their_halves():
     # context verifiers are not asked
     v.kind = "context"
     assert not halves_accepted(c, np.ones(len(c), bool), v, rgb, None, t, prob).any()
+
+
+def _comb(res):
+    """A 14 m line (bearing 90°) with four 3.4 m stall lines ending on it at 60° to it."""
+    t = _grid(res)
+    img = np.zeros((int(12 / res), int(24 / res)), np.float32)
+    _draw(img, t, X0 + 12, Y0 - 9, 14.0, 0.12, 90.0)
+    b = math.radians(30.0)
+    u = np.array([math.sin(b), math.cos(b)])
+    stalls = []
+    for i in range(4):
+        end = np.array([X0 + 7 + 3 * i, Y0 - 9])
+        c = end + 1.7 * u
+        _draw(img, t, c[0], c[1], 3.4, 0.12, 30.0)
+        stalls.append(c)
+    return t, img, np.array(stalls)
+
+
+def test_lines_meeting_at_a_junction_are_separate_markings():
+    """Stall lines that end on a line are one cluster with it until the junction is cut."""
+    from mapbuilder.cluster import split_junctions
+
+    res = 0.1
+    t, img, stalls = _comb(res)
+    params = ClusterParams(min_length_m=0.3)
+    c = detect_markings(img, None, t, params)
+    d = np.hypot(c.x[:, None] - stalls[:, 0], c.y[:, None] - stalls[:, 1])
+    near = d.argmin(axis=0)
+    assert d.min(axis=0).max() < 0.15
+    assert _angle_diff(c.bearing_deg[near], 30.0).max() < 3.0
+    assert np.all(c.length_m[near] > 3.1) and np.all(c.length_m[near] < 3.6)
+    # the line they end on is still found along its whole length
+    on_line = (np.abs(c.y - (Y0 - 9)) < 0.1) & (_angle_diff(c.bearing_deg, 90.0) < 3.0)
+    assert c.length_m[on_line].sum() == pytest.approx(14.0, abs=0.5)
+    # without the junction cut the stall lines are lost in the comb's pieces
+    whole = detect_markings(img, None, t, ClusterParams(min_length_m=0.3,
+                                                        junction_angle_deg=None))
+    dw = np.hypot(whole.x[:, None] - stalls[:, 0], whole.y[:, None] - stalls[:, 1])
+    assert dw.min(axis=0).max() > 0.5
+    # the labels themselves: one comb in; out, each stall line one part of its own
+    labels, n = label_pixels(img)
+    assert n == 1
+    rows, cols = np.nonzero(labels)
+    lab = split_junctions(rows, cols, labels[rows, cols], labels.shape, res)
+    for cx, cy in stalls:
+        one = np.zeros_like(img)
+        _draw(one, t, cx, cy, 3.4, 0.12, 30.0)
+        mine = one[rows, cols] > 0
+        part = np.bincount(lab[mine]).argmax()
+        assert (lab[mine] == part).mean() > 0.9
+        assert (mine[lab == part]).mean() > 0.9
+
+
+def test_a_stop_line_meeting_a_lane_line_keeps_its_own_centroid():
+    res = 0.1
+    t = _grid(res)
+    img = np.zeros((250, 300), np.float32)
+    _draw(img, t, X0 + 15, Y0 - 20, 26.0, 0.15, 0.0)  # lane line, north-south
+    _draw(img, t, X0 + 15 + 3.0 + 0.07, Y0 - 12, 6.0, 0.5, 90.0)  # stop line ending on it
+    c = detect_markings(img, None, t)
+    stop = np.flatnonzero(c.width_m > 0.3)
+    assert len(stop) == 1
+    i = stop[0]
+    assert c.x[i] == pytest.approx(X0 + 18.07, abs=0.1)
+    assert c.y[i] == pytest.approx(Y0 - 12, abs=0.03)
+    assert c.length_m[i] == pytest.approx(6.0, abs=0.25)
+    whole = detect_markings(img, None, t, ClusterParams(junction_angle_deg=None))
+    assert not np.any((np.abs(whole.x - (X0 + 18.07)) < 0.1) & (np.abs(whole.y - (Y0 - 12)) < 0.03)
+                      & (whole.width_m > 0.3))
+
+
+def test_curves_and_straight_stripes_are_not_cut_at_junctions():
+    from mapbuilder.cluster import split_junctions
+
+    res = 0.1
+    img = np.zeros((260, 260), np.float32)
+    # a quarter circle of radius 15 m, 0.15 m wide; a wide straight stop line
+    yy, xx = np.mgrid[0:260, 0:260] * res
+    r = np.hypot(xx - 1.0, yy - 1.0)
+    img[(np.abs(r - 15.0) < 0.075) & (xx > 1.0) & (yy > 1.0)] = 1.0
+    img[200:205, 40:100] = 1.0
+    labels, n = label_pixels(img)
+    assert n == 2
+    rows, cols = np.nonzero(labels)
+    lab = split_junctions(rows, cols, labels[rows, cols], labels.shape, res)
+    # the same two clusters (labels may be numbered differently)
+    assert lab.max() == 2
+    assert len(set(zip(lab.tolist(), labels[rows, cols].tolist()))) == 2
+
+
+def test_junction_cuts_do_not_depend_on_the_window():
+    res = 0.1
+    t, img, stalls = _comb(res)
+    params = ClusterParams(min_length_m=0.3)
+    a = detect_markings(img[:, :150], None, t, params)
+    b = detect_markings(img[:, 60:], None, t @ Affine.translation(60, 0), params)
+    # the second stall line (x 10–12 m) lies well inside both windows
+    sel_a = np.hypot(a.x - stalls[1, 0], a.y - stalls[1, 1]) < 0.3
+    sel_b = np.hypot(b.x - stalls[1, 0], b.y - stalls[1, 1]) < 0.3
+    assert sel_a.sum() == 1 and sel_b.sum() == 1
+    assert a.x[sel_a][0] == pytest.approx(b.x[sel_b][0], abs=1e-9)
+    assert a.weight[sel_a][0] == b.weight[sel_b][0]
