@@ -30,8 +30,8 @@ Overlays of detections on the imagery and the figures go to
 Usage::
 
     .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx] [--verify]
-        [--verifier V.onnx] [--threshold T] [--verify-threshold T] [--no-continuation]
-        [--halves-m M] [--seed S]
+        [--verifier V.onnx] [--threshold T] [--threshold-low T | --no-hysteresis]
+        [--verify-threshold T] [--no-continuation] [--halves-m M] [--seed S]
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ import numpy as np
 import rasterio
 from scipy.optimize import linear_sum_assignment
 
-from mapbuilder.build import BuildParams, build_map
+from mapbuilder.build import BuildParams, build_map, default_threshold_low
 from mapbuilder.classify import load_verifier
 from mapbuilder.cluster import CNN_PIXEL_THRESHOLD, ClusterParams
 from mapbuilder.lanelet2 import read_lanelet2
@@ -227,7 +227,9 @@ def main() -> None:
     ap.add_argument("--min-length", type=float, default=ClusterParams.min_length_m)
     ap.add_argument("--min-area", type=float, default=ClusterParams.min_area_m2)
     ap.add_argument("--link", type=float, default=ClusterParams.link_m)
-    ap.add_argument("--threshold-low", type=float, default=ClusterParams.threshold_low)
+    ap.add_argument("--threshold-low", type=float, default=None,
+                    help="hysteresis threshold (default: as lanemap build, 0.05 with --verify)")
+    ap.add_argument("--no-hysteresis", action="store_true", help="no hysteresis threshold")
     ap.add_argument("--join-gap", type=float, default=ClusterParams.join_gap_m)
     ap.add_argument("--verify-threshold", type=float, default=ClusterParams.verify_threshold)
     ap.add_argument("--verify", action="store_true",
@@ -245,6 +247,10 @@ def main() -> None:
         args.threshold = ClusterParams.threshold
         if args.verify and load_verifier(args.verifier).kind == "crops":
             args.threshold = CNN_PIXEL_THRESHOLD
+    if args.no_hysteresis:
+        args.threshold_low = None
+    elif args.threshold_low is None:
+        args.threshold_low = default_threshold_low(args.verify, args.verifier, args.threshold)
     cluster = ClusterParams(threshold=args.threshold, min_length_m=args.min_length,
                             min_area_m2=args.min_area, link_m=args.link,
                             threshold_low=args.threshold_low, join_gap_m=args.join_gap,

@@ -37,7 +37,7 @@ from rasterio.transform import from_origin
 from rasterio.windows import Window
 
 from mapbuilder import synth
-from mapbuilder.build import BuildParams, build_map, default_threshold
+from mapbuilder.build import BuildParams, build_map, default_threshold, default_threshold_low
 from mapbuilder.cluster import ClusterParams
 from mapbuilder.raster import inspect_imagery, make_reader
 from mapbuilder.store import Store
@@ -140,6 +140,8 @@ def main() -> None:
     ap.add_argument("--verify", action=argparse.BooleanOptionalAction, default=None,
                     help="check clusters with the cluster verifier (default: yes, as lanemap build)")
     ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
+    ap.add_argument("--hysteresis", action=argparse.BooleanOptionalAction, default=True,
+                    help="hysteresis at the build's default low threshold (default: yes)")
     args = ap.parse_args()
 
     OUT.mkdir(parents=True, exist_ok=True)
@@ -149,8 +151,12 @@ def main() -> None:
     # The defaults of `lanemap build`: verified clusters at the verifier's threshold.
     verify = True if args.verify is None else args.verify
     threshold = args.threshold if args.threshold is not None else default_threshold(verify, args.verifier)
+    threshold_low = (default_threshold_low(verify, args.verifier, threshold)
+                     if args.hysteresis else None)
     params = BuildParams(tile_px=args.tile_size, model=args.model,
-                         cluster=ClusterParams(threshold=threshold, verify=verify), verifier=args.verifier)
+                         cluster=ClusterParams(threshold=threshold, threshold_low=threshold_low,
+                                               verify=verify),
+                         verifier=args.verifier)
 
     load_before = os.getloadavg()
     # In a child process, so that its memory does not count against the build.

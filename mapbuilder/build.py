@@ -188,6 +188,8 @@ class BuildResult:
         Whether the cluster verifier checked the detections.
     threshold : float or None
         The pixel threshold of the build.
+    threshold_low : float or None
+        Its hysteresis threshold (pixels above it joined to a marking), if any.
     """
 
     map_id: str
@@ -204,6 +206,7 @@ class BuildResult:
     cpu_seconds: float = 0.0
     verified: bool = False
     threshold: float | None = None
+    threshold_low: float | None = None
 
     @property
     def mpx_per_s(self) -> float:
@@ -213,6 +216,8 @@ class BuildResult:
         resumed = f", {self.tiles_skipped} resumed" if self.tiles_skipped else ""
         check = "verified" if self.verified else "not verified"
         at = f" at pixel threshold {self.threshold:g}" if self.threshold is not None else ""
+        if at and self.threshold_low is not None:
+            at += f" (hysteresis {self.threshold_low:g})"
         return (
             f"map {self.map_id}: {self.markings} markings from {self.tiles_run} tiles"
             f"{resumed} of {len(self.images)} image(s), {self.megapixels:.1f} Mpx in "
@@ -336,6 +341,46 @@ def default_threshold(verify: bool, verifier: str | os.PathLike | None = None) -
 
     kind = load_verifier(None if verifier is None else str(verifier)).kind
     return CNN_PIXEL_THRESHOLD if kind == "crops" else ClusterParams.threshold
+
+
+def default_threshold_low(verify: bool, verifier: str | os.PathLike | None = None,
+                          threshold: float | None = None) -> float | None:
+    """The hysteresis threshold a build uses unless told otherwise.
+
+    Parameters
+    ----------
+    verify : bool
+        Whether the cluster verifier checks the clusters.
+    verifier : path-like or None
+        The verifier file (None: the one shipped with lanemap).
+    threshold : float or None
+        The build's pixel threshold (None: :func:`default_threshold`).
+
+    Returns
+    -------
+    float or None
+        :data:`mapbuilder.cluster.CNN_PIXEL_THRESHOLD_LOW` when a CNN verifier
+        checks the clusters and it lies below ``threshold``; None (no
+        hysteresis) otherwise: without the verifier, what faint pixels add to
+        a cluster is not checked by anything.
+
+    Raises
+    ------
+    mapbuilder.classify.ModelError
+        If the verifier file cannot be loaded.
+    """
+    from .cluster import CNN_PIXEL_THRESHOLD_LOW
+
+    if not verify:
+        return None
+    if threshold is None:
+        threshold = default_threshold(verify, verifier)
+    from .classify import load_verifier
+
+    kind = load_verifier(None if verifier is None else str(verifier)).kind
+    if kind != "crops" or threshold <= CNN_PIXEL_THRESHOLD_LOW:
+        return None
+    return CNN_PIXEL_THRESHOLD_LOW
 
 
 def _verifier(cluster: ClusterParams, path: str | None):
@@ -811,6 +856,7 @@ def build_map(
         cpu_seconds=cpu,
         verified=params.cluster.verify,
         threshold=params.cluster.threshold,
+        threshold_low=params.cluster.threshold_low,
     )
     log.info("%s", result.summary())
     return result

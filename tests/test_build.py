@@ -317,11 +317,12 @@ def test_killed_build_resumes_without_duplicates(big_scene, tmp_path):
     assert len(store.done_tiles(job.id)) == n_total
 
     # The same build as the command line's defaults (verified clusters), uninterrupted.
-    from mapbuilder.build import default_threshold
+    from mapbuilder.build import default_threshold, default_threshold_low
     from mapbuilder.cluster import ClusterParams
 
-    ref = build_map(store, "ref", [big_scene.path],
-                    BuildParams(tile_px=96, cluster=ClusterParams(threshold=default_threshold(True), verify=True)),
+    cluster = ClusterParams(threshold=default_threshold(True),
+                            threshold_low=default_threshold_low(True), verify=True)
+    ref = build_map(store, "ref", [big_scene.path], BuildParams(tile_px=96, cluster=cluster),
                     workers=1, progress=False)
     resumed = sorted((round(m.x, 6), round(m.y, 6), m.weight, m.tile_key)
                      for m in _detected(store, "m"))
@@ -360,6 +361,7 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
           str(tmp_path / "none.onnx")], "verifier"),
         (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier", str(bad)], "model"),
         (["build", str(USGS_BASE), "--map", "m", "--verify-threshold", "1.5"], "verify_threshold"),
+        (["build", str(USGS_BASE), "--map", "m", "--threshold-low", "0.3"], "threshold_low"),
     ]:
         res = runner.invoke(app, args)
         assert res.exit_code == 1, (args, res.output)
@@ -399,6 +401,36 @@ def test_cli_verify_threshold_trades_markings_and_is_recorded(tmp_path, monkeypa
         assert job.params["params"]["cluster"]["verify_threshold"] == want
     assert counts["loose"] > counts["default"] > counts["strict"], counts
     assert counts["default"] >= 4  # the four visible stall lines
+
+
+def test_cli_hysteresis_grows_markings_and_is_recorded(tmp_path, monkeypatch):
+    """A verified build keeps the faint pixels connected to a marking (hysteresis at
+    0.05) unless told not to: the USGS stall lines come out with more pixels, and the
+    low threshold is part of the job's parameters."""
+    from typer.testing import CliRunner
+
+    from mapbuilder.cluster import CNN_PIXEL_THRESHOLD_LOW
+    from service.cli import app
+
+    url = f"sqlite:///{tmp_path / 'hy.sqlite'}"
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", url)
+    runner = CliRunner()
+    weight, lows = {}, {}
+    for map_id, extra in (("default", []), ("off", ["--no-hysteresis"]),
+                          ("given", ["--threshold-low", "0.1"]),
+                          ("unverified", ["--no-verify"])):
+        res = runner.invoke(app, ["build", str(USGS_BASE), "--map", map_id, "--no-progress", *extra])
+        assert res.exit_code == 0, res.output
+        store = Store(url)
+        marks = list(store.iter_markings(map_id))
+        (job,) = store.find_jobs(kind="build", map_id=map_id)
+        store.close()
+        weight[map_id] = (len(marks), sum(m.weight for m in marks))
+        lows[map_id] = job.params["params"]["cluster"]["threshold_low"]
+    assert lows == {"default": CNN_PIXEL_THRESHOLD_LOW, "off": None, "given": 0.1,
+                    "unverified": None}
+    assert weight["default"][0] >= 4 and weight["off"][0] >= 4
+    assert weight["default"][1] > 1.1 * weight["off"][1], weight
 
 
 @pytest.fixture(scope="module")

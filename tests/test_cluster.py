@@ -197,6 +197,9 @@ def test_bad_params_are_rejected():
         ClusterParams(threshold=1.5)
     with pytest.raises(ValueError, match="width"):
         ClusterParams(min_width_m=0.7)
+    for low in (0.0, 0.2, 0.3):
+        with pytest.raises(ValueError, match="threshold_low"):
+            ClusterParams(threshold=0.2, threshold_low=low)
 
 
 def test_a_hairpin_is_cut_into_single_strokes():

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from mapbuilder.build import BuildParams, build_map, default_threshold
+from mapbuilder.build import BuildParams, build_map, default_threshold, default_threshold_low
 from mapbuilder.cluster import ClusterParams
 
 from ..cli_errors import fail
@@ -34,6 +34,14 @@ def build(
     threshold: Optional[float] = typer.Option(
         None, help="Marking probability threshold (default: 0.2 with the shipped CNN "
         "verifier, the threshold it was trained at; 0.5 with --no-verify)."),
+    threshold_low: Optional[float] = typer.Option(
+        None, "--threshold-low",
+        help="Hysteresis: pixels above this join a marking that has pixels above --threshold, "
+        "so faint stretches and ends of a line stay with it (default: 0.05 with the shipped "
+        "CNN verifier; off with --no-verify)."),
+    hysteresis: bool = typer.Option(
+        True, "--hysteresis/--no-hysteresis",
+        help="--no-hysteresis keeps only the pixels above --threshold."),
     piece_m: float = typer.Option(
         3.0, "--piece-length", help="Long markings are cut into pieces of this length, metres."
     ),
@@ -64,19 +72,24 @@ def build(
     """
     from mapbuilder.store import Store
 
-    if threshold is None:
-        from mapbuilder.classify import ModelError
+    from mapbuilder.classify import ModelError
 
-        try:
+    try:
+        if threshold is None:
             threshold = default_threshold(verify, verifier)
-        except ModelError as exc:
-            fail(str(exc))
+        if threshold_low is None and hysteresis:
+            threshold_low = default_threshold_low(verify, verifier, threshold)
+    except ModelError as exc:
+        fail(str(exc))
+    if not hysteresis:
+        threshold_low = None
     try:
         params = BuildParams(
             tile_px=tile_px,
             halo_m=halo_m,
             model=str(model) if model is not None else None,
-            cluster=ClusterParams(threshold=threshold, max_length_m=piece_m, verify=verify,
+            cluster=ClusterParams(threshold=threshold, threshold_low=threshold_low,
+                                  max_length_m=piece_m, verify=verify,
                                   verify_threshold=verify_threshold),
             verifier=str(verifier) if verifier is not None else None,
         )

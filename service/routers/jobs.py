@@ -28,6 +28,11 @@ class BuildIn(BaseModel):
     threshold: float | None = Field(
         None, gt=0, lt=1,
         description="Marking probability threshold (default: 0.2 when verifying, 0.5 when not)")
+    threshold_low: float | None = Field(
+        None, gt=0, lt=1,
+        description="Hysteresis: pixels above this join a marking that has pixels above "
+        "`threshold` (default: 0.05 when verifying with the shipped CNN verifier)")
+    hysteresis: bool = Field(True, description="false keeps only the pixels above `threshold`")
     verify: bool = Field(
         True, description="Check each detected marking with the cluster verifier (a small CNN on an "
         "oriented crop around it); false keeps every cluster the pixel classifier finds")
@@ -77,7 +82,7 @@ def post_build(
     ctx: Context = Depends(get_ctx),
     who: str = Depends(require_write),
 ):
-    from mapbuilder.build import BuildParams, default_threshold
+    from mapbuilder.build import BuildParams, default_threshold, default_threshold_low
 
     info = ctx.store.get_map(mapId)
     imagery_id = parse_id(body.imagery, "imagery")
@@ -92,8 +97,14 @@ def post_build(
                       "no-crs")  # fmt: skip
     try:
         threshold = body.threshold if body.threshold is not None else default_threshold(body.verify)
+        threshold_low = body.threshold_low
+        if not body.hysteresis:
+            threshold_low = None
+        elif threshold_low is None:
+            threshold_low = default_threshold_low(body.verify, None, threshold)
         params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m,
-                             cluster=ClusterParams(threshold=threshold, verify=body.verify,
+                             cluster=ClusterParams(threshold=threshold, threshold_low=threshold_low,
+                                                   verify=body.verify,
                                                    verify_threshold=body.verify_threshold))
     except ValueError as exc:
         raise Problem(422, f"body: {exc}", "invalid-build") from None
