@@ -190,6 +190,7 @@ def main() -> None:
             2 * mpx / max(result.cpu_seconds + parent_cpu, 1e-9), 2),
         "markings": result.markings,
         "threshold": params.cluster.threshold,
+        "threshold_low": params.cluster.threshold_low,
         "verify": params.cluster.verify,
         "verifier": Path(params.verifier).name if params.verifier else None,
         "tile_cpu_share": {k: round(v / max(sum(result.timings.values()), 1e-9), 3)

@@ -311,6 +311,15 @@ def _model(spec):
     return model
 
 
+def _cnn_verified(verify: bool, verifier: str | os.PathLike | None) -> bool:
+    """Whether a CNN verifier (one on crops) checks the clusters of a build."""
+    if not verify:
+        return False
+    from .classify import load_verifier
+
+    return load_verifier(None if verifier is None else str(verifier)).kind == "crops"
+
+
 def default_threshold(verify: bool, verifier: str | os.PathLike | None = None) -> float:
     """The pixel threshold a build uses unless told otherwise.
 
@@ -335,52 +344,28 @@ def default_threshold(verify: bool, verifier: str | os.PathLike | None = None) -
     """
     from .cluster import CNN_PIXEL_THRESHOLD
 
-    if not verify:
-        return ClusterParams.threshold
-    from .classify import load_verifier
-
-    kind = load_verifier(None if verifier is None else str(verifier)).kind
-    return CNN_PIXEL_THRESHOLD if kind == "crops" else ClusterParams.threshold
+    return CNN_PIXEL_THRESHOLD if _cnn_verified(verify, verifier) else ClusterParams.threshold
 
 
 def default_threshold_low(verify: bool, verifier: str | os.PathLike | None = None,
                           threshold: float | None = None) -> float | None:
     """The hysteresis threshold a build uses unless told otherwise.
 
-    Parameters
-    ----------
-    verify : bool
-        Whether the cluster verifier checks the clusters.
-    verifier : path-like or None
-        The verifier file (None: the one shipped with lanemap).
-    threshold : float or None
-        The build's pixel threshold (None: :func:`default_threshold`).
-
-    Returns
-    -------
-    float or None
-        :data:`mapbuilder.cluster.CNN_PIXEL_THRESHOLD_LOW` when a CNN verifier
-        checks the clusters and it lies below ``threshold``; None (no
-        hysteresis) otherwise: without the verifier, what faint pixels add to
-        a cluster is not checked by anything.
-
-    Raises
-    ------
-    mapbuilder.classify.ModelError
-        If the verifier file cannot be loaded.
+    ``verify`` and ``verifier`` are those of :func:`default_threshold`;
+    ``threshold`` is the build's pixel threshold (None: that function's).
+    Returns :data:`mapbuilder.cluster.CNN_PIXEL_THRESHOLD_LOW` when a CNN
+    verifier checks the clusters and it lies below ``threshold``, else None
+    (no hysteresis): without the verifier nothing checks what faint pixels
+    add to a cluster. Raises :class:`mapbuilder.classify.ModelError` if the
+    verifier file cannot be loaded.
     """
     from .cluster import CNN_PIXEL_THRESHOLD_LOW
 
-    if not verify:
+    if not _cnn_verified(verify, verifier):
         return None
     if threshold is None:
         threshold = default_threshold(verify, verifier)
-    from .classify import load_verifier
-
-    kind = load_verifier(None if verifier is None else str(verifier)).kind
-    if kind != "crops" or threshold <= CNN_PIXEL_THRESHOLD_LOW:
-        return None
-    return CNN_PIXEL_THRESHOLD_LOW
+    return CNN_PIXEL_THRESHOLD_LOW if threshold > CNN_PIXEL_THRESHOLD_LOW else None
 
 
 def _verifier(cluster: ClusterParams, path: str | None):

@@ -88,12 +88,14 @@ class ClusterParams:
         verifier are given to :func:`detect_markings`. Off here, so that a
         bare ``ClusterParams()`` keeps its pixel threshold's meaning; on in
         ``lanemap build`` and the API's build jobs, which pair it with
-        :func:`mapbuilder.build.default_threshold`. On held-out renders the
-        CNN at pixel threshold :data:`CNN_PIXEL_THRESHOLD` lifts precision
-        from 0.61 to 0.975 (kerbs, lot borders, car outlines) at recall 0.90
-        (0.91 without), and on the real USGS crop it keeps all four stall
-        lines with no other detection (14 without), at about 1.3 times the
-        CPU time of a build without it (2048 px tiles).
+        :func:`mapbuilder.build.default_threshold` and
+        :func:`mapbuilder.build.default_threshold_low`. On held-out renders
+        the CNN at pixel threshold :data:`CNN_PIXEL_THRESHOLD` (hysteresis
+        :data:`CNN_PIXEL_THRESHOLD_LOW`) reaches precision 0.972 at recall
+        0.963, against 0.61 / 0.92 for a build without it at 0.5 (kerbs, lot
+        borders, car outlines), and on the real USGS crop it keeps all four
+        stall lines with no other detection (14 without), at about 1.6 times
+        the tile CPU of a build without it (2048 px tiles).
     verify_threshold : float
         Verifier probability a cluster needs to be kept. 0.6 for the shipped
         CNN, chosen on the validation scenes (``benchmarks/build_quality.py
@@ -532,6 +534,7 @@ def split_junctions(
     reach_m: float = 0.8,
     n_directions: int = 16,
     max_width_m: float = 0.6,
+    max_area_m2: float = 200.0,
 ) -> np.ndarray:
     """Cut clusters where lines of different directions meet.
 
@@ -559,6 +562,10 @@ def split_junctions(
         Metres per pixel.
     max_width_m : float
         Widest stroke, metres: wider blobs (a car roof) are not cut into strips.
+    max_area_m2 : float
+        Clusters with more pixels than this area are left alone: no group of
+        markings that touch covers that much (a lot's border with fifty stall
+        lines, about 60 m²), and the cost grows with the pixel count.
 
     Returns
     -------
@@ -573,7 +580,7 @@ def split_junctions(
     y = rows + 0.5
     n, _, _, dx, dy, ux, uy = _moments(lab, x, y, k)
     spread = np.sqrt(12.0 * _minor_var(lab, dx, dy, ux, uy, n, k)) * resolution_m
-    branched = spread > min_spread_m
+    branched = (spread > min_spread_m) & (n * resolution_m ** 2 <= max_area_m2)
     branched[0] = False
     if not branched.any():
         return lab

@@ -575,3 +575,22 @@ def test_build_reports_worker_cpu_seconds(border_scene, tmp_path):
     # for threads (one here)
     assert 0 < r.cpu_seconds <= 1.5 * sum(r.timings.values()) + 0.5
     store.close()
+
+
+def test_default_thresholds_follow_the_verifier():
+    """The CNN verifier pairs with a low pixel threshold and hysteresis; the context
+    verifier and unverified builds keep the classifier's own threshold and none."""
+    from mapbuilder.build import default_threshold, default_threshold_low
+    from mapbuilder.classify import context_verifier_path
+    from mapbuilder.cluster import CNN_PIXEL_THRESHOLD, CNN_PIXEL_THRESHOLD_LOW
+
+    assert default_threshold(True) == CNN_PIXEL_THRESHOLD
+    assert default_threshold_low(True) == CNN_PIXEL_THRESHOLD_LOW
+    assert default_threshold(False) == ClusterParams.threshold
+    assert default_threshold_low(False) is None
+    ctx = context_verifier_path()
+    assert default_threshold(True, ctx) == ClusterParams.threshold
+    assert default_threshold_low(True, ctx) is None
+    # a pixel threshold at or below the hysteresis threshold leaves no room for it
+    assert default_threshold_low(True, threshold=CNN_PIXEL_THRESHOLD_LOW) is None
+    assert default_threshold_low(True, threshold=0.1) == CNN_PIXEL_THRESHOLD_LOW

@@ -444,6 +444,9 @@ def test_lines_meeting_at_a_junction_are_separate_markings():
         part = np.bincount(lab[mine]).argmax()
         assert (lab[mine] == part).mean() > 0.9
         assert (mine[lab == part]).mean() > 0.9
+    # clusters larger than any group of touching markings are left alone
+    big = split_junctions(rows, cols, labels[rows, cols], labels.shape, res, max_area_m2=2.0)
+    assert big.max() == 1
 
 
 def test_a_stop_line_meeting_a_lane_line_keeps_its_own_centroid():
