@@ -443,6 +443,20 @@ def detect_window(
     return clusters, prob
 
 
+def _predict(model, rgb: np.ndarray, valid: np.ndarray, resolution_m: float,
+             origin: tuple[int, int]) -> np.ndarray:
+    """The model's probabilities of a window at ``origin`` (row, col) of its image.
+
+    lanemap's own models take the origin, so that tiles agree where they
+    overlap; any other object with ``predict(rgb, valid, resolution_m)`` works too.
+    """
+    from .classify import MarkingModel
+
+    if isinstance(model, MarkingModel):
+        return model.predict(rgb, valid, resolution_m, origin=origin)
+    return model.predict(rgb, valid, resolution_m)
+
+
 def process_tile(task: TileTask) -> TileResult:
     """Detect the markings of one tile.
 
@@ -460,7 +474,8 @@ def process_tile(task: TileTask) -> TileResult:
     t1 = time.perf_counter()
     if valid.any():
         prob = np.asarray(
-            _model(task.model).predict(rgb, valid, task.grid.resolution_m), dtype=np.float32
+            _predict(_model(task.model), rgb, valid, task.grid.resolution_m,
+                     origin=(task.read[1], task.read[0])), dtype=np.float32
         )
     else:
         prob = np.zeros(valid.shape, np.float32)

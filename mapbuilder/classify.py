@@ -229,7 +229,8 @@ class MarkingModel:
         out = np.asarray(out)
         return (out[:, 1] if out.ndim == 2 else out).astype(np.float32)
 
-    def predict(self, rgb: np.ndarray, valid: np.ndarray | None, resolution_m: float) -> np.ndarray:
+    def predict(self, rgb: np.ndarray, valid: np.ndarray | None, resolution_m: float,
+                origin: tuple[int, int] = (0, 0)) -> np.ndarray:
         """Probability of "marking" per pixel.
 
         Parameters
@@ -240,6 +241,10 @@ class MarkingModel:
             False at nodata / alpha-0 / outside-image pixels.
         resolution_m : float
             Ground sampling distance, metres per pixel.
+        origin : (int, int)
+            Row and column of the window in its image: overlapping windows then
+            agree on the pixels they share (see
+            :func:`mapbuilder.features.candidate_features`).
 
         Returns
         -------
@@ -247,7 +252,7 @@ class MarkingModel:
             P(marking) in [0, 1]; 0 at invalid pixels and at pixels that cannot be
             markings (not brighter than their surroundings).
         """
-        feats, idx = candidate_features(rgb, valid, resolution_m, self.candidate_tophat)
+        feats, idx = candidate_features(rgb, valid, resolution_m, self.candidate_tophat, origin)
         h, w = rgb.shape[:2]
         prob = np.zeros(h * w, np.float32)
         prob[idx] = self.predict_features(feats)

@@ -25,7 +25,9 @@ the same features whatever window it is read in, or tiles would disagree at
 their borders). Openings, side and continuation maps are computed at full
 resolution (running minima and maxima by log-doubling on uint16, box means);
 the broad opening and the 3 m background statistics run on coarse grids and
-are interpolated bilinearly. :func:`candidate_features` evaluates the features
+are interpolated bilinearly; the grids are anchored to the image (the
+``origin`` of a window), not to the window, so that tiles read with
+different offsets agree. :func:`candidate_features` evaluates the features
 only at pixels whose narrow top-hat exceeds a few grey levels and which are not
 strongly coloured (a few to fifteen percent of an image); every other pixel
 cannot be a marking. :func:`pixel_features` evaluates them everywhere.
@@ -255,13 +257,32 @@ def _block_mean_rgb(rgb: np.ndarray, k: int) -> list[np.ndarray]:
     return out
 
 
-def _features(rgb, valid, resolution_m, threshold):
+def grid_period(resolution_m: float) -> int:
+    """Pixels between the lines of the coarse grids the features interpolate from.
+
+    A window whose origin (row and column in the image) is a multiple of this
+    gets the same block grids as any other such window; :func:`candidate_features`
+    pads a window at its top left to the previous multiple of its origin.
+    """
+    return max(1, int(round(0.2 / float(resolution_m)))) * 3
+
+
+def _features(rgb, valid, resolution_m, threshold, origin=(0, 0)):
     valid = check_inputs(rgb, valid, resolution_m)
     res = float(resolution_m)
-    h, w = valid.shape
+    h0, w0 = valid.shape
     nf = len(FEATURE_NAMES)
-    if h == 0 or w == 0:
+    if h0 == 0 or w0 == 0:
         return np.empty((0, nf), np.float32), np.empty(0, np.intp), valid
+    # Anchor the coarse grids to the image, not to the window: pad the window
+    # at its top left to the previous grid line, so that overlapping windows
+    # (tiles with halos) interpolate the same background at the same pixel.
+    period = grid_period(res)
+    pad_r, pad_c = int(origin[0]) % period, int(origin[1]) % period
+    if pad_r or pad_c:
+        rgb = np.pad(rgb, ((pad_r, 0), (pad_c, 0), (0, 0)), mode="edge")
+        valid = np.pad(valid, ((pad_r, 0), (pad_c, 0)), mode="edge")
+    h, w = valid.shape
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
     lum = r.astype(np.uint16)  # 3 x brightness, 0..765
     lum += g
@@ -280,6 +301,9 @@ def _features(rgb, valid, resolution_m, threshold):
         cand &= sat.astype(np.uint16) * np.uint16(15) < lum * np.uint16(2) + np.uint16(96)
     if not all_valid:
         cand &= valid
+    if pad_r or pad_c:
+        cand[:pad_r] = False
+        cand[:, :pad_c] = False
     idx = np.flatnonzero(cand)
     rows, cols = np.divmod(idx, w)
 
@@ -379,12 +403,15 @@ def _features(rgb, valid, resolution_m, threshold):
     feats[:, 8] = asym * s
     feats[:, 9] = sasym * np.float32(1.0 / 64.0)
     feats[:, 10] = along * s
+    if pad_r or pad_c:
+        idx = (rows - pad_r) * w0 + (cols - pad_c)
+        valid = valid[pad_r:, pad_c:]
     return feats, idx, valid
 
 
 def candidate_features(
     rgb: np.ndarray, valid: np.ndarray | None, resolution_m: float,
-    threshold: float = CANDIDATE_TOPHAT,
+    threshold: float = CANDIDATE_TOPHAT, origin: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Features of the pixels that could be markings.
 
@@ -399,6 +426,10 @@ def candidate_features(
     threshold : float
         Narrow top-hat (grey levels) a candidate must exceed; 0 keeps every
         valid pixel whose top-hat is positive, a negative value every valid pixel.
+    origin : (int, int)
+        Row and column of the window's first pixel in the image. Windows of
+        one image read at different origins (tiles and their halos) then give
+        a pixel the same features, away from their edges.
 
     Returns
     -------
@@ -407,7 +438,7 @@ def candidate_features(
     index : (N,) intp
         Flat (row-major) indices of the candidates in the window.
     """
-    feats, idx, _ = _features(rgb, valid, resolution_m, threshold)
+    feats, idx, _ = _features(rgb, valid, resolution_m, threshold, origin)
     return feats, idx
 
 

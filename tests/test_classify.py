@@ -105,6 +105,23 @@ def test_invalid_pixels_get_zero(model, heldout):
     assert (prob[valid] > 0.5).any()
 
 
+def test_overlapping_windows_agree_on_the_pixels_they_share(model, heldout):
+    """Tiles read with halos start at any offset: given their origin in the image, two
+    windows give the pixels well inside both the same probability. Without it, the
+    coarse background grids sit at different places and probabilities differ."""
+    rgb, valid, _ = heldout
+    whole = model.predict(rgb, valid, 0.1)
+    diffs = []
+    for r0, c0 in ((88, 41), (130, 203), (7, 5)):
+        win = (slice(r0, r0 + 300), slice(c0, c0 + 300))
+        inner = (slice(r0 + 60, r0 + 240), slice(c0 + 60, c0 + 240))
+        got = model.predict(rgb[win], valid[win], 0.1, origin=(r0, c0))
+        np.testing.assert_allclose(got[60:240, 60:240], whole[inner], atol=1e-5)
+        unanchored = model.predict(rgb[win], valid[win], 0.1)
+        diffs.append(np.abs(unanchored[60:240, 60:240] - whole[inner]).max())
+    assert max(diffs) > 0.01
+
+
 def test_candidates_are_the_full_features_at_those_pixels(heldout):
     rgb, valid, _ = heldout
     sub = rgb[:256, :256]
