@@ -14,6 +14,16 @@ USGS_ALPHA = USGS / "201404_13SED190110_201404_0x1500m_CL_1_alpha.tif"
 USGS_NODATA = USGS / "201404_13SED190110_201404_0x1500m_CL_1_nodata.tif"
 
 
+def stall_centres(first_end: tuple[float, float], n: int, spacing_m: float, length_m: float,
+                  bearing_deg: float) -> np.ndarray:
+    """Centres (n, 2) of ``n`` stall lines of ``length_m`` at ``bearing_deg`` whose ends lie
+    on a line running east from ``first_end``, ``spacing_m`` apart."""
+    b = np.radians(bearing_deg)
+    u = np.array([np.sin(b), np.cos(b)])
+    ends = np.array(first_end, float) + np.outer(np.arange(n) * spacing_m, [1.0, 0.0])
+    return ends + 0.5 * length_m * u
+
+
 class BrightnessModel:
     """A transparent stand-in classifier: bright, unsaturated pixels brighter than
     their neighbourhood are marking pixels. Picklable, so it runs in worker processes."""

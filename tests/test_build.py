@@ -25,6 +25,7 @@ from tests._build_helpers import (
     BrightnessModel,
     match,
     pipeline_model,
+    stall_centres,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -110,18 +111,12 @@ def test_markings_crossing_tile_borders_are_found_once(border_scene, sqlite_url)
 def comb_scene(tmp_path_factory):
     """Stall lines ending on a lot's border line (the junctions the build cuts), tile
     borders every 12.8 m across both."""
+    stalls = stall_centres((X0 + 4.0, Y0 - 20.0), 15, 3.0, 4.6, 30.0)
     marks = [_dash(X0 + 25.6, Y0 - 20.0, 90.0, length=47.0, width=0.12)]
-    b = math.radians(30.0)
-    u = np.array([math.sin(b), math.cos(b)])
-    stalls = []
-    for i in range(15):
-        end = np.array([X0 + 4.0 + 3.0 * i, Y0 - 20.0])
-        c = end + 2.3 * u
-        marks.append(_dash(c[0], c[1], 30.0, length=4.6, width=0.12))
-        stalls.append(c)
+    marks += [_dash(cx, cy, 30.0, length=4.6, width=0.12) for cx, cy in stalls]
     out = tmp_path_factory.mktemp("comb") / "comb.tif"
     result = synth.render(marks, out, 0.1, crs=CRS, seed=5, bounds=(X0, Y0 - 32.0, X0 + 51.2, Y0))
-    return result, np.array(stalls)
+    return result, stalls
 
 
 def test_verified_builds_cut_junctions_alike_in_any_tiling(comb_scene, sqlite_url):

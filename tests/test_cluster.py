@@ -16,6 +16,7 @@ from mapbuilder.cluster import (
     measure_clusters,
     split_long,
 )
+from tests._build_helpers import stall_centres
 
 X0, Y0 = 456000.0, 5430000.0
 
@@ -400,15 +401,10 @@ def _comb(res):
     t = _grid(res)
     img = np.zeros((int(12 / res), int(24 / res)), np.float32)
     _draw(img, t, X0 + 12, Y0 - 9, 14.0, 0.12, 90.0)
-    b = math.radians(30.0)
-    u = np.array([math.sin(b), math.cos(b)])
-    stalls = []
-    for i in range(4):
-        end = np.array([X0 + 7 + 3 * i, Y0 - 9])
-        c = end + 1.7 * u
-        _draw(img, t, c[0], c[1], 3.4, 0.12, 30.0)
-        stalls.append(c)
-    return t, img, np.array(stalls)
+    stalls = stall_centres((X0 + 7, Y0 - 9), 4, 3.0, 3.4, 30.0)
+    for cx, cy in stalls:
+        _draw(img, t, cx, cy, 3.4, 0.12, 30.0)
+    return t, img, stalls
 
 
 def test_lines_meeting_at_a_junction_are_separate_markings():
