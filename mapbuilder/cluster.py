@@ -407,6 +407,27 @@ def measure_clusters(
     return _measure(rows, cols, lab, prob[rows, cols], transform)
 
 
+class _PixelIndex:
+    """Find the 8-neighbours of sparse pixels among them."""
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray):
+        self.width = int(cols.max()) + 3
+        self.key = (rows.astype(np.int64) + 1) * self.width + (cols.astype(np.int64) + 1)
+        self.order = np.argsort(self.key)
+        self.skey = self.key[self.order]
+
+    def neighbour(self, which: np.ndarray | slice, dr: int, dc: int) -> tuple[np.ndarray, np.ndarray]:
+        """Index of the pixel at offset (dr, dc) from each pixel ``which``, and whether it exists."""
+        nkey = self.key[which] + dr * self.width + dc
+        pos = np.minimum(np.searchsorted(self.skey, nkey), self.skey.size - 1)
+        return self.order[pos], self.skey[pos] == nkey
+
+
+def _circular_diff(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    d = np.abs(a - b)
+    return np.minimum(d, n - d)
+
+
 def _components(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray,
                 direction: np.ndarray | None = None, n_directions: int = 0,
                 direction_tol: int = 0) -> np.ndarray:
@@ -420,20 +441,13 @@ def _components(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray,
     from scipy.sparse.csgraph import connected_components
 
     n = rows.size
-    width = int(cols.max()) + 3
-    key = (rows.astype(np.int64) + 1) * width + (cols.astype(np.int64) + 1)
-    order = np.argsort(key)
-    skey = key[order]
+    index = _PixelIndex(rows, cols)
     src, dst = [], []
     for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
-        nkey = key + dr * width + dc
-        pos = np.searchsorted(skey, nkey)
-        pos[pos == n] = 0
-        j = order[pos]
-        hit = (skey[pos] == nkey) & (lab[j] == lab)
+        j, found = index.neighbour(slice(None), dr, dc)
+        hit = found & (lab[j] == lab)
         if direction is not None:
-            diff = np.abs(direction[j] - direction)
-            hit &= np.minimum(diff, n_directions - diff) <= direction_tol
+            hit &= _circular_diff(direction[j], direction, n_directions) <= direction_tol
         src.append(np.flatnonzero(hit))
         dst.append(j[hit])
     src, dst = np.concatenate(src), np.concatenate(dst)
@@ -491,10 +505,7 @@ def _adopt_neighbours(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray, bins:
     neighbour order on ties), so the result depends on the pixels' layout
     only. Modifies ``part`` in place; returns which pixels have a part now.
     """
-    width = int(cols.max()) + 3
-    key = (rows.astype(np.int64) + 1) * width + (cols.astype(np.int64) + 1)
-    order = np.argsort(key)
-    skey = key[order]
+    index = _PixelIndex(rows, cols)
     assigned = assigned.copy()
     for _ in range(passes):
         todo = np.flatnonzero(~assigned)
@@ -506,12 +517,9 @@ def _adopt_neighbours(rows: np.ndarray, cols: np.ndarray, lab: np.ndarray, bins:
             for dc in (-1, 0, 1):
                 if dr == 0 and dc == 0:
                     continue
-                nkey = key[todo] + dr * width + dc
-                pos = np.minimum(np.searchsorted(skey, nkey), skey.size - 1)
-                j = order[pos]
-                ok = (skey[pos] == nkey) & assigned[j] & (lab[j] == lab[todo])
-                diff = np.abs(bins[j] - bins[todo])
-                diff = np.minimum(diff, n_directions - diff)
+                j, found = index.neighbour(todo, dr, dc)
+                ok = found & assigned[j] & (lab[j] == lab[todo])
+                diff = _circular_diff(bins[j], bins[todo], n_directions)
                 better = ok & (diff < best)
                 best[better] = diff[better]
                 new[better] = part[j[better]]
@@ -527,7 +535,6 @@ def split_junctions(
     rows: np.ndarray,
     cols: np.ndarray,
     lab: np.ndarray,
-    shape: tuple[int, int],
     resolution_m: float,
     angle_deg: float = 30.0,
     min_spread_m: float = 0.7,
@@ -549,15 +556,14 @@ def split_junctions(
     neighbouring pixels differ in direction by less than ``angle_deg``.
     A gently curved line changes direction little from pixel to pixel and
     stays whole; at a junction the pixels take the direction of the line
-    that runs through. Directions come from the mask within ``reach_m`` of a
-    pixel only, so tiles that overlap by more than that cut alike.
+    that runs through. A cut is kept only where it leaves two long thin
+    strokes or more. Directions come from the cluster's pixels within
+    ``reach_m`` of a pixel, so two tiles that both hold a cluster cut it alike.
 
     Parameters
     ----------
     rows, cols, lab : ndarray
         Marking pixels (array indices) and their cluster labels (> 0).
-    shape : (int, int)
-        Shape of the array the pixels index.
     resolution_m : float
         Metres per pixel.
     max_width_m : float
@@ -1274,7 +1280,7 @@ def detect_markings(
         return Clusters.empty()
     rows, cols = np.divmod(idx, labels.shape[1])
     if params.junction_angle_deg is not None:
-        lab = split_junctions(rows, cols, lab, labels.shape, res, params.junction_angle_deg,
+        lab = split_junctions(rows, cols, lab, res, params.junction_angle_deg,
                               max_width_m=params.max_width_m)
     if params.join_gap_m > 0:
         lab = join_collinear(rows, cols, lab, transform, params.join_gap_m,

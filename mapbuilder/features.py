@@ -169,11 +169,15 @@ def _box_sum_u16(img: np.ndarray, n: int) -> np.ndarray:
     return _shifted_box_sum(img, n)
 
 
-def _bilinear(grid: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Bilinear interpolation of a (hs, ws, C) grid of ``k``-pixel blocks at full-resolution pixels."""
+def _bilinear(grid: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray,
+              lead: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Bilinear interpolation of a (hs, ws, C) grid of ``k``-pixel blocks at full-resolution pixels.
+
+    ``lead``: the grid's first block starts that many rows and columns before the image.
+    """
     hs, ws, nc = grid.shape
-    ry = np.clip((rows + 0.5) / k - 0.5, 0, hs - 1).astype(np.float32)
-    rx = np.clip((cols + 0.5) / k - 0.5, 0, ws - 1).astype(np.float32)
+    ry = np.clip((rows + lead[0] + 0.5) / k - 0.5, 0, hs - 1).astype(np.float32)
+    rx = np.clip((cols + lead[1] + 0.5) / k - 0.5, 0, ws - 1).astype(np.float32)
     y0 = ry.astype(np.intp)
     x0 = rx.astype(np.intp)
     y1 = np.minimum(y0 + 1, hs - 1)
@@ -184,6 +188,16 @@ def _bilinear(grid: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> n
     top = flat[y0 * ws + x0] * (1 - fx) + flat[y0 * ws + x1] * fx
     bot = flat[y1 * ws + x0] * (1 - fx) + flat[y1 * ws + x1] * fx
     return top * (1 - fy) + bot * fy
+
+
+def _pad_blocks(img: np.ndarray, k: int, lead: tuple[int, int]) -> np.ndarray:
+    """``img`` padded with edge values: ``lead`` rows / columns before, and after to a multiple of ``k``."""
+    h, w = img.shape
+    pr, pc = lead
+    ph, pw = (-(h + pr)) % k, (-(w + pc)) % k
+    if pr or pc or ph or pw:
+        img = np.pad(img, ((pr, ph), (pc, pw)), mode="edge")
+    return img
 
 
 def _block_max(img: np.ndarray, k: int) -> np.ndarray:
@@ -203,12 +217,10 @@ def _block_max(img: np.ndarray, k: int) -> np.ndarray:
     return res.astype(np.float32)
 
 
-def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
-    """Block mean by ``k`` of a float32 image (edge blocks padded with edge values)."""
-    h, w = img.shape
-    ph, pw = (-h) % k, (-w) % k
-    if ph or pw:
-        img = np.pad(img, ((0, ph), (0, pw)), mode="edge")
+def _block_mean(img: np.ndarray, k: int, lead: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Block mean by ``k`` of a float32 image (edge blocks padded with edge values);
+    the first blocks start ``lead`` rows / columns before the image."""
+    img = _pad_blocks(img, k, lead)
     acc = img[0::k].copy()
     for i in range(1, k):
         acc += img[i::k]
@@ -218,14 +230,11 @@ def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
     return out * np.float32(1.0 / (k * k))
 
 
-def _block_min(img: np.ndarray, k: int) -> np.ndarray:
-    """Block minimum by ``k`` (same dtype)."""
+def _block_min(img: np.ndarray, k: int, lead: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Block minimum by ``k`` (same dtype); the first blocks start ``lead`` before the image."""
+    img = _pad_blocks(img, k, lead)
     if k <= 1:
         return img
-    h, w = img.shape
-    ph, pw = (-h) % k, (-w) % k
-    if ph or pw:
-        img = np.pad(img, ((0, ph), (0, pw)), mode="edge")
     out = img[0::k]
     for i in range(1, k):
         out = np.minimum(out, img[i::k])
@@ -235,18 +244,15 @@ def _block_min(img: np.ndarray, k: int) -> np.ndarray:
     return res
 
 
-def _block_mean_rgb(rgb: np.ndarray, k: int) -> list[np.ndarray]:
-    """Block means of the three channels of an (H, W, 3) uint8 image by ``k``, float32."""
+def _block_mean_rgb(rgb: np.ndarray, k: int, lead: tuple[int, int] = (0, 0)) -> list[np.ndarray]:
+    """Block means of the three channels of an (H, W, 3) uint8 image by ``k``, float32;
+    the first blocks start ``lead`` rows / columns before the image."""
     out = []
     for c in range(3):
-        ch = rgb[..., c]
+        ch = _pad_blocks(rgb[..., c], k, lead)
         if k <= 1:
             out.append(ch.astype(np.float32))
             continue
-        h, w = ch.shape
-        ph, pw = (-h) % k, (-w) % k
-        if ph or pw:
-            ch = np.pad(ch, ((0, ph), (0, pw)), mode="edge")
         acc = ch[0::k].astype(np.uint16)
         for i in range(1, k):
             acc += ch[i::k]
@@ -260,9 +266,9 @@ def _block_mean_rgb(rgb: np.ndarray, k: int) -> list[np.ndarray]:
 def grid_period(resolution_m: float) -> int:
     """Pixels between the lines of the coarse grids the features interpolate from.
 
-    A window whose origin (row and column in the image) is a multiple of this
-    gets the same block grids as any other such window; :func:`candidate_features`
-    pads a window at its top left to the previous multiple of its origin.
+    :func:`candidate_features` starts a window's block grids at the multiple
+    of this at or before the window's origin (row and column in the image),
+    so that every window of one image uses the same blocks.
     """
     return max(1, int(round(0.2 / float(resolution_m)))) * 3
 
@@ -270,19 +276,16 @@ def grid_period(resolution_m: float) -> int:
 def _features(rgb, valid, resolution_m, threshold, origin=(0, 0)):
     valid = check_inputs(rgb, valid, resolution_m)
     res = float(resolution_m)
-    h0, w0 = valid.shape
-    nf = len(FEATURE_NAMES)
-    if h0 == 0 or w0 == 0:
-        return np.empty((0, nf), np.float32), np.empty(0, np.intp), valid
-    # Anchor the coarse grids to the image, not to the window: pad the window
-    # at its top left to the previous grid line, so that overlapping windows
-    # (tiles with halos) interpolate the same background at the same pixel.
-    period = grid_period(res)
-    pad_r, pad_c = int(origin[0]) % period, int(origin[1]) % period
-    if pad_r or pad_c:
-        rgb = np.pad(rgb, ((pad_r, 0), (pad_c, 0), (0, 0)), mode="edge")
-        valid = np.pad(valid, ((pad_r, 0), (pad_c, 0)), mode="edge")
     h, w = valid.shape
+    nf = len(FEATURE_NAMES)
+    if h == 0 or w == 0:
+        return np.empty((0, nf), np.float32), np.empty(0, np.intp), valid
+    # The coarse grids are anchored to the image, not to the window: their
+    # first blocks start ``lead`` pixels before the window, at the previous
+    # grid line, so that overlapping windows (tiles with halos) interpolate
+    # the same background at the same pixel.
+    period = grid_period(res)
+    lead = (int(origin[0]) % period, int(origin[1]) % period)
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
     lum = r.astype(np.uint16)  # 3 x brightness, 0..765
     lum += g
@@ -301,17 +304,14 @@ def _features(rgb, valid, resolution_m, threshold, origin=(0, 0)):
         cand &= sat.astype(np.uint16) * np.uint16(15) < lum * np.uint16(2) + np.uint16(96)
     if not all_valid:
         cand &= valid
-    if pad_r or pad_c:
-        cand[:pad_r] = False
-        cand[:, :pad_c] = False
     idx = np.flatnonzero(cand)
     rows, cols = np.divmod(idx, w)
 
     # neighbourhood statistics on a ~20 cm grid; invalid cells take the mean of valid ones
     k = max(1, int(round(0.2 / res)))
-    r_s, g_s, b_s = _block_mean_rgb(rgb, k)
+    r_s, g_s, b_s = _block_mean_rgb(rgb, k, lead)
     if not all_valid:
-        vs = _block_min(valid.view(np.uint8), k) > 0
+        vs = _block_min(valid.view(np.uint8), k, lead) > 0
         if vs.any():
             for ch in (r_s, g_s, b_s):
                 ch[~vs] = ch[vs].mean()
@@ -326,12 +326,13 @@ def _features(rgb, valid, resolution_m, threshold, origin=(0, 0)):
     # from coarse grids by bilinear interpolation, for the same reason.
     op_w = _opening(op_n, _px(SCALES_M["tophat_wide"], res))
     op_wv = op_w.ravel()[idx].astype(np.float32)
-    op_b_s = _opening(_block_mean(op_w.astype(np.float32), k), _px(SCALES_M["tophat_broad"], rk))
-    op_b = np.minimum(_bilinear(op_b_s[..., None], k, rows, cols)[:, 0], op_wv) * third
+    op_b_s = _opening(_block_mean(op_w.astype(np.float32), k, lead),
+                      _px(SCALES_M["tophat_broad"], rk))
+    op_b = np.minimum(_bilinear(op_b_s[..., None], k, rows, cols, lead)[:, 0], op_wv) * third
     m = 3  # background statistics over 3 m need no finer grid than ~0.6 m
     bg = np.stack([_box(_block_mean(a, m), _px(SCALES_M["mean"], rk * m))
                    for a in (lum_s, sq_s, r_s, g_s, b_s)], axis=-1)
-    bg = _bilinear(bg, k * m, rows, cols)
+    bg = _bilinear(bg, k * m, rows, cols, lead)
     mean = bg[:, 0] * third
     std = np.sqrt(np.maximum(bg[:, 1] * (third * third) - mean * mean, 0.0))
 
@@ -403,9 +404,6 @@ def _features(rgb, valid, resolution_m, threshold, origin=(0, 0)):
     feats[:, 8] = asym * s
     feats[:, 9] = sasym * np.float32(1.0 / 64.0)
     feats[:, 10] = along * s
-    if pad_r or pad_c:
-        idx = (rows - pad_r) * w0 + (cols - pad_c)
-        valid = valid[pad_r:, pad_c:]
     return feats, idx, valid
 
 

@@ -432,7 +432,7 @@ def test_lines_meeting_at_a_junction_are_separate_markings():
     labels, n = label_pixels(img)
     assert n == 1
     rows, cols = np.nonzero(labels)
-    lab = split_junctions(rows, cols, labels[rows, cols], labels.shape, res)
+    lab = split_junctions(rows, cols, labels[rows, cols], res)
     for cx, cy in stalls:
         one = np.zeros_like(img)
         _draw(one, t, cx, cy, 3.4, 0.12, 30.0)
@@ -441,7 +441,7 @@ def test_lines_meeting_at_a_junction_are_separate_markings():
         assert (lab[mine] == part).mean() > 0.9
         assert (mine[lab == part]).mean() > 0.9
     # clusters larger than any group of touching markings are left alone
-    big = split_junctions(rows, cols, labels[rows, cols], labels.shape, res, max_area_m2=2.0)
+    big = split_junctions(rows, cols, labels[rows, cols], res, max_area_m2=2.0)
     assert big.max() == 1
 
 
@@ -476,7 +476,7 @@ def test_curves_and_straight_stripes_are_not_cut_at_junctions():
     labels, n = label_pixels(img)
     assert n == 2
     rows, cols = np.nonzero(labels)
-    lab = split_junctions(rows, cols, labels[rows, cols], labels.shape, res)
+    lab = split_junctions(rows, cols, labels[rows, cols], res)
     # the same two clusters (labels may be numbered differently)
     assert lab.max() == 2
     assert len(set(zip(lab.tolist(), labels[rows, cols].tolist()))) == 2
