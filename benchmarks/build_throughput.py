@@ -8,7 +8,8 @@ procedural scene, then measures on the same file:
 * the end-to-end build (read, classify, cluster, store) on all local cores.
 
 It prints Mpx/s of both, their ratio, the markings found, the peak resident
-memory of the whole process tree during the build (parent + workers), and
+memory of the whole process tree during the build (parent + workers; and
+the parent's and the largest worker's own peaks), and
 the machine load. On a machine shared with other work the wall time depends
 on that work; the CPU seconds of the workers' tiles and of the parent do
 much less, and ``mpx_per_s_on_2_idle_cores`` is what they come to on two
@@ -105,6 +106,8 @@ class TreeRSS:
     def __init__(self, interval: float = 0.1):
         self.interval = interval
         self.peak = 0
+        self.peak_parent = 0
+        self.peak_child = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -114,9 +117,14 @@ class TreeRSS:
             total = 0
             for p in [me, *me.children(recursive=True)]:
                 try:
-                    total += p.memory_info().rss
+                    rss = p.memory_info().rss
                 except psutil.Error:
-                    pass
+                    continue
+                total += rss
+                if p.pid == me.pid:
+                    self.peak_parent = max(self.peak_parent, rss)
+                else:
+                    self.peak_child = max(self.peak_child, rss)
             self.peak = max(self.peak, total)
             time.sleep(self.interval)
 
@@ -201,6 +209,8 @@ def main() -> None:
         "cluster_mpx_per_s_per_process": round(
             mpx / max(result.timings.get("cluster", 0.0), 1e-9), 1),
         "peak_rss_tree_mb": round(rss.peak / 2**20),
+        "peak_rss_parent_mb": round(rss.peak_parent / 2**20),
+        "peak_rss_largest_worker_mb": round(rss.peak_child / 2**20),
         "load_avg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
         "cpus": os.cpu_count(),
     }
