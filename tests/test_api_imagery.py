@@ -146,6 +146,9 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
                               "verify_threshold": 1.5}, headers=api.auth), 422, "verify_threshold")  # fmt: skip
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
                               "threshold_low": 0.3}, headers=api.auth), 422, "threshold_low")  # fmt: skip
+    assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
+                              "threshold_low": 0.1, "hysteresis": False}, headers=api.auth),
+                   422, "threshold_low")  # fmt: skip
 
 
 def test_cancel_a_waiting_job_and_restart_resumes_interrupted_ones(tmp_path):

@@ -414,6 +414,8 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
         (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier", str(bad)], "model"),
         (["build", str(USGS_BASE), "--map", "m", "--verify-threshold", "1.5"], "verify_threshold"),
         (["build", str(USGS_BASE), "--map", "m", "--threshold-low", "0.3"], "threshold_low"),
+        (["build", str(USGS_BASE), "--map", "m", "--threshold-low", "0.1", "--no-hysteresis"],
+         "--no-hysteresis"),
     ]:
         res = runner.invoke(app, args)
         assert res.exit_code == 1, (args, res.output)

@@ -81,8 +81,8 @@ def build(
             threshold_low = default_threshold_low(verify, verifier, threshold)
     except ModelError as exc:
         fail(str(exc))
-    if not hysteresis:
-        threshold_low = None
+    if not hysteresis and threshold_low is not None:
+        fail("--threshold-low and --no-hysteresis contradict each other; drop one")
     try:
         params = BuildParams(
             tile_px=tile_px,

@@ -99,7 +99,8 @@ def post_build(
         threshold = body.threshold if body.threshold is not None else default_threshold(body.verify)
         threshold_low = body.threshold_low
         if not body.hysteresis:
-            threshold_low = None
+            if threshold_low is not None:
+                raise ValueError("threshold_low is given but hysteresis is false; drop one")
         elif threshold_low is None:
             threshold_low = default_threshold_low(body.verify, None, threshold)
         params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m,
