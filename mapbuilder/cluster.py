@@ -116,6 +116,13 @@ class ClusterParams:
         lines, and since junctions are cut (``junction_angle_deg``) a wide
         cluster is seldom a marking merged with something beside it. 0
         disables it.
+    extend_junctions : bool
+        A marking that ends on another one running across it (a stop line on
+        the lane line, a stall line on the lot border) has its end moved to
+        the other's axis (:func:`extend_to_junctions`): the pixels they share
+        belong to one cluster only, so the end of the other was measured at
+        the edge of the line it meets, up to 0.6 m short of where it is
+        painted.
     """
 
     threshold: float = 0.5
@@ -138,6 +145,7 @@ class ClusterParams:
     verify_threshold: float = 0.6
     verify_continuation: bool = True
     verify_halves_m: float = 2.0
+    extend_junctions: bool = True
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -1219,6 +1227,97 @@ def _aligned_end_pairs(c: Clusters, idx: np.ndarray, radius_m: float, angle_deg:
     return ends, i[ok], j[ok], a[ok], b[ok]
 
 
+def extend_to_junctions(clusters: Clusters, transform: Affine, angle_deg: float = 30.0,
+                        gap_m: float | None = None, min_line_m: float = 1.0) -> Clusters:
+    """Move the ends of markings that end on another marking to that marking's axis.
+
+    Where a stroke meets a line running across it (a T junction), the pixels
+    they share go to one cluster only (:func:`split_junctions`, or a separate
+    cluster from the start), so the stroke's end is measured at the near edge
+    of the line it meets. An end qualifies when the stroke's axis, prolonged
+    outwards, reaches the other cluster's axis within that cluster's half
+    width (measured along the stroke) plus ``gap_m``, at a point inside the
+    other's extent (or in the gap the stroke leaves in it), and the two
+    directions differ by at least ``angle_deg``.
+    The end moves to the crossing point; the centroid (the middle of the
+    extent) and the length follow. Width and pixel count are unchanged.
+
+    Parameters
+    ----------
+    clusters : Clusters
+        Measured markings of one window.
+    transform : Affine
+        Pixel (col, row) to CRS metres, for the centroid's pixel coordinates.
+    angle_deg : float
+        Smallest difference of direction of a junction, degrees.
+    gap_m : float, optional
+        Largest gap between the end and the other's edge, metres; default two pixels.
+    min_line_m : float
+        The other cluster must be at least this long, and twice the width of
+        the one that ends on it, metres (not a sliver left at a corner).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(clusters)
+    if n < 2:
+        return clusters
+    res = _resolution(transform)
+    gap = 2.0 * res if gap_m is None else gap_m
+    c = clusters
+    length = np.maximum(c.length_m, 1e-9)
+    ux, uy = (c.x1 - c.x0) / length, (c.y1 - c.y0) / length
+    ends = np.concatenate([np.column_stack([c.x0, c.y0]), np.column_stack([c.x1, c.y1])])
+    owner = np.concatenate([np.arange(n), np.arange(n)])
+    sign = np.concatenate([-np.ones(n), np.ones(n)])  # outward along the axis
+    ox, oy = sign * ux[owner], sign * uy[owner]
+    reach = float(np.max(c.length_m)) / 2 + float(np.max(c.width_m)) + gap
+    near = cKDTree(np.column_stack([c.x, c.y])).query_ball_point(ends, reach)
+    e_idx = np.repeat(np.arange(2 * n), [len(v) for v in near])
+    b = np.fromiter((j for v in near for j in v), np.int64, e_idx.size)
+    keep = owner[e_idx] != b
+    e_idx, b = e_idx[keep], b[keep]
+    if e_idx.size == 0:
+        return clusters
+    # Crossing of the prolonged axis e + t u with b's axis c_b + s v.
+    vx, vy = ux[b], uy[b]
+    cross = ox[e_idx] * vy - oy[e_idx] * vx
+    sin = np.abs(cross)
+    ok = sin >= math.sin(math.radians(angle_deg))
+    dx, dy = c.x[b] - ends[e_idx, 0], c.y[b] - ends[e_idx, 1]
+    safe = np.where(ok, cross, 1.0)
+    t = (dx * vy - dy * vx) / safe
+    s_ = (dx * oy[e_idx] - dy * ox[e_idx]) / safe
+    ok &= (t > 0) & (t <= 0.5 * c.width_m[b] / np.maximum(sin, 1e-9) + gap)
+    # The line the end meets lost its pixels under the stroke too: the crossing
+    # may lie in that gap, up to half the stroke's width past the line's end.
+    ok &= np.abs(s_) <= 0.5 * c.length_m[b] + 0.5 * c.width_m[owner[e_idx]] / np.maximum(sin, 1e-9) + gap
+    # What a marking ends on is a line, not a sliver of a corner.
+    ok &= c.length_m[b] >= np.maximum(min_line_m, 2.0 * c.width_m[owner[e_idx]])
+    if not ok.any():
+        return clusters
+    e_idx, t = e_idx[ok], t[ok]
+    # The nearest crossing of each end.
+    order = np.lexsort((t, e_idx))
+    e_idx, t = e_idx[order], t[order]
+    first = np.ones(e_idx.size, bool)
+    first[1:] = e_idx[1:] != e_idx[:-1]
+    e_idx, t = e_idx[first], t[first]
+    ends = ends.copy()
+    ends[e_idx, 0] += t * ox[e_idx]
+    ends[e_idx, 1] += t * oy[e_idx]
+    out = clusters.take(np.arange(n))
+    out.x0, out.y0 = ends[:n, 0], ends[:n, 1]
+    out.x1, out.y1 = ends[n:, 0], ends[n:, 1]
+    out.x = 0.5 * (out.x0 + out.x1)
+    out.y = 0.5 * (out.y0 + out.y1)
+    out.length_m = np.hypot(out.x1 - out.x0, out.y1 - out.y0)
+    inv = ~transform
+    out.col = inv.a * out.x + inv.b * out.y + inv.c
+    out.row = inv.d * out.x + inv.e * out.y + inv.f
+    log.debug("extend_to_junctions: %d ends moved", e_idx.size)
+    return out
+
+
 def filter_clusters(clusters: Clusters, params: ClusterParams) -> Clusters:
     """Keep clusters whose shape a lane marking can have."""
     area = clusters.width_m * clusters.length_m
@@ -1307,4 +1406,6 @@ def detect_markings(
         if params.verify_continuation:
             keep = continues_accepted(clusters, keep)
         clusters = clusters.take(keep)
+    if params.extend_junctions and params.junction_angle_deg is not None:
+        clusters = extend_to_junctions(clusters, transform, params.junction_angle_deg)
     return clusters

@@ -494,3 +494,35 @@ def test_junction_cuts_do_not_depend_on_the_window():
     assert sel_a.sum() == 1 and sel_b.sum() == 1
     assert a.x[sel_a][0] == pytest.approx(b.x[sel_b][0], abs=1e-9)
     assert a.weight[sel_a][0] == b.weight[sel_b][0]
+
+
+def test_an_end_on_a_line_across_it_moves_to_that_lines_axis():
+    """A stop line painted from the lane line's axis is measured from there, not from its edge."""
+    res = 0.1
+    t = _grid(res)
+    img = np.zeros((250, 300), np.float32)
+    _draw(img, t, X0 + 15, Y0 - 20, 26.0, 0.2, 0.0)  # lane line, north-south, axis at x = 15 m
+    _draw(img, t, X0 + 18.0, Y0 - 12, 6.0, 0.5, 90.0)  # stop line from the axis, x 15–21 m
+    _draw(img, t, X0 + 25.0, Y0 - 5.0, 3.0, 0.12, 0.0)  # a dash 0.5 m from a line across it
+    _draw(img, t, X0 + 25.0, Y0 - 7.0, 4.0, 0.15, 90.0)
+    c = detect_markings(img, None, t)
+    stop = np.flatnonzero(c.width_m > 0.3)
+    assert len(stop) == 1
+    i = stop[0]
+    assert min(c.x0[i], c.x1[i]) == pytest.approx(X0 + 15.0, abs=0.03)
+    # the free end stays where the paint ends (less the corners of a wide
+    # stroke's end, which the junction cut leaves apart)
+    assert max(c.x0[i], c.x1[i]) == pytest.approx(X0 + 21.0, abs=0.12)
+    assert c.x[i] == pytest.approx(0.5 * (c.x0[i] + c.x1[i]), abs=1e-9)
+    assert c.x[i] == pytest.approx(X0 + 18.0, abs=0.06)
+    assert c.y[i] == pytest.approx(Y0 - 12, abs=0.03)
+    assert c.length_m[i] == pytest.approx(6.0, abs=0.12)
+    # a gap is not a junction: the dash keeps its own ends
+    dash = np.flatnonzero((np.abs(c.x - (X0 + 25.0)) < 0.1) & (_angle_diff(c.bearing_deg, 0.0) < 3))
+    assert len(dash) == 1
+    assert c.y[dash[0]] == pytest.approx(Y0 - 5.0, abs=0.05)
+    assert c.length_m[dash[0]] == pytest.approx(3.0, abs=0.15)
+    # without the extension the stop line ends at the lane line's edge
+    short = detect_markings(img, None, t, ClusterParams(extend_junctions=False))
+    j = np.flatnonzero(short.width_m > 0.3)[0]
+    assert min(short.x0[j], short.x1[j]) - (X0 + 15.0) > 0.08
