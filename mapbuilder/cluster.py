@@ -167,6 +167,9 @@ class ClusterParams:
                              f"got {self.threshold_low}")
         if not 0.0 < self.verify_threshold < 1.0:
             raise ValueError(f"verify_threshold must be in (0, 1), got {self.verify_threshold}")
+        if self.junction_angle_deg is not None and not 0.0 < self.junction_angle_deg <= 90.0:
+            raise ValueError(f"junction_angle_deg must be in (0, 90] or None, "
+                             f"got {self.junction_angle_deg}")
 
 
 @dataclass
@@ -1261,6 +1264,8 @@ def extend_to_junctions(clusters: Clusters, transform: Affine, angle_deg: float 
     n = len(clusters)
     if n < 2:
         return clusters
+    if not 0.0 < angle_deg <= 90.0:
+        raise ValueError(f"angle_deg must be in (0, 90], got {angle_deg}")
     res = _resolution(transform)
     gap = 2.0 * res if gap_m is None else gap_m
     c = clusters
@@ -1270,10 +1275,18 @@ def extend_to_junctions(clusters: Clusters, transform: Affine, angle_deg: float 
     owner = np.concatenate([np.arange(n), np.arange(n)])
     sign = np.concatenate([-np.ones(n), np.ones(n)])  # outward along the axis
     ox, oy = sign * ux[owner], sign * uy[owner]
-    reach = float(np.max(c.length_m)) / 2 + float(np.max(c.width_m)) + gap
-    near = cKDTree(np.column_stack([c.x, c.y])).query_ball_point(ends, reach)
-    e_idx = np.repeat(np.arange(2 * n), [len(v) for v in near])
-    b = np.fromiter((j for v in near for j in v), np.int64, e_idx.size)
+    # Each line long enough to be ended on looks for the ends near it: by the
+    # conditions below an end that qualifies lies within half the line's length
+    # plus both half widths over the sine of the angle plus two gaps of its centroid.
+    lines = np.flatnonzero(c.length_m >= min_line_m)
+    if lines.size == 0:
+        return clusters
+    inv_sin = 1.0 / math.sin(math.radians(angle_deg))
+    reach = (0.5 * c.length_m[lines] + 0.5 * inv_sin * (c.width_m[lines] + float(np.max(c.width_m)))
+             + 2.0 * gap)
+    near = cKDTree(ends).query_ball_point(np.column_stack([c.x[lines], c.y[lines]]), reach)
+    b = np.repeat(lines, [len(v) for v in near])
+    e_idx = np.fromiter((j for v in near for j in v), np.int64, b.size)
     keep = owner[e_idx] != b
     e_idx, b = e_idx[keep], b[keep]
     if e_idx.size == 0:

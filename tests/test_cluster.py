@@ -201,6 +201,9 @@ def test_bad_params_are_rejected():
     for low in (0.0, 0.2, 0.3):
         with pytest.raises(ValueError, match="threshold_low"):
             ClusterParams(threshold=0.2, threshold_low=low)
+    for angle in (0.0, -10.0, 120.0):
+        with pytest.raises(ValueError, match="junction_angle_deg"):
+            ClusterParams(junction_angle_deg=angle)
 
 
 def test_a_hairpin_is_cut_into_single_strokes():
