@@ -302,6 +302,12 @@ def _pixel_world(transform: Affine, rows: np.ndarray, cols: np.ndarray):
     return x, y
 
 
+def _world_pixel(transform: Affine, x: np.ndarray, y: np.ndarray):
+    """CRS coordinates to (col, row) pixel coordinates of the array (pixel (0, 0) spans [0, 1))."""
+    inv = ~transform
+    return inv.a * x + inv.b * y + inv.c, inv.d * x + inv.e * y + inv.f
+
+
 def _resolution(transform: Affine) -> float:
     return math.sqrt(abs(transform.a * transform.e - transform.b * transform.d))
 
@@ -360,12 +366,12 @@ def _measure(rows, cols, lab, score, transform: Affine) -> Clusters:
     length = smax - smin
     x = mx + ux * (0.5 * (smin + smax))
     y = my + uy * (0.5 * (smin + smax))
-    inv = ~transform
+    col, row = _world_pixel(transform, x, y)
     return Clusters(
         x=x,
         y=y,
-        col=inv.a * x + inv.b * y + inv.c,
-        row=inv.d * x + inv.e * y + inv.f,
+        col=col,
+        row=row,
         weight=n.astype(np.int64),
         length_m=length,
         width_m=n * res * res / length,
@@ -1315,7 +1321,6 @@ def extend_to_junctions(clusters: Clusters, transform: Affine, angle_deg: float 
     first = np.ones(e_idx.size, bool)
     first[1:] = e_idx[1:] != e_idx[:-1]
     e_idx, t = e_idx[first], t[first]
-    ends = ends.copy()
     ends[e_idx, 0] += t * ox[e_idx]
     ends[e_idx, 1] += t * oy[e_idx]
     out = clusters.take(np.arange(n))
@@ -1324,9 +1329,7 @@ def extend_to_junctions(clusters: Clusters, transform: Affine, angle_deg: float 
     out.x = 0.5 * (out.x0 + out.x1)
     out.y = 0.5 * (out.y0 + out.y1)
     out.length_m = np.hypot(out.x1 - out.x0, out.y1 - out.y0)
-    inv = ~transform
-    out.col = inv.a * out.x + inv.b * out.y + inv.c
-    out.row = inv.d * out.x + inv.e * out.y + inv.f
+    out.col, out.row = _world_pixel(transform, out.x, out.y)
     log.debug("extend_to_junctions: %d ends moved", e_idx.size)
     return out
 
