@@ -64,6 +64,11 @@ def robust_refine(
     each pose starts (default 0); a pose starting at the last two scales is
     refined exactly as with ``anneal_m[-2:]``, so coarse-to-fine and fine-only
     refinements share one batch.
+
+    At the last scale, unless ``options.bearing_noise_rad`` is None, each step
+    is a Gauss-Newton step in which a pair's residual along the viewing ray
+    counts with the range noise and across it with the (smaller) bearing
+    noise; Procrustes weighs both alike.
     """
     poses = np.array(inits, float).reshape(-1, 3)
     K, N = len(poses), len(obs_xy)
@@ -77,6 +82,10 @@ def robust_refine(
     pos = poses[:, 0] + 1j * poses[:, 1]
     yaw = poses[:, 2].copy()
     obs = obs_xy[:, 0] + 1j * obs_xy[:, 1]
+    aniso = None
+    if options.bearing_noise_rad is not None and N:
+        rng = np.abs(obs)
+        aniso = (var, (options.noise_m + options.bearing_noise_rad * rng) ** 2, obs / np.maximum(rng, 1e-9))
     for si, c in enumerate(options.anneal_m):
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
@@ -105,6 +114,20 @@ def robust_refine(
             w *= m
             wsum = np.add.reduce(w, 1)
             ok = (np.add.reduce(m, 1) >= 2) & (wsum > 0)
+            if last and aniso is not None:
+                new, th = _gauss_newton_step(pts, tgt, P, obs, Y, w, m, aniso, c)
+                ok = np.add.reduce(m, 1) >= 2
+                new = np.where(ok, new, P)
+                th = np.where(ok, th, 0.0)
+                step = np.abs(new - P)
+                pos[idx] = new
+                yaw[idx] = Y + th
+                iters[idx[ok]] += 1
+                if record and idx[0] == 0 and ok[0]:
+                    trace.append((float(new[0].real), float(new[0].imag), float(Y[0] + th[0])))
+                done = ~ok | ((step < tol) & (np.abs(th) < options.tolerance_rad))
+                active[idx[done]] = False
+                continue
             w /= np.where(wsum > 0, wsum, 1.0)[:, None]
             cs = np.add.reduce(w * pts, 1)
             cd = np.add.reduce(w * tgt, 1)
@@ -128,6 +151,48 @@ def robust_refine(
                      trace=trace if k == 0 else [])
         for k in range(K)
     ]
+
+
+def _gauss_newton_step(pts, tgt, P, obs, Y, w_iso, m, aniso, c):
+    """One Gauss-Newton step of the rigid fit with anisotropic pair weights.
+
+    A flat-ground camera measures bearing far better than range: along the
+    viewing ray an observation's scale is ``sqrt(c² + σ_r²)``, across it
+    ``sqrt(c² + σ_t²)``. The Geman-McClure weight is taken from the
+    isotropic pass (``w_iso`` already holds it, divided by the radial
+    variance); the pair's information matrix is that weight times
+    ``s_r² (u uᵀ / s_r² + v vᵀ / s_t²)``, u the ray, v across it.
+    """
+    var_r, var_t, ray = aniso
+    sr2 = c * c + var_r
+    st2 = c * c + var_t
+    u = np.exp(1j * Y)[:, None] * ray[None]  # ray direction in the map frame (K, N)
+    e = np.where(m, pts - tgt, 0.0)
+    er = (e * u.conjugate()).real  # along the ray
+    et = (e * u.conjugate()).imag  # across it
+    a = w_iso  # (K, N): Geman-McClure weight / s_r²
+    ratio = (sr2 / st2)[None]
+    # Jacobian of the point in complex form: d/dx = 1, d/dy = i, d/dθ = i (p - t).
+    lever = 1j * (pts - P[:, None])
+    cols = [np.ones_like(pts), 1j * np.ones_like(pts), lever]
+    # Project each column on the ray and across it.
+    jr = [(col * u.conjugate()).real for col in cols]
+    jt = [(col * u.conjugate()).imag for col in cols]
+    H = np.empty((len(P), 3, 3))
+    b = np.empty((len(P), 3))
+    for i in range(3):
+        b[:, i] = -np.add.reduce(a * (jr[i] * er + ratio * jt[i] * et), 1)
+        for j in range(i, 3):
+            H[:, i, j] = H[:, j, i] = np.add.reduce(a * (jr[i] * jr[j] + ratio * jt[i] * jt[j]), 1)
+    H += np.eye(3) * 1e-9
+    try:
+        d = np.linalg.solve(H, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        d = np.zeros_like(b)
+    th = d[:, 2]
+    # Rotate about the vehicle origin, then translate.
+    new = P + d[:, 0] + 1j * d[:, 1]
+    return new, th
 
 
 def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:
@@ -178,7 +243,10 @@ def data_scores(
 
     Positive evidence: each observation adds ``w log(1 + N(d; s) / π)`` (matched
     marking versus clutter; a match on a segment counts less, its density being
-    spread along it).
+    spread along it). The kernel is anisotropic unless
+    ``options.bearing_noise_rad`` is None: the residual along the viewing ray
+    is scaled by the range noise, across it by the bearing noise (both with a
+    0.15 m floor for the map's own placement).
 
     Negative evidence: each place where the map says the camera should report a
     centroid at a pose (a point-like marking, or a point every few metres along
@@ -197,10 +265,20 @@ def data_scores(
     py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
     pts = np.stack([px, py], -1)
     s = np.sqrt(0.15**2 + sigma_obs**2)
-    d, _, _, which = local_map.closest(pts.reshape(-1, 2), 4.0 * float(s.max()), return_index=True)
+    d, tgt, _, which = local_map.closest(pts.reshape(-1, 2), 4.0 * float(s.max()), return_index=True)
     d, which = d.reshape(K, N), which.reshape(K, N)
     fin = np.isfinite(d)
-    k = np.where(fin, np.exp(-0.5 * (np.where(fin, d, 0.0) / s[None]) ** 2), 0.0)
+    if options.bearing_noise_rad is None:
+        u2 = (np.where(fin, d, 0.0) / s[None]) ** 2
+    else:
+        rng = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
+        st = np.sqrt(0.15**2 + (options.noise_m + options.bearing_noise_rad * rng) ** 2)
+        e = (pts.reshape(-1, 2) - tgt).reshape(K, N, 2)
+        bear = P[:, 2, None] + np.arctan2(obs_xy[None, :, 1], obs_xy[None, :, 0])
+        er = e[..., 0] * np.cos(bear) + e[..., 1] * np.sin(bear)
+        et = -e[..., 0] * np.sin(bear) + e[..., 1] * np.cos(bear)
+        u2 = np.where(fin, (er / s[None]) ** 2 + (et / st[None]) ** 2, 0.0)
+    k = np.where(fin, np.exp(-0.5 * u2), 0.0)
     # A solid-line piece explains an observation anywhere along its length: its
     # density is spread over the length, so a match on it is weaker evidence.
     half = np.where(which >= 0, local_map.half[np.maximum(which, 0)], 0.0)

@@ -197,6 +197,13 @@ class Options:
     noise_m, noise_range_coeff : float
         Observation noise model ``sigma(r) = noise_m + noise_range_coeff * r**2``
         (flat-ground camera: range error grows with range²).
+    bearing_noise_rad : float or None
+        Across the viewing ray the noise is ``noise_m + bearing_noise_rad * r``:
+        a camera measures the direction to a marking far better than its range,
+        so a pose that puts far observations beside their markings is penalised
+        more than one that puts them short or long. Hypothesis scores and the
+        last refinement scale use this anisotropic model; None: the range model
+        in every direction.
     outlier_density : float
         Relative density of outliers in the per-observation likelihood.
     clutter_reference : float
@@ -271,6 +278,7 @@ class Options:
     anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2, 0.15)
     noise_m: float = 0.05
     noise_range_coeff: float = 5e-4
+    bearing_noise_rad: float | None = 0.003
     outlier_density: float = 0.05
     clutter_reference: float = 8.0
     miss_probability: float = 0.2

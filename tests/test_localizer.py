@@ -333,6 +333,56 @@ def test_a_solid_line_predicted_in_view_but_not_seen_counts_against_a_pose():
         assert (solid[0] >= 4) if expect_missed else (solid[0] == 0)
 
 
+def _points_ahead(rng, n=12):
+    """Point markings 5-25 m ahead within ±29° of a vehicle at ORIGIN facing +x (vehicle frame)."""
+    r = rng.uniform(5.0, 25.0, n)
+    b = rng.uniform(-0.5, 0.5, n)
+    v = np.column_stack([r * np.cos(b), r * np.sin(b)])
+    index = MapIndex.from_arrays(v[:, 0] + ORIGIN[0], v[:, 1] + ORIGIN[1], None, CRS)
+    return v, LocalMap(index, ORIGIN, 100.0)
+
+
+def test_an_observation_beside_its_marking_counts_less_than_one_short_of_it():
+    from localizer.robust import data_scores, noise_sigma
+
+    # One marking 20 m ahead. A camera's range error there is several times
+    # its bearing error, so 0.4 m across the ray is the less likely miss.
+    index = MapIndex.from_arrays([ORIGIN[0] + 20.0], [ORIGIN[1]], None, CRS)
+    local = LocalMap(index, ORIGIN, 100.0)
+    short, beside = np.array([[19.6, 0.0]]), np.array([[20.0, 0.4]])
+
+    def score(obs, opts):
+        return data_scores(local, obs, np.ones(1), noise_sigma(obs, opts), [(0.0, 0.0, 0.0)], opts)[0]
+
+    opts = Options()
+    assert score(short, opts) > score(beside, opts) + 0.5
+    iso = Options(bearing_noise_rad=None)
+    assert score(short, iso) == pytest.approx(score(beside, iso), abs=0.1)  # sigma follows the range
+
+
+def test_refinement_converges_exactly_and_trusts_bearings_more_than_ranges():
+    from localizer.robust import noise_sigma, robust_refine
+
+    rng = np.random.default_rng(3)
+    v, local = _points_ahead(rng)
+    opts = Options()
+    start = [(0.4, -0.3, math.radians(1.5))]
+    exact = robust_refine(local, v, np.ones(len(v)), noise_sigma(v, opts), start, opts)[0].pose
+    assert math.hypot(exact[0], exact[1]) < 1e-3 and abs(exact[2]) < 1e-5
+    # Range errors only, as large as the noise model says: the anisotropic
+    # last scale recovers the heading better than weighing both directions alike.
+    heading = {True: [], False: []}
+    for _ in range(30):
+        v, local = _points_ahead(rng)
+        r = np.hypot(v[:, 0], v[:, 1])
+        obs = v * (1.0 + rng.normal(0.0, 1.0, len(r)) * (0.05 + 5e-4 * r**2) / r)[:, None]
+        for aniso in (True, False):
+            o = opts if aniso else Options(bearing_noise_rad=None)
+            pose = robust_refine(local, obs, np.ones(len(obs)), noise_sigma(obs, o), start, o)[0].pose
+            heading[aniso].append(abs(pose[2]))
+    assert np.mean(heading[True]) < 0.85 * np.mean(heading[False])
+
+
 def test_a_pose_that_explains_little_more_than_clutter_is_not_ok():
     # Two markings matched among a dozen random blobs: whatever the best pose, the
     # "none of these" hypothesis keeps it from being reported as certain.
