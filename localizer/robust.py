@@ -115,28 +115,19 @@ def robust_refine(
             wsum = np.add.reduce(w, 1)
             ok = (np.add.reduce(m, 1) >= 2) & (wsum > 0)
             if last and aniso is not None:
-                new, th = _gauss_newton_step(pts, tgt, P, obs, Y, w, m, aniso, c)
-                ok = np.add.reduce(m, 1) >= 2
+                new, th = _gauss_newton_step(pts, tgt, P, Y, w, m, aniso, c)
                 new = np.where(ok, new, P)
                 th = np.where(ok, th, 0.0)
-                step = np.abs(new - P)
-                pos[idx] = new
-                yaw[idx] = Y + th
-                iters[idx[ok]] += 1
-                if record and idx[0] == 0 and ok[0]:
-                    trace.append((float(new[0].real), float(new[0].imag), float(Y[0] + th[0])))
-                done = ~ok | ((step < tol) & (np.abs(th) < options.tolerance_rad))
-                active[idx[done]] = False
-                continue
-            w /= np.where(wsum > 0, wsum, 1.0)[:, None]
-            cs = np.add.reduce(w * pts, 1)
-            cd = np.add.reduce(w * tgt, 1)
-            # Weighted 2D Procrustes: the rotation is the angle of
-            # sum w conj(p - cs) (g - cd).
-            pts -= cs[:, None]
-            tgt -= cd[:, None]
-            th = np.where(ok, np.angle(np.add.reduce(w * pts.conjugate() * tgt, 1)), 0.0)
-            new = np.where(ok, np.exp(1j * th) * (P - cs) + cd, P)
+            else:
+                w /= np.where(wsum > 0, wsum, 1.0)[:, None]
+                cs = np.add.reduce(w * pts, 1)
+                cd = np.add.reduce(w * tgt, 1)
+                # Weighted 2D Procrustes: the rotation is the angle of
+                # sum w conj(p - cs) (g - cd).
+                pts -= cs[:, None]
+                tgt -= cd[:, None]
+                th = np.where(ok, np.angle(np.add.reduce(w * pts.conjugate() * tgt, 1)), 0.0)
+                new = np.where(ok, np.exp(1j * th) * (P - cs) + cd, P)
             step = np.abs(new - P)
             pos[idx] = new
             yaw[idx] = Y + th
@@ -153,15 +144,16 @@ def robust_refine(
     ]
 
 
-def _gauss_newton_step(pts, tgt, P, obs, Y, w_iso, m, aniso, c):
+def _gauss_newton_step(pts, tgt, P, Y, w_iso, m, aniso, c):
     """One Gauss-Newton step of the rigid fit with anisotropic pair weights.
 
     A flat-ground camera measures bearing far better than range: along the
-    viewing ray an observation's scale is ``sqrt(c² + σ_r²)``, across it
-    ``sqrt(c² + σ_t²)``. The Geman-McClure weight is taken from the
-    isotropic pass (``w_iso`` already holds it, divided by the radial
-    variance); the pair's information matrix is that weight times
-    ``s_r² (u uᵀ / s_r² + v vᵀ / s_t²)``, u the ray, v across it.
+    viewing ray an observation's scale is ``s_r = sqrt(c² + σ_r²)``, across
+    it ``s_t = sqrt(c² + σ_t²)``. ``w_iso`` holds each pair's Geman-McClure
+    weight over ``s_r²`` (from the isotropic residual); the pair's
+    information is that times ``u uᵀ + (s_r² / s_t²) v vᵀ``, u the ray and v
+    across it. The step is linearised about the current pose and moves the
+    vehicle origin by ``(dx, dy)`` and the heading by ``dθ``.
     """
     var_r, var_t, ray = aniso
     sr2 = c * c + var_r
@@ -189,10 +181,7 @@ def _gauss_newton_step(pts, tgt, P, obs, Y, w_iso, m, aniso, c):
         d = np.linalg.solve(H, b[..., None])[..., 0]
     except np.linalg.LinAlgError:
         d = np.zeros_like(b)
-    th = d[:, 2]
-    # Rotate about the vehicle origin, then translate.
-    new = P + d[:, 0] + 1j * d[:, 1]
-    return new, th
+    return P + d[:, 0] + 1j * d[:, 1], d[:, 2]
 
 
 def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:
