@@ -28,10 +28,14 @@ Methods
        fine-only run from the same start guards against clutter dragging the
        coarse scales off. Pieces of solid lines (given ``bearing_deg`` and
        ``length_m``) are matched point-to-segment: a camera clusters a solid
-       line at its own phase.
+       line at its own phase. At the last scale each step is Gauss-Newton with
+       the camera's anisotropic noise: a residual along the viewing ray counts
+       with the range noise, across it with the far smaller bearing noise
+       (``Options.bearing_noise_rad``).
     3. Refined candidates are scored by a likelihood: per observation the
-       log-likelihood ratio of matched versus clutter (a match on a segment
-       counts less; the outlier density grows with the frame's clutter), and
+       log-likelihood ratio of matched versus clutter (with the same
+       anisotropic kernel; a match on a segment counts less; the outlier
+       density grows with the frame's clutter), and
        *negative evidence*: every place where the map says the camera should
        report a centroid (a point-like marking, or a point every 3 m along a
        solid line, precomputed per map) that the pose puts inside the camera's
