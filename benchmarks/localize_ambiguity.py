@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from localize_paper import SCENARIOS, cases, karlsruhe, scene_poses  # noqa: E402
+from localize_paper import SCENARIOS, cases, heading_err_deg, karlsruhe, scene_poses  # noqa: E402
 
 from localizer import Options, localize  # noqa: E402
 from localizer.simulate import NONE, Camera, _in_view, _to_vehicle, simulate_scene  # noqa: E402
@@ -70,7 +70,7 @@ def ideal_bound(args, index, smap, cam: Camera, poses) -> None:
             counts["failed"] += 1
             continue
         e = math.hypot(p.easting - pose[0], p.northing - pose[1])
-        h = abs(math.degrees((p.yaw_grid_rad - pose[2] + math.pi) % (2 * math.pi) - math.pi))
+        h = heading_err_deg(p.yaw_grid_rad, pose[2])
         if p.status == "ok":
             counts["ok" if e <= 0.5 and h <= 1.0 else "ok but off"] += 1
         else:

@@ -12,10 +12,25 @@ from .geometry import LocalMap, apply, rotation
 from .types import Options
 
 
+#: Floor of the scoring kernel's width, metres: the map's own placement error.
+SCORE_FLOOR_M = 0.15
+
+
 def noise_sigma(obs_xy: np.ndarray, options: Options) -> np.ndarray:
-    """Per-observation position noise of a flat-ground camera, metres: ``a + b r²``."""
+    """Per-observation position noise of a flat-ground camera, metres: ``a + b r²``.
+
+    This is the noise along the viewing ray (range); see :func:`bearing_sigma`.
+    """
     r2 = np.einsum("nd,nd->n", obs_xy, obs_xy)
     return options.noise_m + options.noise_range_coeff * r2
+
+
+def bearing_sigma(obs_xy: np.ndarray, options: Options) -> np.ndarray:
+    """Per-observation noise across the viewing ray, metres: ``a + bearing_noise_rad · r``.
+
+    Requires ``options.bearing_noise_rad`` (not None).
+    """
+    return options.noise_m + options.bearing_noise_rad * np.hypot(obs_xy[:, 0], obs_xy[:, 1])
 
 
 def data_weights(gamma: np.ndarray) -> np.ndarray:
@@ -84,8 +99,7 @@ def robust_refine(
     obs = obs_xy[:, 0] + 1j * obs_xy[:, 1]
     aniso = None
     if options.bearing_noise_rad is not None and N:
-        rng = np.abs(obs)
-        aniso = (var, (options.noise_m + options.bearing_noise_rad * rng) ** 2, obs / np.maximum(rng, 1e-9))
+        aniso = (var, bearing_sigma(obs_xy, options) ** 2, obs / np.maximum(np.abs(obs), 1e-9))
     for si, c in enumerate(options.anneal_m):
         s2 = c * c + var
         gate = 3.0 * np.sqrt(s2)
@@ -253,15 +267,14 @@ def data_scores(
     px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
     py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
     pts = np.stack([px, py], -1)
-    s = np.sqrt(0.15**2 + sigma_obs**2)
+    s = np.sqrt(SCORE_FLOOR_M**2 + sigma_obs**2)
     d, tgt, _, which = local_map.closest(pts.reshape(-1, 2), 4.0 * float(s.max()), return_index=True)
     d, which = d.reshape(K, N), which.reshape(K, N)
     fin = np.isfinite(d)
     if options.bearing_noise_rad is None:
         u2 = (np.where(fin, d, 0.0) / s[None]) ** 2
     else:
-        rng = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
-        st = np.sqrt(0.15**2 + (options.noise_m + options.bearing_noise_rad * rng) ** 2)
+        st = np.sqrt(SCORE_FLOOR_M**2 + bearing_sigma(obs_xy, options) ** 2)
         e = (pts.reshape(-1, 2) - tgt).reshape(K, N, 2)
         bear = P[:, 2, None] + np.arctan2(obs_xy[None, :, 1], obs_xy[None, :, 0])
         er = e[..., 0] * np.cos(bear) + e[..., 1] * np.sin(bear)
