@@ -48,10 +48,13 @@ Methods
        compete, and a "none of these" hypothesis (all clutter) takes its share.
        The posterior probabilities decide ``ok`` versus ``ambiguous``
        (repeating 9 m dashes, parallel lanes 3.5 m apart): ``ok`` needs 95 %.
-    4. The covariance of (easting, northing, yaw) averages the model-based and
-       sandwich estimates of the weighted fit, adds the propagated effect of a
-       camera pitch error (ranges stretch together), and lets the prior's
-       information fill directions the map leaves open (along a solid line).
+    4. The chosen pose is refined jointly with the camera's pitch error (a
+       tilted ground plane stretches all ranges together, which a rigid fit
+       would absorb by sliding along the road; ``Options.estimate_pitch``).
+       The covariance of (easting, northing, yaw) averages the model-based and
+       sandwich estimates of the weighted fit, adds the propagated effect of
+       the pitch's remaining uncertainty, and lets the prior's information
+       fill directions the map leaves open (along a solid line).
     5. Fewer than 3 observations within 0.75 m (or 3σ) of the map → ``failed``.
 
     Over a drive, :func:`localize_sequence` (``localizer/track.py``) follows

@@ -23,6 +23,8 @@ from .robust import (
     log_prior,
     missed_counts,
     noise_sigma,
+    pitch_corrected,
+    refine_with_pitch,
     robust_refine,
     view_of,
 )
@@ -314,11 +316,19 @@ def localize(
         prob /= prob.sum() + math.exp(options.null_score - top)
         best = kept[0][1]
         pose, iterations = best.pose, best.iterations
+        if options.estimate_pitch:
+            pose, pitch, pitch_var = refine_with_pitch(local, obs_xy, sig, pose, options)
+            kept[0] = (kept[0][0], replace(best, pose=pose)) + tuple(kept[0][2:])
+            fit_obs = pitch_corrected(obs_xy, pitch, options)
+            fits = {pose: fit_statistics(local, fit_obs, w_data, noise_sigma(fit_obs, options), pose,
+                                         options, prior_info, pitch_var=pitch_var)}
         trace = []
         if options.record_trace:
             start = (kept[0][2].x, kept[0][2].y, kept[0][2].yaw)
             again = robust_refine(local, obs_xy, w_data, sig, [start], kept[0][3], record=True)[0]
             trace = [prior_pose] + again.trace
+            if options.estimate_pitch:
+                trace.append(pose)  # the joint fit with the pitch is the last step
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
         log_scores = [float(v) for v in scores]
         diagnostics = {"search": all_search}

@@ -364,6 +364,7 @@ def fit_statistics(
     pose,
     options: Options,
     prior_info: np.ndarray | None = None,
+    pitch_var: float | None = None,
 ) -> Fit:
     """Inliers, RMS residual and covariance of ``pose``.
 
@@ -424,7 +425,105 @@ def fit_statistics(
     # A pitch error stretches all ranges together (flat-ground camera), a
     # correlated error that the residuals do not reveal; propagate it explicitly.
     gp = Hinv @ G
-    pitch = np.outer(gp, gp) * math.radians(options.pitch_sigma_deg) ** 2
+    var_pitch = math.radians(options.pitch_sigma_deg) ** 2
+    if pitch_var is not None:
+        var_pitch = pitch_var
+    pitch = np.outer(gp, gp) * var_pitch
     cov = 0.5 * (model + sandwich) + pitch
     cov = options.covariance_inflation * 0.5 * (cov + cov.T)
     return Fit(n, rms, cov, m)
+
+
+def refine_with_pitch(
+    local_map: LocalMap,
+    obs_xy: np.ndarray,
+    sigma_obs: np.ndarray,
+    pose,
+    options: Options,
+    iterations: int = 5,
+) -> tuple[tuple[float, float, float], float]:
+    """Refine ``pose`` jointly with the camera's pitch error (flat-ground camera).
+
+    A pitch error ``δ`` (radians) moves every ground point along its viewing
+    ray by ``(r² + h²) / h · δ`` (``h`` the camera height): the far markings
+    stretch together, which a rigid fit can only absorb by shifting the pose
+    along the road. Here ``δ`` is a fourth parameter with the prior
+    ``N(0, pitch_sigma_deg²)``, estimated by Gauss-Newton with the anisotropic
+    pair information of :func:`robust_refine`'s last scale (Geman-McClure
+    weights at the finest annealing scale, inliers within the inlier gate;
+    segment pairs count across their line only).
+
+    Returns
+    -------
+    pose : (x, y, yaw)
+    pitch : float
+        The estimated pitch error, radians.
+    """
+    pose = np.array(pose, float)
+    n = len(obs_xy)
+    if n < 2:
+        return tuple(float(v) for v in pose), 0.0, math.radians(options.pitch_sigma_deg) ** 2
+    h = options.camera_height_m
+    rng_j = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
+    ray_v = obs_xy / np.maximum(rng_j, 1e-9)[:, None]
+    k = (rng_j**2 + h * h) / h
+    c = options.anneal_m[-1]
+    var_r = c * c + sigma_obs**2
+    bn = options.bearing_noise_rad
+    var_t = c * c + (bearing_sigma(obs_xy, options) ** 2 if bn is not None else sigma_obs**2)
+    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
+    info_pitch = 1.0 / math.radians(options.pitch_sigma_deg) ** 2
+    delta = 0.0
+    var = 1.0 / info_pitch
+    for _ in range(iterations):
+        o = obs_xy + ray_v * (k * delta)[:, None]
+        p = apply(tuple(pose), o)
+        d, tgt, normal = local_map.closest(p, float(gate.max()))
+        m = np.isfinite(d) & (d <= gate)
+        if m.sum() < 2:
+            break
+        R = rotation(pose[2])
+        q = (R @ o[m].T).T
+        u = (R @ ray_v[m].T).T
+        v = np.column_stack([-u[:, 1], u[:, 0]])
+        e = p[m] - tgt[m]
+        gm = 1.0 / (1.0 + d[m] ** 2 / var_r[m]) ** 2
+        # Per pair: a 2x2 information (ray / across) for points, the normal's
+        # variance for segments.
+        info = gm[:, None, None] * (np.einsum("ni,nj->nij", u, u) / var_r[m][:, None, None]
+                                    + np.einsum("ni,nj->nij", v, v) / var_t[m][:, None, None])
+        nv = normal[m]
+        seg = nv.any(axis=1)
+        if seg.any():
+            var_n = (nv[seg] * u[seg]).sum(1) ** 2 * var_r[m][seg] + (nv[seg] * v[seg]).sum(1) ** 2 * var_t[m][seg]
+            info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv[seg], nv[seg]) / var_n[:, None, None]
+        J = np.zeros((int(m.sum()), 2, 4))
+        J[:, 0, 0] = 1.0
+        J[:, 1, 1] = 1.0
+        J[:, 0, 2] = -q[:, 1]
+        J[:, 1, 2] = q[:, 0]
+        J[:, :, 3] = u * k[m][:, None]
+        JtI = np.einsum("nki,nkl->nil", J, info)
+        H = np.einsum("nil,nlj->ij", JtI, J)
+        b = -np.einsum("nil,nl->i", JtI, e)
+        H[3, 3] += info_pitch
+        b[3] -= info_pitch * delta
+        try:
+            step = np.linalg.solve(H + np.eye(4) * 1e-9, b)
+            var = float(np.linalg.inv(H + np.eye(4) * 1e-9)[3, 3])
+        except np.linalg.LinAlgError:
+            break
+        pose += step[:3]
+        delta += step[3]
+        if np.hypot(step[0], step[1]) < options.tolerance_m and abs(step[2]) < options.tolerance_rad:
+            break
+    return tuple(float(v) for v in pose), float(delta), var
+
+
+def pitch_corrected(obs_xy: np.ndarray, pitch: float, options: Options) -> np.ndarray:
+    """Observations moved along their viewing rays to undo a pitch error (radians), exactly."""
+    h = options.camera_height_m
+    r = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
+    alpha = np.arctan2(h, np.maximum(r, 1e-9)) - pitch
+    r_new = h / np.tan(np.maximum(alpha, 1e-3))
+    return obs_xy * (r_new / np.maximum(r, 1e-9))[:, None]

@@ -248,6 +248,11 @@ class Options:
         Camera height over the ground and the uncertainty of its pitch (ground-plane
         estimate); a pitch error scales all ranges together, a correlated error
         the covariance includes explicitly.
+    estimate_pitch : bool
+        Refine the chosen pose jointly with the camera's pitch error (prior
+        ``pitch_sigma_deg``; :func:`localizer.robust.refine_with_pitch`). The far
+        markings then no longer drag the pose along the road when the ground
+        plane is tilted; the covariance keeps the pitch's remaining uncertainty.
     covariance_inflation : float
         Scale of the estimated covariance (calibrated on the benchmark).
     max_observations : int
@@ -302,4 +307,5 @@ class Options:
     max_observations: int = 500
     max_observation_range_m: float = 150.0
     record_trace: bool = False
+    estimate_pitch: bool = True
     record_candidates: bool = False

@@ -383,6 +383,50 @@ def test_refinement_converges_exactly_and_trusts_bearings_more_than_ranges():
     assert np.mean(heading[True]) < 0.85 * np.mean(heading[False])
 
 
+def _pitched(v, pitch_rad, height_m=1.3):
+    """What a flat-ground camera pitched down by ``pitch_rad`` reports for ground points ``v``."""
+    r = np.hypot(v[:, 0], v[:, 1])
+    r_meas = height_m / np.tan(np.arctan2(height_m, r) + pitch_rad)
+    return v * (r_meas / r)[:, None]
+
+
+def test_refinement_with_pitch_undoes_the_stretch_a_rigid_fit_absorbs():
+    from localizer.robust import noise_sigma, pitch_corrected, refine_with_pitch, robust_refine
+
+    rng = np.random.default_rng(5)
+    v, local = _points_ahead(rng, n=15)
+    opts = Options()
+    pitch = math.radians(0.1)  # two prior sigmas: 0.3 m of range at 15 m
+    obs = _pitched(v, pitch)
+    np.testing.assert_allclose(pitch_corrected(obs, pitch, opts), v, atol=1e-9)
+    sig = noise_sigma(obs, opts)
+    rigid = robust_refine(local, obs, np.ones(len(obs)), sig, [(0.0, 0.0, 0.0)], opts)[0].pose
+    assert abs(rigid[0]) > 0.15  # the rigid fit slides the vehicle to shorten the ranges
+    pose, est, var = refine_with_pitch(local, obs, sig, rigid, opts)
+    # The prior holds the estimate a little short of the truth (0.1° is two of its sigmas).
+    assert math.hypot(pose[0], pose[1]) < 0.4 * abs(rigid[0]) and abs(pose[2]) < math.radians(0.1)
+    assert est == pytest.approx(pitch, rel=0.3)
+    assert 0 < var < math.radians(opts.pitch_sigma_deg) ** 2  # the data narrowed the prior
+    # No pitch, no change: the exact pose stays where it is.
+    pose0, est0, _ = refine_with_pitch(local, v, noise_sigma(v, opts), (0.0, 0.0, 0.0), opts)
+    assert math.hypot(pose0[0], pose0[1]) < 1e-6 and abs(est0) < 1e-9
+
+
+def test_localize_estimates_the_pitch_unless_told_not_to():
+    rng = np.random.default_rng(21)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0] + 3.0, ORIGIN[1] - 2.0, 0.4)
+    scene = observe(xy, pose)
+    obs = scene.observations.copy()
+    obs[:, :2] = _pitched(obs[:, :2], math.radians(0.1))
+    prior = prior_at(index, perturb(pose, 1.5, 5.0, rng), 2.0, 10.0)
+    with_pitch = localize(index, obs, prior)
+    rigid = localize(index, obs, prior, options=Options(estimate_pitch=False))
+    assert with_pitch.status == rigid.status == "ok"
+    assert errors(with_pitch, pose)[0] < 0.05 < errors(rigid, pose)[0]
+
+
 def test_a_pose_that_explains_little_more_than_clutter_is_not_ok():
     # Two markings matched among a dozen random blobs: whatever the best pose, the
     # "none of these" hypothesis keeps it from being reported as certain.
