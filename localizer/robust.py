@@ -389,7 +389,7 @@ def fit_statistics(
     r = p[m] - tgt[m]
     w = w_obs[m] / sigma_obs[m] ** 2
     rng_j = np.hypot(obs_xy[m, 0], obs_xy[m, 1])
-    drdp = (rng_j**2 + options.camera_height_m**2) / options.camera_height_m
+    drdp = pitch_lever(rng_j, options)
     radial = q / np.maximum(rng_j, 1e-9)[:, None]
     shift = radial * drdp[:, None]
     # Rows of the Jacobian: two per point pair (x, y), one per segment pair
@@ -441,7 +441,7 @@ def refine_with_pitch(
     pose,
     options: Options,
     iterations: int = 5,
-) -> tuple[tuple[float, float, float], float]:
+) -> tuple[tuple[float, float, float], float, float]:
     """Refine ``pose`` jointly with the camera's pitch error (flat-ground camera).
 
     A pitch error ``δ`` (radians) moves every ground point along its viewing
@@ -457,16 +457,17 @@ def refine_with_pitch(
     -------
     pose : (x, y, yaw)
     pitch : float
-        The estimated pitch error, radians.
+        The estimated pitch error, radians (undo it with :func:`pitch_corrected`).
+    pitch_var : float
+        Its posterior variance, radians² (the prior's if nothing matched).
     """
     pose = np.array(pose, float)
     n = len(obs_xy)
     if n < 2:
         return tuple(float(v) for v in pose), 0.0, math.radians(options.pitch_sigma_deg) ** 2
-    h = options.camera_height_m
     rng_j = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
     ray_v = obs_xy / np.maximum(rng_j, 1e-9)[:, None]
-    k = (rng_j**2 + h * h) / h
+    k = pitch_lever(rng_j, options)
     c = options.anneal_m[-1]
     var_r = c * c + sigma_obs**2
     bn = options.bearing_noise_rad
@@ -476,7 +477,7 @@ def refine_with_pitch(
     delta = 0.0
     var = 1.0 / info_pitch
     for _ in range(iterations):
-        o = obs_xy + ray_v * (k * delta)[:, None]
+        o = pitch_corrected(obs_xy, delta, options)
         p = apply(tuple(pose), o)
         d, tgt, normal = local_map.closest(p, float(gate.max()))
         m = np.isfinite(d) & (d <= gate)
@@ -509,15 +510,22 @@ def refine_with_pitch(
         H[3, 3] += info_pitch
         b[3] -= info_pitch * delta
         try:
-            step = np.linalg.solve(H + np.eye(4) * 1e-9, b)
-            var = float(np.linalg.inv(H + np.eye(4) * 1e-9)[3, 3])
+            Hinv = np.linalg.inv(H + np.eye(4) * 1e-9)
         except np.linalg.LinAlgError:
             break
+        step = Hinv @ b
+        var = float(Hinv[3, 3])
         pose += step[:3]
         delta += step[3]
         if np.hypot(step[0], step[1]) < options.tolerance_m and abs(step[2]) < options.tolerance_rad:
             break
     return tuple(float(v) for v in pose), float(delta), var
+
+
+def pitch_lever(range_m: np.ndarray, options: Options) -> np.ndarray:
+    """How far a pitch error moves a ground point along its ray, metres per radian: ``(r² + h²) / h``."""
+    h = options.camera_height_m
+    return (range_m**2 + h * h) / h
 
 
 def pitch_corrected(obs_xy: np.ndarray, pitch: float, options: Options) -> np.ndarray:

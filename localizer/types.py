@@ -303,9 +303,9 @@ class Options:
     inlier_distance_m: float = 0.75
     camera_height_m: float = 1.3
     pitch_sigma_deg: float = 0.05
+    estimate_pitch: bool = True
     covariance_inflation: float = 1.0
     max_observations: int = 500
     max_observation_range_m: float = 150.0
     record_trace: bool = False
-    estimate_pitch: bool = True
     record_candidates: bool = False
