@@ -8,6 +8,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .errors import LocalizationInputError
+
 Status = Literal["ok", "ambiguous", "failed"]
 
 
@@ -309,3 +311,84 @@ class Options:
     max_observation_range_m: float = 150.0
     record_trace: bool = False
     record_candidates: bool = False
+
+    def __post_init__(self) -> None:
+        """Reject values no scene could make sense of (the message names the field)."""
+        for name, lo, lo_open, hi, hi_open in _OPTION_RANGES:
+            _check_range(name, getattr(self, name), lo, lo_open, hi, hi_open)
+        for name in _OPTION_COUNTS:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise LocalizationInputError(f"options.{name}: must be a whole number >= 1, got {v!r}")
+        for name in ("search_cell_m", "bearing_noise_rad", "view_min_range_m", "view_max_range_m",
+                     "view_half_fov_deg"):
+            v = getattr(self, name)
+            if v is not None:
+                _check_range(name, v, 0.0, name in ("search_cell_m", "view_half_fov_deg"),
+                             180.0 if name == "view_half_fov_deg" else math.inf, False)
+        if not isinstance(self.null_score, (int, float, np.floating)) or math.isnan(self.null_score) \
+                or self.null_score == math.inf:
+            raise LocalizationInputError(f"options.null_score: must be a number or -inf, got {self.null_score!r}")
+        anneal = self.anneal_m
+        if not isinstance(anneal, (tuple, list)) or not anneal:
+            raise LocalizationInputError("options.anneal_m: must be a non-empty sequence of scales in metres")
+        for v in anneal:
+            _check_range("anneal_m", v, 0.0, True, math.inf, True)
+        if self.min_search_radius_m > self.max_search_radius_m:
+            raise LocalizationInputError(
+                f"options.min_search_radius_m: {self.min_search_radius_m!r} exceeds "
+                f"max_search_radius_m {self.max_search_radius_m!r}"
+            )
+        if (self.view_min_range_m is not None and self.view_max_range_m is not None
+                and self.view_min_range_m >= self.view_max_range_m):
+            raise LocalizationInputError(
+                f"options.view_min_range_m: {self.view_min_range_m!r} is not below "
+                f"view_max_range_m {self.view_max_range_m!r}"
+            )
+        if self.estimate_pitch and self.pitch_sigma_deg <= 0:
+            raise LocalizationInputError(
+                "options.pitch_sigma_deg: must be > 0 to estimate the pitch (or set estimate_pitch=False)"
+            )
+
+
+#: ``(field, low, low excluded, high, high excluded)`` of every numeric option.
+_OPTION_RANGES = (
+    ("max_pair_distance_m", 0.0, True, math.inf, True),
+    ("epsilon_m", 0.0, True, math.inf, True),
+    ("tolerance_m", 0.0, False, math.inf, True),
+    ("tolerance_rad", 0.0, False, math.inf, True),
+    ("search_sigmas", 0.0, True, math.inf, True),
+    ("max_search_radius_m", 0.0, True, math.inf, True),
+    ("min_search_radius_m", 0.0, True, math.inf, True),
+    ("candidate_margin", 0.0, False, math.inf, False),
+    ("noise_m", 0.0, True, math.inf, True),
+    ("noise_range_coeff", 0.0, False, math.inf, True),
+    ("outlier_density", 0.0, True, math.inf, True),
+    ("clutter_reference", 0.0, True, math.inf, True),
+    ("miss_probability", 0.0, True, 1.0, False),
+    ("solid_miss_probability", 0.0, True, 1.0, False),
+    ("explain_distance_m", 0.0, True, math.inf, True),
+    ("view_margin_m", 0.0, False, math.inf, True),
+    ("view_margin_deg", 0.0, False, 180.0, False),
+    ("temperature", 0.0, True, math.inf, True),
+    ("ambiguity_probability", 0.0, True, 1.0, False),
+    ("min_hypothesis_probability", 0.0, False, 1.0, False),
+    ("inlier_distance_m", 0.0, True, math.inf, True),
+    ("camera_height_m", 0.0, True, math.inf, True),
+    ("pitch_sigma_deg", 0.0, False, 90.0, True),
+    ("covariance_inflation", 0.0, True, math.inf, True),
+    ("max_observation_range_m", 0.0, True, math.inf, True),
+)
+
+#: Options that count something (at least one).
+_OPTION_COUNTS = ("max_iterations", "max_search_observations", "candidates", "max_hypotheses",
+                  "min_inliers", "max_observations")
+
+
+def _check_range(name: str, v, lo: float, lo_open: bool, hi: float, hi_open: bool) -> None:
+    ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and not math.isnan(v)
+    if ok:
+        ok = (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+    if not ok:
+        span = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        raise LocalizationInputError(f"options.{name}: must be a number in {span}, got {v!r}")

@@ -620,6 +620,29 @@ def test_bad_prior_raises(small, kwargs, match):
         localize(index, obs, Prior(**fields))
 
 
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"pitch_sigma_deg": 0.0}, "pitch_sigma_deg"), ({"temperature": 0.0}, "temperature"),
+     ({"miss_probability": 1.5}, "miss_probability"), ({"noise_m": float("nan")}, "noise_m"),
+     ({"anneal_m": ()}, "anneal_m"), ({"anneal_m": (0.8, -0.1)}, "anneal_m"),
+     ({"candidates": 0}, "candidates"), ({"min_inliers": 2.5}, "min_inliers"),
+     ({"max_iterations": True}, "max_iterations"), ({"search_cell_m": 0.0}, "search_cell_m"),
+     ({"view_min_range_m": 30.0}, "view_min_range_m"), ({"ambiguity_probability": 0.0}, "ambiguity"),
+     ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
+     ({"epsilon_m": "0.05"}, "epsilon_m")],
+)
+def test_bad_options_raise_a_clear_error(kwargs, match):
+    with pytest.raises(LocalizationInputError, match=f"options.{match}"):
+        Options(**kwargs)
+
+
+def test_edge_options_are_accepted_and_used(small):
+    index, obs, prior = small
+    for opts in (Options(estimate_pitch=False, pitch_sigma_deg=0.0), Options(null_score=-math.inf),
+                 Options(bearing_noise_rad=None, search_cell_m=None, view_half_fov_deg=None)):
+        assert localize(index, obs, prior, options=opts).status == "ok"
+
+
 def test_bad_method_and_map_inputs_raise(small):
     index, obs, prior = small
     with pytest.raises(LocalizationInputError, match="method"):
