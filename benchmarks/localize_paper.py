@@ -6,7 +6,10 @@ least squares on the true inliers with their true map positions, observations
 of solid lines constraining only the distance across the line: the noise
 floor). "ambiguous (truth listed)": how often an ambiguous answer lists a
 hypothesis within 0.5 m of the truth. Prints a table per scenario and saves error-versus-iteration plots
-like the paper's Fig. 8/9 under ``benchmarks/out/``.
+like the paper's Fig. 8/9 under ``benchmarks/out/``; then, pooled over the
+scenarios, how often the default method's answers of each posterior
+probability (``Pose.probability``) are right, as a table and a reliability
+diagram (``localize_reliability_<tag>.png``).
 
 Run: ``.venv/bin/python benchmarks/localize_paper.py [--runs 200] [--seed 0]``
 """
@@ -133,7 +136,7 @@ def run(args) -> dict:
                 hit = any(math.hypot(hy.easting - pose[0], hy.northing - pose[1]) <= 0.5
                           for hy in p.hypotheses)
                 row[method] = dict(status=p.status, err=e, herr=h, ms=ms, maha=maha,
-                                   it=p.iterations, hyp_hit=hit)
+                                   it=p.iterations, hyp_hit=hit, prob=p.probability)
                 if len(tr[method]) < 60 and p.trace:
                     tr[method].append(
                         [(math.hypot(t[0] - pose[0], t[1] - pose[1]), heading_err_deg(t[2], pose[2]))
@@ -184,6 +187,67 @@ def summarize(rows: list[dict], method: str) -> dict:
         "cov95": float(np.mean(maha[ok & (e <= 1.0)] <= 5.991)) if (ok & (e <= 1.0)).any() else math.nan,
         "cov2sigma": float(np.mean(maha[ok & (e <= 1.0)] <= 4.0)) if (ok & (e <= 1.0)).any() else math.nan,
     }
+
+
+#: Bins of the default method's posterior probability for the reliability table.
+PROB_BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 0.999, 1.0)
+
+
+def reliability(all_rows: dict) -> list[dict]:
+    """How often answers of each posterior probability are right, over all scenarios.
+
+    Per bin of ``Pose.probability`` (default method, ``ok`` and ``ambiguous``
+    answers): how many, their mean probability, and the share within 1 m and
+    2° of the truth and within 0.5 m and 1° (the success criterion). A
+    calibrated posterior has the first share close to the mean probability.
+    """
+    r = [x["default"] for rows in all_rows.values() for x in rows
+         if x["default"]["status"] != "failed" and x["default"].get("prob") is not None]
+    p = np.array([x["prob"] for x in r])
+    near = np.array([x["err"] <= 1.0 and x["herr"] <= 2.0 for x in r])
+    good = np.array([x["err"] <= 0.5 and x["herr"] <= 1.0 for x in r])
+    out = []
+    for k, (lo, hi) in enumerate(zip(PROB_BINS[:-1], PROB_BINS[1:])):
+        m = (p >= lo) & ((p < hi) if k < len(PROB_BINS) - 2 else (p <= hi))
+        if m.any():
+            out.append(dict(lo=lo, hi=hi, n=int(m.sum()), mean_p=float(p[m].mean()),
+                            within_1m=float(near[m].mean()), within_05m=float(good[m].mean())))
+    return out
+
+
+def reliability_table(bins: list[dict]) -> str:
+    lines = ["| probability | answers | mean probability | within 1 m / 2° | within 0.5 m / 1° |",
+             "|---|---|---|---|---|"]
+    for b in bins:
+        lines.append(f"| {b['lo']:g}–{b['hi']:g} | {b['n']} | {b['mean_p']:.3f} | {b['within_1m']:.1%} "
+                     f"| {b['within_05m']:.1%} |")
+    return "\n".join(lines)
+
+
+def reliability_plot(bins: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    mp = [b["mean_p"] for b in bins]
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
+    ax.plot(mp, [b["within_1m"] for b in bins], "o-", label="within 1 m / 2°")
+    ax.plot(mp, [b["within_05m"] for b in bins], "s-", ms=4, label="within 0.5 m / 1°")
+    for b in bins:
+        ax.annotate(str(b["n"]), (b["mean_p"], b["within_1m"]), textcoords="offset points",
+                    xytext=(4, -12), fontsize=7, color="0.3")
+    ax.axvline(0.95, color="tab:red", lw=0.8, ls=":", label="ok threshold")
+    ax.set_xlabel("posterior probability of the answer (Pose.probability)")
+    ax.set_ylabel("share of answers that are right")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.set_title("default method: calibration of the posterior")
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plots(traces: dict, suffix: str = "") -> None:
@@ -249,9 +313,14 @@ def main() -> None:
         for rows in out["results"].values() for r in rows for m in ("default",)
     ]
     print(f"default: confidently wrong over all runs: {np.mean(cw):.2%} ({sum(cw)}/{len(cw)})")
+    bins = reliability(out["results"])
+    rel = reliability_table(bins)
+    print("default: how often answers of each posterior probability are right (all scenarios)")
+    print(rel)
     OUT.mkdir(parents=True, exist_ok=True)
     tag = args.tag or ("intersections" if args.intersections else "all")
-    (OUT / f"localize_paper_{tag}.md").write_text(tab + "\n")
+    (OUT / f"localize_paper_{tag}.md").write_text(tab + "\n\n" + rel + "\n")
+    reliability_plot(bins, OUT / f"localize_reliability_{tag}.png")
     (OUT / f"localize_paper_{tag}.json").write_text(json.dumps(out["results"], default=float))
     plots(out["traces"], "_intersections" if args.intersections else "")
 

@@ -225,6 +225,7 @@ def localize(
         pose, iterations, trace = res.pose, res.iterations, res.trace
         hyps: list[tuple[tuple[float, float, float], float]] = [(pose, 1.0)]
         log_scores = [None]
+        probability = None
         fits = {}
         status = "ok"
         diagnostics = {}
@@ -344,7 +345,8 @@ def localize(
                  "search": (k[2].x + px, k[2].y + py, k[2].yaw, k[2].score)}
                 for i, k in enumerate(kept)
             ]
-        status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
+        probability = float(prob[0])
+        status = "ok" if probability >= options.ambiguity_probability else "ambiguous"
 
     fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
     if fit.inliers < options.min_inliers:
@@ -367,6 +369,7 @@ def localize(
     out.iterations = int(iterations)
     out.inliers = fit.inliers
     out.rms_m = fit.rms_m
+    out.probability = probability
     out.diagnostics = diagnostics
     out.log_score = log_scores[0]
     if options.record_trace:

@@ -349,6 +349,7 @@ def _estimate(tracks, null, options: Options, frame_geo, crs) -> Pose:
     prob = _posterior(tracks, null)
     status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
     out = _pose_at(best, status, frame_geo, crs)
+    out.probability = float(prob[0])
     if status == "ambiguous":
         for t, p in zip(tracks[: options.max_hypotheses], prob):
             if p < options.min_hypothesis_probability:

@@ -93,6 +93,15 @@ class Pose:
         Observations matched to the map at the returned pose.
     rms_m : float or None
         Root-mean-square distance of the matched observations, metres.
+    probability : float or None
+        Default method: posterior probability that the returned pose is the
+        right one, among the hypotheses found and "none of these" (every
+        observation clutter). ``ok`` means at least
+        ``Options.ambiguity_probability`` (0.95); a client that needs more (or
+        accepts less) can apply its own threshold. Calibrated on the benchmark
+        (``benchmarks/localize_paper.py`` prints how often answers of each
+        probability were right). None for ``pink2008`` (the paper's ICP has no
+        posterior) and when ``failed``.
     hypotheses : list of Hypothesis
         Best first; filled when ``status == "ambiguous"``.
     reason : str or None
@@ -125,6 +134,7 @@ class Pose:
     iterations: int = 0
     inliers: int = 0
     rms_m: float | None = None
+    probability: float | None = None
     hypotheses: list[Hypothesis] = field(default_factory=list)
     reason: str | None = None
     transformation: np.ndarray | None = None
@@ -157,6 +167,7 @@ class Pose:
             "iterations": int(self.iterations),
             "inliers": int(self.inliers),
             "rms_m": num(self.rms_m),
+            "probability": num(self.probability),
             "hypotheses": [h.to_dict() for h in self.hypotheses],
             "reason": self.reason,
         }

@@ -85,6 +85,11 @@ def test_localize_recovers_the_pose(api, kmap, method):
     cov = np.array(out["covariance"])
     assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
     assert out["inliers"] >= 3 and out["iterations"] >= 1 and out["rms_m"] < 0.1
+    # The default method's posterior probability of the answer; the paper's ICP has none.
+    if method == "default":
+        assert 0.95 <= out["probability"] <= 1.0
+    else:
+        assert out["probability"] is None
 
 
 def test_index_follows_map_edits(api, kmap):

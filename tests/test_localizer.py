@@ -248,13 +248,15 @@ def test_periodic_dash_rows_are_ambiguous_with_hypotheses_a_period_apart():
     assert len(r.hypotheses) >= 2
     assert sum(h.score for h in r.hypotheses) <= 1.0 + 1e-9
     assert r.hypotheses[0].score < Options().ambiguity_probability
+    # The answer's probability is the best hypothesis's.
+    assert r.probability == pytest.approx(r.hypotheses[0].score)
     east = sorted(h.easting - pose[0] for h in r.hypotheses)
     assert min(abs(e) for e in east) < 0.3  # the truth is one of them
     gaps = np.diff(east)
     assert np.all(np.abs(gaps / 9.0 - np.round(gaps / 9.0)) < 0.05)
     # The paper's method just answers, wrong by a period or right by luck.
     p = localize(index, scene.observations, prior, method="pink2008")
-    assert p.status in ("ok", "failed") and p.hypotheses == []
+    assert p.status in ("ok", "failed") and p.hypotheses == [] and p.probability is None
 
 
 def test_parallel_lanes_are_ambiguous():
@@ -517,8 +519,9 @@ def test_result_dict_is_json_safe_with_the_api_keys():
     d = json.loads(json.dumps(r.to_dict(), allow_nan=False))
     assert set(d) == {"status", "lat", "lon", "heading_deg", "easting", "northing", "crs",
                       "yaw_enu_rad", "covariance", "iterations", "inliers", "rms_m",
-                      "hypotheses", "reason"}
+                      "probability", "hypotheses", "reason"}
     assert d["status"] == "ok" and d["crs"] == CRS and d["reason"] is None
+    assert Options().ambiguity_probability <= d["probability"] <= 1.0
     assert len(d["covariance"]) == 3 and all(len(row) == 3 for row in d["covariance"])
     assert 0 <= d["heading_deg"] < 360
     # ENU yaw and true heading agree; the transformation maps the vehicle origin.

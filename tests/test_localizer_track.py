@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from localizer import LocalizationInputError, MapIndex, Prior, localize
+from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
 from localizer.simulate import Camera, Clutter, odometry, perturb, sample_trajectories, simulate_scene
 from localizer.track import MAX_FRAMES, Frame, localize_sequence
 
@@ -50,6 +50,10 @@ def test_a_drive_resolves_what_single_frames_cannot():
             status, err = graded(pose, truth)
             assert not (status == "ok" and err > 1.0), "confidently wrong"
             assert pose.status != "ambiguous" or pose.hypotheses
+            if pose.status != "failed":
+                # ok exactly when the track holds the threshold's share of the posterior
+                assert (pose.status == "ok") == (pose.probability >= Options().ambiguity_probability)
+                assert pose.status == "ok" or pose.probability == pytest.approx(pose.hypotheses[0].score)
         s_status, s_err = graded(single, drive[-1])
         q_status, q_err = graded(result.pose, drive[-1])
         single_ok += s_status == "ok" and s_err <= 0.5
