@@ -47,7 +47,12 @@ Methods
        added; poses matching fewer than ``min_inliers`` observations do not
        compete, and a "none of these" hypothesis (all clutter) takes its share.
        The posterior probabilities decide ``ok`` versus ``ambiguous``
-       (repeating 9 m dashes, parallel lanes 3.5 m apart): ``ok`` needs 95 %.
+       (repeating 9 m dashes, parallel lanes 3.5 m apart): ``ok`` needs 95 %;
+       the answer carries its own (``Pose.probability``). When the best of
+       the first 20 candidates holds less than 99.9 %, the next 20 coarse
+       optima are refined and scored too (``Options.extra_candidates``): a
+       truth crowded out of the first ones, or a rival that makes a
+       confident answer ambiguous.
     4. The chosen pose is refined jointly with the camera's pitch error (a
        tilted ground plane stretches all ranges together, which a rigid fit
        would absorb by sliding along the road; ``Options.estimate_pitch``).

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -235,86 +235,38 @@ def localize(
         cands = correlative_search(
             local, obs_xy[top], w_data[top], prior_pose, radius,
             min(options.search_sigmas * sigma_yaw, math.pi), sigma_p, sigma_yaw, cell,
-            options.outlier_density, options.candidates, options.temperature,
+            options.outlier_density, options.candidates + options.extra_candidates, options.temperature,
         )
         view = view_of(obs_xy, options)
         if cands:
             # Candidates far below the best cannot become competitive.
             floor = cands[0].score - options.candidate_margin
             cands = [c for k, c in enumerate(cands) if k < 4 or c.score >= floor]
-            # The prior itself is always refined too: when clutter dominates the
-            # coarse correlation, the few true matches may still pull a refinement
-            # started at the GPS fix to the right pose.
-            if not any(math.hypot(c.x, c.y) < 0.5 and abs(wrap_angle(c.yaw - yaw0)) < math.radians(1.0)
-                       for c in cands):
-                cands.append(Candidate(0.0, 0.0, yaw0, -math.inf))
-        inits = [(c.x, c.y, c.yaw) for c in cands]
-        # The coarse-to-fine schedule can be dragged off a right candidate by heavy
-        # clutter; a fine-only refinement from the same start cannot go far. Keep
-        # whichever explains the observations better. Both run in one batch (the
-        # fine-only ones join at the last two scales): one KD-tree query per
-        # iteration for all, instead of a second round of iterations.
-        fine_options = replace(options, anneal_m=options.anneal_m[-2:])
-        n_c = len(inits)
-        both_runs = robust_refine(
-            local, obs_xy, w_data, sig, inits + inits, options,
-            start_scale=[0] * n_c + [max(0, len(options.anneal_m) - 2)] * n_c,
-        ) if cands else []
-        coarse = both_runs[:n_c]
-        # Only a refinement that travelled can have been dragged off: the others
-        # would end where the fine-only one does.
-        moved = [k for k, (c, r) in enumerate(zip(cands, coarse))
-                 if math.hypot(r.pose[0] - c.x, r.pose[1] - c.y) > 0.5
-                 or abs(wrap_angle(r.pose[2] - c.yaw)) > math.radians(1.5)]
-        fine = {k: both_runs[n_c + k] for k in moved}
-        refined = []
-        if cands:
-            both = data_scores(local, obs_xy, w_data, sig,
-                               [r.pose for r in coarse] + [fine[k].pose for k in moved], options, view)
-            fine_score = dict(zip(moved, both[len(cands):]))
-        for k, cand in enumerate(cands):
-            a, sa = coarse[k], both[k]
-            b, sb = fine.get(k), fine_score.get(k, -math.inf)
-            r, sc, sched = (a, sa, options) if sa >= sb else (b, sb, fine_options)
-            score = sc / options.temperature + log_prior(r.pose, prior_pose, sigma_p, sigma_yaw)
-            refined.append((score, r, cand, sched))
-        refined.sort(key=lambda t: -t[0])
-        all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in cands]
+        first, extra = cands[: options.candidates], cands[options.candidates:]
+        # The prior itself is always refined too: when clutter dominates the
+        # coarse correlation, the few true matches may still pull a refinement
+        # started at the GPS fix to the right pose.
+        if first and not any(math.hypot(c.x, c.y) < 0.5 and abs(wrap_angle(c.yaw - yaw0)) < math.radians(1.0)
+                             for c in first):
+            first.append(Candidate(0.0, 0.0, yaw0, -math.inf))
+        scene = _Scene(local, obs_xy, w_data, sig, options, view, prior_pose, sigma_p, sigma_yaw, prior_info)
+        refined = _refine_candidates(scene, first)
         if not refined:
             return Pose(status="failed", crs=crs, reason="the global search found no candidate")
-        # Refinements that end inside the best one's uncertainty are the same optimum
-        # (e.g. sliding along a solid line), not an alternative.
-        # A pose that matches fewer observations than a fix needs is no hypothesis,
-        # however well it scores (a pose looking at bare road predicts nothing it
-        # could miss); it only decides the answer when nothing better exists.
-        enough = count_inliers(local, obs_xy, sig, [r[1].pose for r in refined], options) >= options.min_inliers
-        if enough.any():
-            refined = [r for r, e in zip(refined, enough) if e]
-        best_fit = fit_statistics(local, obs_xy, w_data, sig, refined[0][1].pose, options, prior_info)
-        fits = {refined[0][1].pose: best_fit}
-        kept: list[tuple[float, Any, Any, Any]] = [refined[0]]
-        for item in refined[1:]:
-            if not any(_same_optimum(item[1].pose, o[1].pose, best_fit.covariance) for o in kept):
-                kept.append(item)
-        # The clutter rate: observations that the best pose leaves unexplained. The
-        # more clutter, the likelier a chance match, the less each match tells.
-        n_clutter = len(obs) - best_fit.inliers
-        score_options = replace(options, outlier_density=options.outlier_density
-                                * max(1.0, n_clutter / options.clutter_reference))
+        ranked = _rank_hypotheses(scene, refined)
+        # An answer that is not beyond doubt gets the coarse optima after the
+        # first ones refined too: they hold the truth when clutter or a wide
+        # prior crowded it out of the first, and a rival found there makes an
+        # answer ambiguous that would otherwise have been confidently wrong.
+        searched = first
+        if extra and ranked.prob[0] < options.extra_search_probability:
+            refined = refined + _refine_candidates(scene, extra)
+            ranked = _rank_hypotheses(scene, refined)
+            searched = first + extra
+        all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in searched]
+        kept, scores, prob, score_options = ranked.kept, ranked.scores, ranked.prob, ranked.score_options
         kept_poses = [k[1].pose for k in kept]
-        if score_options.outlier_density != options.outlier_density:
-            data = data_scores(local, obs_xy, w_data, sig, kept_poses, score_options, view)
-            kept = [(float(d) / options.temperature + log_prior(k[1].pose, prior_pose, sigma_p, sigma_yaw),)
-                    + tuple(k[1:]) for d, k in zip(data, kept)]
-            kept.sort(key=lambda t: -t[0])
-            kept_poses = [k[1].pose for k in kept]
-        scores = np.array([k[0] for k in kept])
-        # "None of these": every observation clutter, the vehicle somewhere the
-        # search found nothing. A best hypothesis that explains little more than
-        # that cannot be confident, however poor its rivals.
-        top = max(float(scores.max()), options.null_score)
-        prob = np.exp(scores - top)
-        prob /= prob.sum() + math.exp(options.null_score - top)
+        fits = {ranked.best_pose: ranked.best_fit}
         best = kept[0][1]
         pose, iterations = best.pose, best.iterations
         if options.estimate_pitch:
@@ -383,6 +335,106 @@ def localize(
                 Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p, log_score=ls)
             )
     return out
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """What every candidate of one request is refined and scored against."""
+
+    local: LocalMap
+    obs_xy: np.ndarray
+    w_data: np.ndarray
+    sig: np.ndarray
+    options: Options
+    view: tuple[float, float, float]
+    prior_pose: tuple[float, float, float]
+    sigma_p: float
+    sigma_yaw: float
+    prior_info: np.ndarray
+
+
+@dataclass
+class _Ranked:
+    kept: list  # (score, RefineResult, Candidate, schedule Options), best first
+    scores: np.ndarray
+    prob: np.ndarray
+    score_options: Options
+    best_pose: tuple[float, float, float]
+    best_fit: Any
+
+
+def _refine_candidates(sc: _Scene, cands: list[Candidate]) -> list:
+    """Refine coarse candidates; ``(score, RefineResult, candidate, schedule)`` per candidate."""
+    if not cands:
+        return []
+    o = sc.options
+    inits = [(c.x, c.y, c.yaw) for c in cands]
+    # The coarse-to-fine schedule can be dragged off a right candidate by heavy
+    # clutter; a fine-only refinement from the same start cannot go far. Keep
+    # whichever explains the observations better. Both run in one batch (the
+    # fine-only ones join at the last two scales): one KD-tree query per
+    # iteration for all, instead of a second round of iterations.
+    fine_options = replace(o, anneal_m=o.anneal_m[-2:])
+    n_c = len(inits)
+    both_runs = robust_refine(
+        sc.local, sc.obs_xy, sc.w_data, sc.sig, inits + inits, o,
+        start_scale=[0] * n_c + [max(0, len(o.anneal_m) - 2)] * n_c,
+    )
+    coarse = both_runs[:n_c]
+    # Only a refinement that travelled can have been dragged off: the others
+    # would end where the fine-only one does.
+    moved = [k for k, (c, r) in enumerate(zip(cands, coarse))
+             if math.hypot(r.pose[0] - c.x, r.pose[1] - c.y) > 0.5
+             or abs(wrap_angle(r.pose[2] - c.yaw)) > math.radians(1.5)]
+    fine = {k: both_runs[n_c + k] for k in moved}
+    both = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig,
+                       [r.pose for r in coarse] + [fine[k].pose for k in moved], o, sc.view)
+    fine_score = dict(zip(moved, both[n_c:]))
+    refined = []
+    for k, cand in enumerate(cands):
+        a, sa = coarse[k], both[k]
+        b, sb = fine.get(k), fine_score.get(k, -math.inf)
+        r, s, sched = (a, sa, o) if sa >= sb else (b, sb, fine_options)
+        score = s / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw)
+        refined.append((score, r, cand, sched))
+    return refined
+
+
+def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
+    """Distinct hypotheses among refined candidates, with their posterior probabilities."""
+    o = sc.options
+    refined = sorted(refined, key=lambda t: -t[0])
+    # A pose that matches fewer observations than a fix needs is no hypothesis,
+    # however well it scores (a pose looking at bare road predicts nothing it
+    # could miss); it only decides the answer when nothing better exists.
+    enough = count_inliers(sc.local, sc.obs_xy, sc.sig, [r[1].pose for r in refined], o) >= o.min_inliers
+    if enough.any():
+        refined = [r for r, e in zip(refined, enough) if e]
+    best_fit = fit_statistics(sc.local, sc.obs_xy, sc.w_data, sc.sig, refined[0][1].pose, o, sc.prior_info)
+    # Refinements that end inside the best one's uncertainty are the same optimum
+    # (e.g. sliding along a solid line), not an alternative.
+    kept = [refined[0]]
+    for item in refined[1:]:
+        if not any(_same_optimum(item[1].pose, k[1].pose, best_fit.covariance) for k in kept):
+            kept.append(item)
+    # The clutter rate: observations that the best pose leaves unexplained. The
+    # more clutter, the likelier a chance match, the less each match tells.
+    n_clutter = len(sc.obs_xy) - best_fit.inliers
+    score_options = replace(o, outlier_density=o.outlier_density * max(1.0, n_clutter / o.clutter_reference))
+    if score_options.outlier_density != o.outlier_density:
+        data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [k[1].pose for k in kept],
+                           score_options, sc.view)
+        kept = [(float(d) / o.temperature + log_prior(k[1].pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw),)
+                + tuple(k[1:]) for d, k in zip(data, kept)]
+        kept.sort(key=lambda t: -t[0])
+    scores = np.array([k[0] for k in kept])
+    # "None of these": every observation clutter, the vehicle somewhere the
+    # search found nothing. A best hypothesis that explains little more than
+    # that cannot be confident, however poor its rivals.
+    top = max(float(scores.max()), o.null_score)
+    prob = np.exp(scores - top)
+    prob /= prob.sum() + math.exp(o.null_score - top)
+    return _Ranked(kept, scores, prob, score_options, refined[0][1].pose, best_fit)
 
 
 def _same_optimum(a, b, cov) -> bool:

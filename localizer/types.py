@@ -202,6 +202,12 @@ class Options:
         The coarse search uses at most this many observations (highest weight first).
     candidates : int
         Coarse optima that are refined (at most).
+    extra_candidates, extra_search_probability : int, float
+        When the best hypothesis from the first ``candidates`` holds less than
+        ``extra_search_probability`` of the posterior, up to
+        ``extra_candidates`` further coarse optima are refined too (where
+        clutter or a wide prior crowded the truth out of the first ones; an
+        answer beyond doubt costs nothing more). 0 disables it.
     candidate_margin : float
         Beyond the best four, coarse optima scoring more than this below the best
         (log units) are not refined.
@@ -292,6 +298,8 @@ class Options:
     search_cell_m: float | None = None
     max_search_observations: int = 120
     candidates: int = 20
+    extra_candidates: int = 20
+    extra_search_probability: float = 0.999
     candidate_margin: float = 10.0
     anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2, 0.15)
     noise_m: float = 0.05
@@ -329,8 +337,9 @@ class Options:
             _check_range(name, getattr(self, name), lo, lo_open, hi, hi_open)
         for name in _OPTION_COUNTS:
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise LocalizationInputError(f"options.{name}: must be a whole number >= 1, got {v!r}")
+            least = 0 if name == "extra_candidates" else 1
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise LocalizationInputError(f"options.{name}: must be a whole number >= {least}, got {v!r}")
         for name in ("search_cell_m", "bearing_noise_rad", "view_min_range_m", "view_max_range_m",
                      "view_half_fov_deg"):
             v = getattr(self, name)
@@ -383,6 +392,7 @@ _OPTION_RANGES = (
     ("view_margin_deg", 0.0, False, 180.0, False),
     ("temperature", 0.0, True, math.inf, True),
     ("ambiguity_probability", 0.0, True, 1.0, False),
+    ("extra_search_probability", 0.0, False, 1.0, False),
     ("min_hypothesis_probability", 0.0, False, 1.0, False),
     ("inlier_distance_m", 0.0, True, math.inf, True),
     ("camera_height_m", 0.0, True, math.inf, True),
@@ -391,9 +401,9 @@ _OPTION_RANGES = (
     ("max_observation_range_m", 0.0, True, math.inf, True),
 )
 
-#: Options that count something (at least one).
-_OPTION_COUNTS = ("max_iterations", "max_search_observations", "candidates", "max_hypotheses",
-                  "min_inliers", "max_observations")
+#: Options that count something (at least one; extra_candidates may be 0).
+_OPTION_COUNTS = ("max_iterations", "max_search_observations", "candidates", "extra_candidates",
+                  "max_hypotheses", "min_inliers", "max_observations")
 
 
 def _check_range(name: str, v, lo: float, lo_open: bool, hi: float, hi_open: bool) -> None:

@@ -259,6 +259,32 @@ def test_periodic_dash_rows_are_ambiguous_with_hypotheses_a_period_apart():
     assert p.status in ("ok", "failed") and p.hypotheses == [] and p.probability is None
 
 
+def test_a_doubtful_answer_gets_more_candidates_refined():
+    xy = dash_rows(lateral=(0.0, 3.5))
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 1.0, ORIGIN[1] + 1.7, 0.0)
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    prior = prior_at(index, (pose[0] + 4.5, pose[1], 0.0))
+    first_only = localize(index, scene.observations, prior, options=Options(candidates=2, extra_candidates=0))
+    more = localize(index, scene.observations, prior, options=Options(candidates=2, extra_candidates=12))
+    assert first_only.status == more.status == "ambiguous"
+    # The second pass refined more coarse optima and found the aliases two periods away.
+    assert len(more.diagnostics["search"]) > len(first_only.diagnostics["search"]) + 5
+    offsets = sorted(round((h.easting - pose[0]) / 9.0) for h in more.hypotheses)
+    assert len(more.hypotheses) > len(first_only.hypotheses) and len(set(offsets)) >= 4
+    assert more.probability < first_only.probability
+    # An answer beyond doubt is not searched further.
+    rng = np.random.default_rng(15)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], 0.5)
+    obs, prior = observe(xy, pose).observations, prior_at(index, pose)
+    sure = localize(index, obs, prior, options=Options(candidates=3))
+    assert sure.probability > Options().extra_search_probability
+    assert sure.diagnostics["search"] == localize(index, obs, prior, options=Options(
+        candidates=3, extra_candidates=0)).diagnostics["search"]
+
+
 def test_parallel_lanes_are_ambiguous():
     xy = dash_rows(lateral=(-7.0, -3.5, 0.0, 3.5, 7.0), period=9.0)
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
@@ -632,7 +658,8 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"max_iterations": True}, "max_iterations"), ({"search_cell_m": 0.0}, "search_cell_m"),
      ({"view_min_range_m": 30.0}, "view_min_range_m"), ({"ambiguity_probability": 0.0}, "ambiguity"),
      ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
-     ({"epsilon_m": "0.05"}, "epsilon_m")],
+     ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
+     ({"extra_search_probability": 1.5}, "extra_search_probability")],
 )
 def test_bad_options_raise_a_clear_error(kwargs, match):
     with pytest.raises(LocalizationInputError, match=f"options.{match}"):
