@@ -237,6 +237,43 @@ def test_a_drive_is_localized_frame_by_frame(api, kmap):
         assert np.array(pose["covariance"]).shape == (3, 3)
 
 
+def test_answers_follow_the_documented_schema(api, kmap):
+    """Every kind of answer (ok, ambiguous, failed, a drive) validates against openapi.json."""
+    import jsonschema_rs
+
+    spec = httpx.get(f"{api.base_url}/openapi.json").json()
+
+    def validator(path):
+        schema = spec["paths"][path]["post"]["responses"]["200"]["content"]["application/json"]["schema"]
+        return jsonschema_rs.validator_for({**schema, "components": spec["components"]})
+
+    single = validator("/collections/{mapId}/localize")
+    drive = validator("/collections/{mapId}/localize/sequence")
+    assert {"probability", "covariance", "hypotheses"} <= set(spec["components"]["schemas"]["PoseOut"]["properties"])
+    map_id, feats = kmap
+    url = f"{api.base_url}/collections/{map_id}/localize"
+    p, lon, lat, heading, obs = scene(feats, 400)
+    answers = [httpx.post(url, json={"gps": gps_near(p, heading), "observations": obs, "method": m},
+                          timeout=60).json() for m in ("default", "pink2008")]  # fmt: skip
+    # A few dashes of one line seen from a vague fix: the 9 m period leaves it ambiguous.
+    dashes = sorted(obs, key=lambda o: abs(o["y"]))[:3]
+    answers.append(httpx.post(url, json={"gps": {**gps_near(p, heading), "position_sigma_m": 20.0},
+                                         "observations": dashes}, timeout=60).json())  # fmt: skip
+    far = dict(gps_near(p, heading), lat=lat + 0.5)  # 55 km away: no markings
+    answers.append(httpx.post(url, json={"gps": far, "observations": obs}, timeout=60).json())
+    assert [a["status"] for a in answers[:2]] == ["ok", "ok"] and answers[3]["status"] == "failed"
+    assert answers[2]["status"] == "ambiguous" and answers[2]["hypotheses"], answers[2]
+    for a in answers:
+        errors = [e.message for e in single.iter_errors(a)]
+        assert not errors, (a, errors)
+    body = {"gps": gps_near(p, heading), "frames": [{"observations": obs},
+                                                    {"observations": obs, "motion": {"dx": 0.0, "dy": 0.0}}]}
+    seq = httpx.post(f"{url}/sequence", json=body, timeout=60).json()
+    assert len(seq["poses"]) == 2 and not list(drive.iter_errors(seq))
+    # A response missing what the document requires does not validate: the check can fail.
+    assert list(single.iter_errors({"status": "ok"}))
+
+
 @pytest.mark.parametrize("frames, words", [
     ([], "frames"),
     ([{"observations": [{"x": 10, "y": 1}]}] * 51, "frames"),

@@ -95,6 +95,57 @@ class SequenceIn(BaseModel):
     frames: list[FrameIn] = Field(..., min_length=1, max_length=50, description="Consecutive frames, oldest first")
 
 
+class HypothesisOut(BaseModel):
+    lat: float = Field(..., description="WGS84 latitude, degrees")
+    lon: float = Field(..., description="WGS84 longitude, degrees")
+    heading_deg: float = Field(..., description="Degrees clockwise from true north")
+    easting: float = Field(..., description="Metres in the map's CRS")
+    northing: float = Field(..., description="Metres in the map's CRS")
+    score: float = Field(..., ge=0, le=1, description="Posterior probability of this hypothesis")
+
+
+class PoseOut(BaseModel):
+    """A localization answer (the pose fields are null when ``failed``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "example": {
+                "status": "ok", "lat": 49.0028977, "lon": 8.4245092, "heading_deg": 54.382,
+                "easting": 457909.691, "northing": 5427937.450, "crs": "EPSG:25832", "yaw_enu_rad": 0.62164,
+                "covariance": [[0.00708, 0.00415, 0.000054], [0.00415, 0.0207, -0.000598],
+                               [0.000054, -0.000598, 0.0000244]],
+                "iterations": 9, "inliers": 13, "rms_m": 0.003, "probability": 1.0, "hypotheses": [],
+            }
+        },
+    )  # fmt: skip
+    status: Literal["ok", "ambiguous", "failed"] = Field(
+        ..., description="ambiguous: several poses explain the observations (see hypotheses); failed: see reason")
+    crs: str = Field(..., description="The map's storage CRS")
+    lat: float | None = Field(None, description="WGS84 latitude, degrees (the best hypothesis when ambiguous)")
+    lon: float | None = Field(None, description="WGS84 longitude, degrees")
+    heading_deg: float | None = Field(None, description="Degrees clockwise from true north")
+    easting: float | None = Field(None, description="Metres in the map's CRS")
+    northing: float | None = Field(None, description="Metres in the map's CRS")
+    yaw_enu_rad: float | None = Field(None, description="REP-103 yaw: radians counter-clockwise from true east")
+    covariance: list[list[float | None]] | None = Field(
+        None, description="3x3 covariance of (easting m, northing m, yaw rad)")
+    iterations: int | None = Field(None, description="Refinement iterations of the answer")
+    inliers: int | None = Field(None, description="Observations matched to the map")
+    rms_m: float | None = Field(None, description="RMS distance of the matched observations, metres")
+    probability: float | None = Field(
+        None, ge=0, le=1,
+        description="Posterior probability that the answer is right (default method; ok needs 0.95; "
+                    "null for pink2008 and failed)")  # fmt: skip
+    hypotheses: list[HypothesisOut] = Field(..., description="Best first; filled when ambiguous")
+    reason: str | None = Field(None, description="Why the localization failed, or that a drive's frame "
+                                                  "matched nothing and the pose is the odometry's prediction")
+
+
+class SequenceOut(BaseModel):
+    poses: list[PoseOut] = Field(..., description="The answer at every frame, from the frames up to it")
+    tracks: int = Field(..., ge=0, description="Hypotheses still followed after the last frame")
+
+
 def map_index(ctx: Context, map_id: str):
     """The map's spatial index, rebuilt when the map's revision moved on."""
     from localizer import MapIndex
@@ -122,7 +173,8 @@ def map_index(ctx: Context, map_id: str):
         return index
 
 
-@router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map")
+@router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map",
+             responses={200: {"model": PoseOut, "description": "The pose, or why there is none"}})
 async def localize_vehicle(
     body: LocalizeIn,
     mapId: str = PathParam(..., max_length=64),
@@ -132,7 +184,8 @@ async def localize_vehicle(
     return await _admit(ctx, _localize, mapId, body)
 
 
-@router.post("/collections/{mapId}/localize/sequence", summary="Localize a vehicle over a drive of frames")
+@router.post("/collections/{mapId}/localize/sequence", summary="Localize a vehicle over a drive of frames",
+             responses={200: {"model": SequenceOut, "description": "The pose at every frame"}})
 async def localize_drive(
     body: SequenceIn,
     mapId: str = PathParam(..., max_length=64),
