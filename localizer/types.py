@@ -340,12 +340,9 @@ class Options:
             least = 0 if name == "extra_candidates" else 1
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
                 raise LocalizationInputError(f"options.{name}: must be a whole number >= {least}, got {v!r}")
-        for name in ("search_cell_m", "bearing_noise_rad", "view_min_range_m", "view_max_range_m",
-                     "view_half_fov_deg"):
-            v = getattr(self, name)
-            if v is not None:
-                _check_range(name, v, 0.0, name in ("search_cell_m", "view_half_fov_deg"),
-                             180.0 if name == "view_half_fov_deg" else math.inf, False)
+        for name, lo, lo_open, hi, hi_open in _OPTIONAL_RANGES:
+            if getattr(self, name) is not None:
+                _check_range(name, getattr(self, name), lo, lo_open, hi, hi_open)
         if not isinstance(self.null_score, (int, float, np.floating)) or math.isnan(self.null_score) \
                 or self.null_score == math.inf:
             raise LocalizationInputError(f"options.null_score: must be a number or -inf, got {self.null_score!r}")
@@ -399,6 +396,15 @@ _OPTION_RANGES = (
     ("pitch_sigma_deg", 0.0, False, 90.0, True),
     ("covariance_inflation", 0.0, True, math.inf, True),
     ("max_observation_range_m", 0.0, True, math.inf, True),
+)
+
+#: The same for the options that may be None.
+_OPTIONAL_RANGES = (
+    ("search_cell_m", 0.0, True, math.inf, True),
+    ("bearing_noise_rad", 0.0, False, math.inf, True),
+    ("view_min_range_m", 0.0, False, math.inf, True),
+    ("view_max_range_m", 0.0, True, math.inf, True),
+    ("view_half_fov_deg", 0.0, True, 180.0, False),
 )
 
 #: Options that count something (at least one; extra_candidates may be 0).
