@@ -307,8 +307,8 @@ def plots(traces: dict, suffix: str = "") -> None:
 def table(all_rows: dict) -> str:
     lines = [
         "| scenario | method | succ 0.25m/1° | succ 0.5m/1° | median err (ok) | conf. wrong "
-        "| ambiguous (truth listed) | failed | p50 ms | 95% ellipse cover |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| ambiguous (truth listed) | failed | p50 ms | 95% ellipse cover | 2σ ellipse cover |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, rows in all_rows.items():
         for method in ("oracle", "pink2008", "default"):
@@ -318,7 +318,7 @@ def table(all_rows: dict) -> str:
                 f"{s['median_err_m']:.3f} m | {s['confidently_wrong']:.1%} | {s['ambiguous']:.1%}"
                 + (f" ({s['ambiguous_truth_listed']:.0%})" if s["ambiguous"] else "") + " | "
                 f"{s['failed']:.1%} | {s['ms_p50']:.1f} | "
-                + ("–" if method == "oracle" else f"{s['cov95']:.1%}")
+                + ("– | –" if method == "oracle" else f"{s['cov95']:.1%} | {s['cov2sigma']:.1%}")
                 + " |"
             )
     return "\n".join(lines)
