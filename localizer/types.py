@@ -335,9 +335,8 @@ class Options:
         """Reject values no scene could make sense of (the message names the field)."""
         for name, lo, lo_open, hi, hi_open in _OPTION_RANGES:
             _check_range(name, getattr(self, name), lo, lo_open, hi, hi_open)
-        for name in _OPTION_COUNTS:
+        for name, least in _OPTION_COUNTS:
             v = getattr(self, name)
-            least = 0 if name == "extra_candidates" else 1
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
                 raise LocalizationInputError(f"options.{name}: must be a whole number >= {least}, got {v!r}")
         for name, lo, lo_open, hi, hi_open in _OPTIONAL_RANGES:
@@ -407,9 +406,9 @@ _OPTIONAL_RANGES = (
     ("view_half_fov_deg", 0.0, True, 180.0, False),
 )
 
-#: Options that count something (at least one; extra_candidates may be 0).
-_OPTION_COUNTS = ("max_iterations", "max_search_observations", "candidates", "extra_candidates",
-                  "max_hypotheses", "min_inliers", "max_observations")
+#: ``(field, least)`` of the options that count something.
+_OPTION_COUNTS = (("max_iterations", 1), ("max_search_observations", 1), ("candidates", 1),
+                  ("extra_candidates", 0), ("max_hypotheses", 1), ("min_inliers", 1), ("max_observations", 1))
 
 
 def _check_range(name: str, v, lo: float, lo_open: bool, hi: float, hi_open: bool) -> None:

@@ -272,6 +272,7 @@ def test_answers_follow_the_documented_schema(api, kmap):
     assert len(seq["poses"]) == 2 and not list(drive.iter_errors(seq))
     # A response missing what the document requires does not validate: the check can fail.
     assert list(single.iter_errors({"status": "ok"}))
+    assert list(single.iter_errors({**answers[0], "undocumented": 1}))  # every field is documented
 
 
 @pytest.mark.parametrize("frames, words", [

@@ -96,6 +96,7 @@ class SequenceIn(BaseModel):
 
 
 class HypothesisOut(BaseModel):
+    model_config = ConfigDict(extra="forbid")
     lat: float = Field(..., description="WGS84 latitude, degrees")
     lon: float = Field(..., description="WGS84 longitude, degrees")
     heading_deg: float = Field(..., description="Degrees clockwise from true north")
@@ -107,7 +108,10 @@ class HypothesisOut(BaseModel):
 class PoseOut(BaseModel):
     """A localization answer (the pose fields are null when ``failed``)."""
 
+    # Closed, so that a field the localizer adds without documenting it here
+    # fails the schema test instead of going unnoticed.
     model_config = ConfigDict(
+        extra="forbid",
         json_schema_extra={
             "example": {
                 "status": "ok", "lat": 49.0028977, "lon": 8.4245092, "heading_deg": 54.382,
@@ -142,6 +146,7 @@ class PoseOut(BaseModel):
 
 
 class SequenceOut(BaseModel):
+    model_config = ConfigDict(extra="forbid")
     poses: list[PoseOut] = Field(..., description="The answer at every frame, from the frames up to it")
     tracks: int = Field(..., ge=0, description="Hypotheses still followed after the last frame")
 
