@@ -44,8 +44,10 @@ Methods
        observed dashes as well, but near the end of a dashed line, a stop line
        or a change of line type it predicts markings nobody saw. Scores are
        divided by a temperature for correlated errors and the GPS prior is
-       added; poses matching fewer than ``min_inliers`` observations do not
-       compete, and a "none of these" hypothesis (all clutter) takes its share.
+       added; poses matching fewer than ``min_inliers`` (3) observations do
+       not compete while any pose matches that many (else poses matching
+       ``fallback_min_inliers``, 2, compete), and a "none of these"
+       hypothesis (all clutter) takes its share.
        The posterior probabilities decide ``ok`` versus ``ambiguous``
        (repeating 9 m dashes, parallel lanes 3.5 m apart): ``ok`` needs 95 %;
        the answer carries its own (``Pose.probability``). When the best of
@@ -60,7 +62,8 @@ Methods
        sandwich estimates of the weighted fit, adds the propagated effect of
        the pitch's remaining uncertainty, and lets the prior's information
        fill directions the map leaves open (along a solid line).
-    5. Fewer than 3 observations within 0.75 m (or 3σ) of the map → ``failed``.
+    5. Fewer than 2 observations within 0.75 m (or 3σ) of the map → ``failed``
+       (``pink2008``: fewer than 3).
 
     Over a drive, :func:`localize_sequence` (``localizer/track.py``) follows
     every hypothesis through consecutive frames with the vehicle's odometry (a

@@ -229,6 +229,7 @@ def localize(
         fits = {}
         status = "ok"
         diagnostics = {}
+        need = options.min_inliers
     else:
         top = np.argsort(-w_data, kind="stable")[: options.max_search_observations]
         cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, MAX_SEARCH_CELL_M))
@@ -265,6 +266,7 @@ def localize(
             searched = first + extra
         all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in searched]
         kept, scores, prob, score_options = ranked.kept, ranked.scores, ranked.prob, ranked.score_options
+        need = ranked.need
         kept_poses = [k[1].pose for k in kept]
         fits = {ranked.best_pose: ranked.best_fit}
         best = kept[0][1]
@@ -301,7 +303,7 @@ def localize(
         status = "ok" if probability >= options.ambiguity_probability else "ambiguous"
 
     fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
-    if fit.inliers < options.min_inliers:
+    if fit.inliers < need:
         return Pose(
             status="failed",
             crs=crs,
@@ -309,7 +311,7 @@ def localize(
             inliers=fit.inliers,
             reason=(
                 f"only {fit.inliers} of {len(obs)} observations match the map within "
-                f"{options.inlier_distance_m} m (3 sigma at long range; need {options.min_inliers})"
+                f"{options.inlier_distance_m} m (3 sigma at long range; need {need})"
             ),
         )
     log.debug(
@@ -361,6 +363,7 @@ class _Ranked:
     score_options: Options
     best_pose: tuple[float, float, float]
     best_fit: Any
+    need: int  # matched observations the answer needs: min_inliers, or the fallback's
 
 
 def _refine_candidates(sc: _Scene, cands: list[Candidate]) -> list:
@@ -406,10 +409,13 @@ def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
     refined = sorted(refined, key=lambda t: -t[0])
     # A pose that matches fewer observations than a fix needs is no hypothesis,
     # however well it scores (a pose looking at bare road predicts nothing it
-    # could miss); it only decides the answer when nothing better exists.
-    enough = count_inliers(sc.local, sc.obs_xy, sc.sig, [r[1].pose for r in refined], o) >= o.min_inliers
-    if enough.any():
-        refined = [r for r, e in zip(refined, enough) if e]
+    # could miss); it only decides the answer when nothing better exists. Two
+    # matches fix a pose too, but while poses matching three exist, letting
+    # two-match poses compete made more answers ambiguous than it made right.
+    n_inl = count_inliers(sc.local, sc.obs_xy, sc.sig, [r[1].pose for r in refined], o)
+    need = o.min_inliers if (n_inl >= o.min_inliers).any() else min(o.min_inliers, o.fallback_min_inliers)
+    if (n_inl >= need).any():
+        refined = [r for r, n in zip(refined, n_inl) if n >= need]
     best_fit = fit_statistics(sc.local, sc.obs_xy, sc.w_data, sc.sig, refined[0][1].pose, o, sc.prior_info)
     # Refinements that end inside the best one's uncertainty are the same optimum
     # (e.g. sliding along a solid line), not an alternative.
@@ -434,7 +440,7 @@ def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
     top = max(float(scores.max()), o.null_score)
     prob = np.exp(scores - top)
     prob /= prob.sum() + math.exp(o.null_score - top)
-    return _Ranked(kept, scores, prob, score_options, refined[0][1].pose, best_fit)
+    return _Ranked(kept, scores, prob, score_options, refined[0][1].pose, best_fit, need)
 
 
 def _same_optimum(a, b, cov) -> bool:

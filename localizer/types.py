@@ -259,7 +259,13 @@ class Options:
     max_hypotheses, min_hypothesis_probability : int, float
         An ambiguous result lists at most this many hypotheses, each at least this probable.
     min_inliers : int
-        Fewer matched observations → ``failed``.
+        Poses matching fewer observations do not compete while any pose
+        matches this many.
+    fallback_min_inliers : int
+        When no pose matches ``min_inliers`` observations, poses matching this
+        many compete instead (two point markings fix a pose; their answer is
+        ``ok`` only if its posterior is as clear as any other's); fewer →
+        ``failed``. Taken as ``min_inliers`` where it is larger.
     inlier_distance_m : float
         An observation within this distance of the map, or three noise sigmas if that
         is more, is an inlier at the final pose.
@@ -321,6 +327,7 @@ class Options:
     max_hypotheses: int = 8
     min_hypothesis_probability: float = 0.002
     min_inliers: int = 3
+    fallback_min_inliers: int = 2
     inlier_distance_m: float = 0.75
     camera_height_m: float = 1.3
     pitch_sigma_deg: float = 0.05
@@ -408,7 +415,8 @@ _OPTIONAL_RANGES = (
 
 #: ``(field, least)`` of the options that count something.
 _OPTION_COUNTS = (("max_iterations", 1), ("max_search_observations", 1), ("candidates", 1),
-                  ("extra_candidates", 0), ("max_hypotheses", 1), ("min_inliers", 1), ("max_observations", 1))
+                  ("extra_candidates", 0), ("max_hypotheses", 1), ("min_inliers", 1),
+                  ("fallback_min_inliers", 1), ("max_observations", 1))
 
 
 def _check_range(name: str, v, lo: float, lo_open: bool, hi: float, hi_open: bool) -> None:

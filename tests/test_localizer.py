@@ -475,12 +475,36 @@ def test_failed_when_too_few_observations_match():
     xy, w = random_map(rng)
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
     pose = (ORIGIN[0], ORIGIN[1], 0.3)
-    two = observe(xy, pose).observations[:2]
-    for method in ("default", "pink2008"):
-        r = localize(index, two, prior_at(index, pose), method=method)
+    obs = observe(xy, pose).observations
+    # One match fixes no pose; the paper's method, ranking nothing, needs min_inliers.
+    for method, seen, need in (("default", obs[:1], 2), ("pink2008", obs[:2], 3)):
+        r = localize(index, seen, prior_at(index, pose), method=method)
         assert r.status == "failed"
-        assert "match the map" in r.reason
+        assert "match the map" in r.reason and f"need {need})" in r.reason
         assert r.lat is None and r.hypotheses == []
+
+
+def test_two_matched_markings_fix_a_pose_when_nothing_matches_three():
+    # A sparse map: about two markings in the camera's view. Where exactly two
+    # are seen, they fix the pose; while another pose matches three, two-match
+    # poses do not compete (covered by the benchmark's scenes).
+    rng = np.random.default_rng(5)
+    xy, w = random_map(rng, n=300)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    answered = 0
+    while answered < 4:
+        pose = (ORIGIN[0] + rng.uniform(-60, 60), ORIGIN[1] + rng.uniform(-60, 60), rng.uniform(-3, 3))
+        obs = observe(xy, pose).observations
+        if len(obs) != 2 or np.hypot(*(obs[0, :2] - obs[1, :2])) < 3.0:
+            continue
+        prior = prior_at(index, perturb(pose, 0.8, 3.0, rng), 1.0, 3.0)
+        r = localize(index, obs, prior)
+        assert r.status == "ok" and r.inliers == 2 and r.probability >= 0.95
+        e, h = errors(r, pose)
+        assert e < 0.05 and h < 0.1
+        old = localize(index, obs, prior, options=Options(fallback_min_inliers=3))
+        assert old.status == "failed" and "need 3)" in old.reason
+        answered += 1
 
 
 def test_failed_when_the_prior_is_far_from_the_map():
@@ -659,7 +683,8 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"view_min_range_m": 30.0}, "view_min_range_m"), ({"ambiguity_probability": 0.0}, "ambiguity"),
      ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
      ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
-     ({"extra_search_probability": 1.5}, "extra_search_probability")],
+     ({"extra_search_probability": 1.5}, "extra_search_probability"),
+     ({"fallback_min_inliers": 0}, "fallback_min_inliers")],
 )
 def test_bad_options_raise_a_clear_error(kwargs, match):
     with pytest.raises(LocalizationInputError, match=f"options.{match}"):
