@@ -151,10 +151,17 @@ class MapIndex:
             become segments: a camera clusters a solid line at its own phase, so
             only the distance across the line is informative. The paper's method
             always uses centroids.
-        kind : array_like of str, shape (M,), optional
-            ``"solid"`` marks the pieces of solid lines. Without it, a piece is
-            taken as part of a continuous line when both its ends meet the ends
-            of other markings of about the same direction (within 0.6 m, 20°).
+        kind : array_like of str or None, shape (M,), optional
+            What each marking is, where known (an imported map knows; a
+            detection does not): ``"solid"`` marks the pieces of solid lines,
+            any other kind (``"dash"``, ``"stop_line"``, ...) a point-like
+            marking. A piece of unknown kind (None or empty, or no ``kind`` at
+            all) is taken as part of a continuous line when both its ends meet
+            the ends of other markings of about the same direction (within
+            0.6 m, 20°). That leaves the two end pieces of every line
+            point-like, as a dash continuing a line would be (a camera's
+            cluster anywhere along such a piece then pulls the pose along the
+            line), so give the kinds where they are known.
 
         Raises
         ------
@@ -174,13 +181,13 @@ class MapIndex:
             b = np.radians(_column("bearing_deg", bearing_deg, xs.size))
             length = _column("length_m", length_m, xs.size)
             u = np.column_stack([np.sin(b), np.cos(b)])
+            solid = _continuous_pieces(xy, u, length)
             if kind is not None:
                 kinds = np.asarray(kind, dtype=object).reshape(-1)
                 if kinds.size != xs.size:
                     raise LocalizationInputError(f"kind: {kinds.size} values, expected {xs.size}")
-                solid = np.array([k == "solid" for k in kinds], bool)
-            else:
-                solid = _continuous_pieces(xy, u, length)
+                known = np.array([k is not None and k != "" for k in kinds], bool)
+                solid = np.where(known, [k == "solid" for k in kinds], solid)
             solid &= length > 0.5
             axis[solid] = u[solid]
             half[solid] = 0.5 * length[solid]

@@ -152,6 +152,7 @@ class MarkingArrays:
     weight: np.ndarray
     length_m: np.ndarray
     bearing_deg: np.ndarray
+    kind: np.ndarray  # object: "dash", "solid", "stop_line", ... or None where unknown
 
     def __len__(self) -> int:
         return len(self.id)
@@ -860,16 +861,18 @@ class Store:
         self, map_id: str, statuses: Sequence[str] = ("unreviewed", "accepted")
     ) -> MarkingArrays:
         c = markings.c
-        q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg).where(
+        q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg, c.kind).where(
             c.map_id == map_id, c.status.in_(list(statuses))
         )
         with self._read() as conn:
             self._map_row(conn, map_id)
             rows = conn.execute(q.order_by(c.id)).all()
-        a = np.array(rows, dtype=float).reshape(-1, 6)
+        a = np.array([r[:6] for r in rows], dtype=float).reshape(-1, 6)
+        kind = np.empty(len(rows), object)
+        kind[:] = [r[6] for r in rows]
         return MarkingArrays(
             id=a[:, 0].astype(np.int64), x=a[:, 1], y=a[:, 2], weight=a[:, 3],
-            length_m=a[:, 4], bearing_deg=a[:, 5],
+            length_m=a[:, 4], bearing_deg=a[:, 5], kind=kind,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ edits

@@ -17,12 +17,15 @@ KARLSRUHE_OSM = (
 )
 
 
-@lru_cache(maxsize=2)
-def karlsruhe(path: str = str(KARLSRUHE_OSM)) -> tuple[MapIndex, SceneMap]:
+@lru_cache(maxsize=4)
+def karlsruhe(path: str = str(KARLSRUHE_OSM), kinds: bool = True) -> tuple[MapIndex, SceneMap]:
     """The Karlsruhe Lanelet2 map as a MapIndex and as simulator geometry.
 
-    The index is built like the service builds it from the store (centroids,
-    weights, bearings and lengths; solid-line pieces inferred, no kinds).
+    The index is built like the service builds it from the store after a
+    Lanelet2 import (centroids, weights, bearings, lengths and the imported
+    kinds). ``kinds=False`` leaves the kinds out, as for a map detected from
+    imagery: the index then infers the pieces of solid lines from their
+    geometry.
     """
     from mapbuilder.lanelet2 import layout_markings, read_lanelet2
 
@@ -37,6 +40,7 @@ def karlsruhe(path: str = str(KARLSRUHE_OSM)) -> tuple[MapIndex, SceneMap]:
         x, y, np.array([m.weight for m in marks]), CRS,
         bearing_deg=np.array([m.bearing_deg for m in marks]) - conv,
         length_m=[m.length_m for m in marks],
+        kind=[m.kind for m in marks] if kinds else None,
     )
     point_like = np.array([m.kind != "solid" for m in marks])
     solid_lines = [

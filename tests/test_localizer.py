@@ -727,6 +727,39 @@ def test_solid_pieces_are_inferred_and_dashes_stay_points():
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, kind=kinds,
                                  bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
     assert index.half_length.tolist() == [1.5] * 5 + [0] * 4
+    # Unknown kinds (None, "") are inferred, known ones are taken as they are.
+    mixed = ["solid", None, "", None, None, "dash", None, None, "solid"]
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, kind=mixed,
+                                 bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
+    assert index.half_length.tolist() == [1.5, 1.5, 1.5, 1.5, 1.5, 0, 0, 0, 1.5]
+
+
+def test_the_kinds_of_an_imported_map_keep_camera_clusters_on_line_ends_from_pulling():
+    # The camera clusters a solid line at its own phase. On the line's end
+    # pieces, which the geometry alone leaves point-like, a cluster off the
+    # piece's centre matches the centre and drags the pose along the line;
+    # with the kinds the index has them as segments and the pose stays put.
+    # Two solid lines of four 3 m pieces and one point marking.
+    pieces = [(-12.0 + 3 * k, 1.8) for k in range(4)] + [(-4.0 + 3 * k, -1.8) for k in range(4)]
+    xy = ORIGIN + np.array(pieces + [(0.0, 5.0)])
+    n = len(xy)
+    kinds = ["solid"] * 8 + ["dash"]
+    args = dict(bearing_deg=np.full(n, 90.0), length_m=[3.0] * 8 + [0.2])
+    pose = (ORIGIN[0] - 16.0, ORIGIN[1], 0.0)
+    # Clusters 1.2 m ahead of the centres of each line's first piece, one on
+    # each line's second piece, and the point marking.
+    obs = np.array([[5.2, 1.8, 60.0], [9.0, 1.8, 60.0], [13.2, -1.8, 60.0], [16.5, -1.8, 60.0],
+                    [16.0, 5.0, 40.0]])
+    prior = prior_at(MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS), pose, 1.0, 3.0)
+    opts = Options(view_max_range_m=None, view_min_range_m=None, view_half_fov_deg=None)
+    inferred = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, **args)
+    known = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, kind=kinds, **args)
+    assert inferred.half_length[[0, 3, 4, 7]].tolist() == [0, 0, 0, 0]
+    assert np.all(known.half_length[:8] == 1.5) and known.half_length[8] == 0
+    pulled = localize(inferred, obs, prior, options=opts)
+    right = localize(known, obs, prior, options=opts)
+    assert errors(pulled, pose)[0] > 1.0
+    assert right.status == "ok" and errors(right, pose)[0] < 0.05 and right.inliers == 5
 
 
 def test_trace_records_the_default_method_from_prior_to_result():

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from localizer import METHODS, GeoFrame, LocalizationInputError, MapIndex, Prior, localize
+from localizer import METHODS, LocalizationInputError, Prior, localize
 from service.cli_errors import fail
+from service.map_index import index_from_markings
 
 
 def _read_json(path: Path):
@@ -104,16 +105,7 @@ def register(app: typer.Typer) -> None:
             fail(f"map {map_id!r} has no markings yet")
         arrays = store.marking_arrays(map_id)
         try:
-            bearing = None
-            if len(arrays):
-                # The store keeps bearings from true north; the index wants grid bearings.
-                frame = GeoFrame(info.crs)
-                lon0, lat0 = frame.to_lonlat(float(np.mean(arrays.x)), float(np.mean(arrays.y)))
-                bearing = np.asarray(arrays.bearing_deg) - frame.convergence_deg(lon0, lat0)
-            index = MapIndex.from_arrays(
-                arrays.x, arrays.y, arrays.weight, info.crs,
-                bearing_deg=bearing, length_m=arrays.length_m if bearing is not None else None,
-            )
+            index = index_from_markings(arrays, info.crs)
             prior = Prior(
                 lat=lat, lon=lon, heading_deg=heading,
                 position_sigma_m=position_sigma, heading_sigma_deg=heading_sigma,

@@ -14,7 +14,6 @@ from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapbuilder.crs import meridian_convergence_deg, to_wgs84
 
 from ..deps import Context, get_ctx, require_read
 from ..problems import Problem
@@ -153,7 +152,7 @@ class SequenceOut(BaseModel):
 
 def map_index(ctx: Context, map_id: str):
     """The map's spatial index, rebuilt when the map's revision moved on."""
-    from localizer import MapIndex
+    from ..map_index import index_from_markings
 
     revision = ctx.store.map_revision(map_id)
     with ctx.index_lock:
@@ -163,16 +162,7 @@ def map_index(ctx: Context, map_id: str):
         info = ctx.store.get_map(map_id)
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
-        arrays = ctx.store.marking_arrays(map_id)
-        extra = {}
-        if len(arrays):
-            # The store keeps bearings from true north; the index wants grid bearings.
-            # The index infers which pieces belong to solid lines from their geometry.
-            cx, cy = float(np.mean(arrays.x)), float(np.mean(arrays.y))
-            lon, lat = to_wgs84(info.crs).transform(cx, cy)
-            conv = float(meridian_convergence_deg(info.crs, lon, lat))
-            extra = dict(bearing_deg=np.asarray(arrays.bearing_deg) - conv, length_m=arrays.length_m)
-        index = MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, info.crs, **extra)
+        index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs)
         ctx.indexes[map_id] = (revision, index)
         log.info("map %s: spatial index of %d markings at revision %d", map_id, len(index), revision)
         return index

@@ -1,0 +1,33 @@
+"""A map's localization index, built from its stored markings (API and CLI alike)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from localizer import GeoFrame, MapIndex
+from mapbuilder.store import MarkingArrays
+
+
+def index_from_markings(arrays: MarkingArrays, crs: str) -> MapIndex:
+    """The :class:`localizer.MapIndex` of a map's markings (``Store.marking_arrays``).
+
+    The store keeps bearings clockwise from true north; the index wants grid
+    bearings, so the meridian convergence at the map's centre is taken off.
+    Kinds the store knows (an imported map's ``solid``, ``dash``, ...) tell
+    the index which pieces belong to solid lines; for the others (detections)
+    it infers that from their geometry.
+
+    Raises
+    ------
+    localizer.LocalizationInputError
+        On values the index cannot use (a bad CRS, non-positive weights).
+    """
+    if not len(arrays):
+        return MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, crs)
+    frame = GeoFrame(crs)
+    lon, lat = frame.to_lonlat(float(np.mean(arrays.x)), float(np.mean(arrays.y)))
+    return MapIndex.from_arrays(
+        arrays.x, arrays.y, arrays.weight, crs,
+        bearing_deg=np.asarray(arrays.bearing_deg) - frame.convergence_deg(lon, lat),
+        length_m=arrays.length_m, kind=arrays.kind,
+    )
