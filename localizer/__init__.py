@@ -40,7 +40,8 @@ Methods
        report a centroid (a point-like marking, or a point every 3 m along a
        solid line, precomputed per map) that the pose puts inside the camera's
        view (4-25 m, ±30° by default; ``Options.view_*``) with no observation
-       near it costs ``log(1/p_miss)``. A pose one dash period off explains the
+       near it (on a solid line: none on the line within a clustering period
+       along it either) costs ``log(1/p_miss)``. A pose one dash period off explains the
        observed dashes as well, but near the end of a dashed line, a stop line
        or a change of line type it predicts markings nobody saw. Scores are
        divided by a temperature for correlated errors and the GPS prior is

@@ -110,9 +110,11 @@ class LocalMap:
             keep = index.expect_of(sel)
             self.expect_xy = index.expect_xy[keep] - self.origin
             self.expect_solid = index.expect_solid[keep]
+            self.expect_axis = index.axis[index.expect_owner[keep]]  # zeros for point markings
         else:
             self.expect_xy = np.zeros((0, 2))
             self.expect_solid = np.zeros(0, bool)
+            self.expect_axis = np.zeros((0, 2))
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])

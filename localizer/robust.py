@@ -255,8 +255,10 @@ def data_scores(
     centroid at a pose (a point-like marking, or a point every few metres along
     a solid line; :attr:`MapIndex.expect_xy`) that lies inside ``view`` (shrunk
     by ``view_margin_m`` / ``view_margin_deg`` against edge effects) and that no
-    observation explains within ``explain_distance_m`` costs
-    ``log(1 / miss_probability)`` (``solid_miss_probability`` on solid lines).
+    observation explains within ``explain_distance_m`` (on a solid line, also
+    within ``solid_explain_along_m`` along the line and
+    ``solid_explain_across_m`` across it) costs ``log(1 / miss_probability)``
+    (``solid_miss_probability`` on solid lines).
     A pose shifted by one dash period explains the observed dashes as well as
     the true one, but at the end of a dashed line, a stop line or a change of
     line type it predicts markings that nobody saw.
@@ -324,13 +326,38 @@ def missed_counts(local_map: LocalMap, obs_xy, poses, options: Options, view=Non
     kk, ee = np.nonzero(seen)
     if kk.size == 0:
         return out
-    dist, _ = cKDTree(obs_xy).query(np.column_stack([vx[kk, ee], vy[kk, ee]]),
-                                    distance_upper_bound=options.explain_distance_m)
+    tree = cKDTree(obs_xy)
+    q = np.column_stack([vx[kk, ee], vy[kk, ee]])
+    dist, _ = tree.query(q, distance_upper_bound=options.explain_distance_m)
     missed = ~np.isfinite(dist)
     on_line = local_map.expect_solid[ee]
+    if options.solid_explain_along_m > 0 and (line := np.flatnonzero(missed & on_line)).size:
+        missed[line] = ~_explained_along_line(tree, obs_xy, q[line], local_map.expect_axis[ee[line]],
+                                              cos[kk[line]], sin[kk[line]], options)
     np.add.at(out[0], kk[missed & ~on_line], 1.0)
     np.add.at(out[1], kk[missed & on_line], 1.0)
     return out
+
+
+def _explained_along_line(tree, obs_xy, q, axis, cos, sin, options: Options) -> np.ndarray:
+    """Which expected solid-line clusters ``q`` (vehicle frame) an observation explains along their line.
+
+    ``axis`` is each line's direction in the map, ``cos``/``sin`` the pose's
+    heading: explained where one of the (four) nearest observations lies within
+    ``solid_explain_along_m`` along the line and ``solid_explain_across_m``
+    across it.
+    """
+    along_max = options.solid_explain_along_m
+    d, i = tree.query(q, k=min(4, len(obs_xy)), distance_upper_bound=along_max)
+    d, i = d.reshape(len(q), -1), i.reshape(len(q), -1)
+    near = np.isfinite(d)
+    ux = cos * axis[:, 0] + sin * axis[:, 1]  # the line's direction in the vehicle frame
+    uy = -sin * axis[:, 0] + cos * axis[:, 1]
+    ob = obs_xy[np.where(near, i, 0)]
+    ex, ey = ob[..., 0] - q[:, None, 0], ob[..., 1] - q[:, None, 1]
+    along = np.abs(ex * ux[:, None] + ey * uy[:, None])
+    across = np.abs(ey * ux[:, None] - ex * uy[:, None])
+    return (near & (along <= along_max) & (across <= options.solid_explain_across_m)).any(axis=1)
 
 
 def count_inliers(local_map: LocalMap, obs_xy, sigma_obs, poses, options: Options) -> np.ndarray:

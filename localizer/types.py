@@ -238,6 +238,12 @@ class Options:
         The same for each expected cluster of a solid line (one every 3 m).
     explain_distance_m : float
         See ``miss_probability``, metres.
+    solid_explain_along_m, solid_explain_across_m : float
+        An expected cluster of a solid line is also explained by an observation
+        within this distance along its line and this distance across it,
+        metres: the camera clusters a line at its own phase, so near a line's
+        end its first cluster can lie up to a clustering period (3 m) from the
+        expected one.
     view_min_range_m, view_max_range_m, view_half_fov_deg : float or None
         The camera's ground view (a forward camera seeing the ground 4-25 m ahead
         within ±30° by default), widened to cover every observation; None: taken
@@ -316,6 +322,8 @@ class Options:
     miss_probability: float = 0.2
     solid_miss_probability: float = 0.2
     explain_distance_m: float = 1.5
+    solid_explain_along_m: float = 3.0
+    solid_explain_across_m: float = 0.75
     view_min_range_m: float | None = 4.0
     view_max_range_m: float | None = 25.0
     view_half_fov_deg: float | None = 30.0
@@ -391,6 +399,8 @@ _OPTION_RANGES = (
     ("miss_probability", 0.0, True, 1.0, False),
     ("solid_miss_probability", 0.0, True, 1.0, False),
     ("explain_distance_m", 0.0, True, math.inf, True),
+    ("solid_explain_along_m", 0.0, False, math.inf, True),
+    ("solid_explain_across_m", 0.0, False, math.inf, True),
     ("view_margin_m", 0.0, False, math.inf, True),
     ("view_margin_deg", 0.0, False, 180.0, False),
     ("temperature", 0.0, True, math.inf, True),

@@ -361,6 +361,28 @@ def test_a_solid_line_predicted_in_view_but_not_seen_counts_against_a_pose():
         assert (solid[0] >= 4) if expect_missed else (solid[0] == 0)
 
 
+def test_a_cluster_along_the_line_explains_an_expected_cluster_of_its_end_piece():
+    from localizer.robust import missed_counts, view_of
+
+    # A line of two 3 m pieces 1.75 m left, from 10 to 16 m ahead: one expected
+    # cluster per piece, at 11.5 and 14.5 m. The camera clustered the line at
+    # its own phase and reported one centroid, 13.8 m ahead: 2.3 m from the
+    # first expected cluster, beyond explain_distance_m, but on its line.
+    xy = ORIGIN + np.array([[11.5, 1.75], [14.5, 1.75]])
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, bearing_deg=[90.0, 90.0],
+                                 length_m=[3.0, 3.0], kind=["solid", "solid"])
+    local = LocalMap(index, ORIGIN, 100.0)
+    pose = [(0.0, 0.0, 0.0)]
+    others = np.array([[8.0, -5.0], [20.0, -6.0], [22.0, 4.0]])  # point markings elsewhere
+    # (centroid, missed expected clusters, missed by the 1.5 m rule alone):
+    # on the line 2.3 m along; 1.1 m beside it; on it but 4.9 m from the second.
+    for seen, missed, missed_isotropic in (([13.8, 1.75], 0, 1), ([13.8, 2.85], 1, 1), ([9.6, 1.75], 1, 2)):
+        obs = np.vstack([others, seen])
+        for opts, expect in ((Options(), missed), (Options(solid_explain_along_m=0.0), missed_isotropic)):
+            view = view_of(obs, opts)
+            assert missed_counts(local, obs, pose, opts, view)[1][0] == expect, (seen, opts.solid_explain_along_m)
+
+
 def _points_ahead(rng, n=12):
     """Point markings 5-25 m ahead within ±29° of a vehicle at ORIGIN facing +x (vehicle frame)."""
     r = rng.uniform(5.0, 25.0, n)
@@ -684,7 +706,8 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
      ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
      ({"extra_search_probability": 1.5}, "extra_search_probability"),
-     ({"fallback_min_inliers": 0}, "fallback_min_inliers")],
+     ({"fallback_min_inliers": 0}, "fallback_min_inliers"),
+     ({"solid_explain_across_m": -1.0}, "solid_explain_across_m")],
 )
 def test_bad_options_raise_a_clear_error(kwargs, match):
     with pytest.raises(LocalizationInputError, match=f"options.{match}"):
