@@ -204,16 +204,25 @@ def start_dask(root: Path, n_workers: int = 2, timeout: float = 60.0) -> DaskPro
 # ------------------------------------------------------------------------- file systems
 
 
+def can_sudo() -> bool:
+    """Whether this process, not being root, may run commands as root without a password."""
+    return bool(shutil.which("sudo")) and subprocess.run(["sudo", "-n", "true"], capture_output=True).returncode == 0
+
+
+def _as_root(cmd: list[str]) -> list[str]:
+    return cmd if os.geteuid() == 0 else ["sudo", "-n", *cmd]
+
+
 def can_mount() -> bool:
-    """Whether this process may mount a tmpfs (root with CAP_SYS_ADMIN)."""
-    if os.geteuid() != 0 or not shutil.which("mount"):
+    """Whether this process may mount a tmpfs: as root (with CAP_SYS_ADMIN) or through sudo."""
+    if not shutil.which("mount") or (os.geteuid() != 0 and not can_sudo()):
         return False
     probe = Path(tempfile.mkdtemp(prefix="lanemap-mnt-"))
     try:
-        ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(probe)],
+        ok = subprocess.run(_as_root(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(probe)]),
                             capture_output=True).returncode == 0  # fmt: skip
         if ok:
-            subprocess.run(["umount", str(probe)], capture_output=True)
+            subprocess.run(_as_root(["umount", str(probe)]), capture_output=True)
         return ok
     finally:
         probe.rmdir()
@@ -221,15 +230,19 @@ def can_mount() -> bool:
 
 @contextlib.contextmanager
 def tmpfs(path: Path, size_bytes: int, *, read_only: bool = False):
-    """Mount a tmpfs of ``size_bytes`` at ``path`` for the block (root only)."""
+    """Mount a tmpfs of ``size_bytes`` at ``path`` for the block (see :func:`can_mount`).
+
+    The mount belongs to this process's user, so that a server it starts can write there.
+    """
     path.mkdir(parents=True, exist_ok=True)
-    opts = f"size={size_bytes}" + (",ro" if read_only else "")
-    subprocess.run(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)], check=True, capture_output=True)
+    opts = f"size={size_bytes},uid={os.getuid()},gid={os.getgid()}" + (",ro" if read_only else "")
+    subprocess.run(_as_root(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)]), check=True,
+                   capture_output=True)  # fmt: skip
     try:
         yield path
     finally:
         for _ in range(20):
-            if subprocess.run(["umount", str(path)], capture_output=True).returncode == 0:
+            if subprocess.run(_as_root(["umount", str(path)]), capture_output=True).returncode == 0:
                 break
             time.sleep(0.25)
 

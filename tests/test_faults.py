@@ -371,8 +371,10 @@ def _need_mount(why: str) -> None:
     """Skip without mount(8) privileges, unless the run must have them.
 
     ``scripts/test.sh`` (the README's test command, what CI runs) sets
-    ``LANEMAP_TEST_REQUIRE_MOUNT`` when it runs as root: there a missing
-    mount is a failure, never a silent skip.
+    ``LANEMAP_TEST_REQUIRE_MOUNT`` when it runs as root or may use sudo
+    without a password (the same rights it installs Debian packages with):
+    there a missing mount is a failure, never a silent skip. Only a bare
+    ``pytest`` by a user without those rights skips.
     """
     if can_mount():
         return
@@ -383,7 +385,7 @@ def _need_mount(why: str) -> None:
 
 
 def test_upload_to_a_full_disk_is_507_and_leaves_no_file(tmp_path, images):
-    _need_mount("a full disk is simulated with a small tmpfs, which needs root and mount")
+    _need_mount("a full disk is simulated with a small tmpfs, which needs mount as root or through sudo")
     imagery = tmp_path / "data" / "imagery"
     with tmpfs(imagery, LIMIT):
         server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data")
