@@ -155,10 +155,10 @@ class MapIndex:
             What each marking is, where known (an imported map knows; a
             detection does not): ``"solid"`` marks the pieces of solid lines,
             any other kind (``"dash"``, ``"stop_line"``, ...) a point-like
-            marking. A piece of unknown kind (None or empty, or no ``kind`` at
-            all) is taken as part of a continuous line when both its ends meet
-            the ends of other markings of about the same direction (within
-            0.6 m, 20°). That leaves the two end pieces of every line
+            marking (compared without case and surrounding blanks). A piece of
+            unknown kind (None or blank, or no ``kind`` at all) is taken as
+            part of a continuous line when both its ends meet the ends of
+            other markings of about the same direction (within 0.6 m, 20°). That leaves the two end pieces of every line
             point-like, as a dash continuing a line would be (a camera's
             cluster anywhere along such a piece then pulls the pose along the
             line), so give the kinds where they are known.
@@ -181,13 +181,18 @@ class MapIndex:
             b = np.radians(_column("bearing_deg", bearing_deg, xs.size))
             length = _column("length_m", length_m, xs.size)
             u = np.column_stack([np.sin(b), np.cos(b)])
-            solid = _continuous_pieces(xy, u, length)
+            known = np.zeros(xs.size, bool)
+            solid = np.zeros(xs.size, bool)
             if kind is not None:
                 kinds = np.asarray(kind, dtype=object).reshape(-1)
                 if kinds.size != xs.size:
                     raise LocalizationInputError(f"kind: {kinds.size} values, expected {xs.size}")
-                known = np.array([k is not None and k != "" for k in kinds], bool)
-                solid = np.where(known, [k == "solid" for k in kinds], solid)
+                # Kinds come from people too (the editor): "Solid " is solid.
+                names = ["" if k is None else str(k).strip().lower() for k in kinds]
+                known = np.array([n != "" for n in names], bool)
+                solid = np.array([n == "solid" for n in names], bool)
+            if not known.all():
+                solid = np.where(known, solid, _continuous_pieces(xy, u, length))
             solid &= length > 0.5
             axis[solid] = u[solid]
             half[solid] = 0.5 * length[solid]

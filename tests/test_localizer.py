@@ -751,7 +751,7 @@ def test_solid_pieces_are_inferred_and_dashes_stay_points():
                                  bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
     assert index.half_length.tolist() == [1.5] * 5 + [0] * 4
     # Unknown kinds (None, "") are inferred, known ones are taken as they are.
-    mixed = ["solid", None, "", None, None, "dash", None, None, "solid"]
+    mixed = ["solid", None, "", None, None, "dash", None, " ", "Solid "]
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, kind=mixed,
                                  bearing_deg=np.full(n, 90.0), length_m=np.full(n, 3.0))
     assert index.half_length.tolist() == [1.5, 1.5, 1.5, 1.5, 1.5, 0, 0, 0, 1.5]
