@@ -387,7 +387,13 @@ def _check_model(spec) -> None:
 
 
 def clusters_to_markings(clusters: Clusters, crs: str, key: str | None = None) -> list[Marking]:
-    """Turn measured clusters into detected markings with true-north bearings."""
+    """Turn measured clusters into detected markings with true-north bearings.
+
+    A piece cut from a longer cluster gets ``kind="solid"``: it is part of a
+    continuous line, and the localizer then matches it by the distance across
+    its line (where a vehicle's camera cuts the line is its own affair). The
+    kind of every other detection is left unknown.
+    """
     if len(clusters) == 0:
         return []
     lon, lat = to_wgs84(crs).transform(clusters.x, clusters.y)
@@ -404,6 +410,7 @@ def clusters_to_markings(clusters: Clusters, crs: str, key: str | None = None) -
                 bearing_deg=float(bearing[i]),
                 weight=float(clusters.weight[i]),
                 score=float(clusters.score[i]),
+                kind="solid" if clusters.piece[i] else None,
                 source="detected",
                 status="unreviewed",
                 x0=float(clusters.x0[i]),

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from affine import Affine
@@ -197,6 +197,10 @@ class Clusters:
         Width the pixels' spread across the major axis implies (sqrt(12) times
         its standard deviation), metres: about ``width_m`` for a straight
         stripe, more for a bent, forked or ring-shaped cluster.
+    piece : ndarray of bool
+        The cluster was cut from a longer one (:func:`split_long`): a piece of
+        a continuous line, whose centroid marks where the cut fell, not a
+        place on the line a camera would single out.
     """
 
     x: np.ndarray
@@ -213,6 +217,11 @@ class Clusters:
     y1: np.ndarray
     score: np.ndarray
     spread_m: np.ndarray
+    piece: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self):
+        if len(self.piece) != len(self.x):
+            self.piece = np.zeros(len(self.x), bool)
 
     def __len__(self) -> int:
         return len(self.x)
@@ -227,7 +236,7 @@ class Clusters:
     @classmethod
     def empty(cls) -> "Clusters":
         z = np.zeros(0)
-        return cls(**{f.name: z.copy() for f in fields(cls)})
+        return cls(**{f.name: z.copy() for f in fields(cls) if f.name != "piece"})
 
 
 def label_pixels(
@@ -346,8 +355,12 @@ def _extent(lab, s, k):
     return smin, smax
 
 
-def _measure(rows, cols, lab, score, transform: Affine) -> Clusters:
-    """Measure clusters given as pixel lists (rows, cols, label, probability)."""
+def _measure(rows, cols, lab, score, transform: Affine, cut: np.ndarray | None = None) -> Clusters:
+    """Measure clusters given as pixel lists (rows, cols, label, probability).
+
+    ``cut`` (per pixel, optional) marks the pixels of clusters that were cut
+    from longer ones; their clusters get ``piece`` set.
+    """
     if rows.size == 0:
         return Clusters.empty()
     k = int(lab.max()) + 1
@@ -382,6 +395,8 @@ def _measure(rows, cols, lab, score, transform: Affine) -> Clusters:
         y1=my + uy * smax,
         score=mean_score[keep],
         spread_m=np.sqrt(12.0 * var_minor[keep] + res * res),
+        piece=(np.zeros(k, bool) if cut is None
+               else np.bincount(lab, np.asarray(cut, bool), k) > 0)[keep],
     )
 
 
@@ -662,11 +677,12 @@ def _split_sparse(
     rounds: int = 4,
     whole_width_m: float | None = None,
     whole_max_length_m: float = 8.0,
-) -> np.ndarray:
-    """Labels after cutting long clusters; see :func:`split_long`."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Labels after cutting long clusters, and which pixels were cut; see :func:`split_long`."""
     lab = lab.astype(np.int64, copy=True)
+    cut = np.zeros(lab.size, bool)
     if lab.size == 0:
-        return lab
+        return lab, cut
     limit = split_factor * max_length_m
     step = math.radians(direction_step_deg)
     x, y = _pixel_world(transform, rows, cols)
@@ -684,6 +700,7 @@ def _split_sparse(
         if not long_.any():
             break
         sel = np.flatnonzero(long_[lab])
+        cut[sel] = True
         ls = lab[sel]
         theta = np.round(np.arctan2(uy, ux) / step) * step
         qx, qy = np.cos(theta), np.sin(theta)
@@ -695,7 +712,7 @@ def _split_sparse(
         lab[sel] = k + _components(rows[sel], cols[sel], new)
     # Dense labels 1..m.
     _, dense = np.unique(lab, return_inverse=True)
-    return dense.reshape(-1) + 1
+    return dense.reshape(-1) + 1, cut
 
 
 def split_long(
@@ -724,8 +741,8 @@ def split_long(
     out = np.zeros(labels.shape, np.int32)
     if rows.size == 0:
         return out, 0
-    lab = _split_sparse(rows, cols, labels[rows, cols], transform, max_length_m, split_factor,
-                        direction_step_deg, rounds)
+    lab, _ = _split_sparse(rows, cols, labels[rows, cols], transform, max_length_m, split_factor,
+                           direction_step_deg, rounds)
     out[rows, cols] = lab
     return out, int(lab.max())
 
@@ -1400,10 +1417,10 @@ def detect_markings(
     if params.join_gap_m > 0:
         lab = join_collinear(rows, cols, lab, transform, params.join_gap_m,
                              params.join_angle_deg, params.join_offset_m)
-    lab = _split_sparse(rows, cols, lab, transform, params.max_length_m, params.split_factor,
-                        params.direction_step_deg, whole_width_m=params.whole_width_m,
-                        whole_max_length_m=params.whole_max_length_m)
-    clusters = _measure(rows, cols, lab, prob.ravel()[idx], transform)
+    lab, cut = _split_sparse(rows, cols, lab, transform, params.max_length_m, params.split_factor,
+                             params.direction_step_deg, whole_width_m=params.whole_width_m,
+                             whole_max_length_m=params.whole_max_length_m)
+    clusters = _measure(rows, cols, lab, prob.ravel()[idx], transform, cut)
     if pixel_share is not None:
         # share of each cluster's pixels that lie on the given mask (labels are 1..m)
         on = np.asarray(pixel_share, bool).ravel()[idx]

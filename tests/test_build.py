@@ -33,11 +33,11 @@ CRS = "EPSG:25832"
 X0, Y0 = 456000.0, 5430000.0
 
 
-def _dash(cx, cy, bearing, length=3.0, width=0.15):
+def _dash(cx, cy, bearing, length=3.0, width=0.15, kind="dash"):
     b = math.radians(bearing)
     dx, dy = 0.5 * length * math.sin(b), 0.5 * length * math.cos(b)
     return Marking(x=cx, y=cy, length_m=length, width_m=width, bearing_deg=bearing,
-                   x0=cx - dx, y0=cy - dy, x1=cx + dx, y1=cy + dy, kind="dash")
+                   x0=cx - dx, y0=cy - dy, x1=cx + dx, y1=cy + dy, kind=kind)
 
 
 @pytest.fixture(scope="module")
@@ -156,6 +156,54 @@ def test_verified_builds_cut_junctions_alike_in_any_tiling(comb_scene, sqlite_ur
         brg = np.array([m.bearing_deg for m in a])
         found += bool(np.any((across < 0.1) & (along < 2.3) & (np.abs(brg - 30.0) < 5.0)))
     assert found >= 0.9 * len(stalls)
+
+
+@pytest.fixture(scope="module")
+def road_scene(tmp_path_factory):
+    """Two solid 47 m edge lines and a dashed centre line (3 m dashes, 6 m gaps)."""
+    marks = [_dash(X0 + 25.6, Y0 - y, 90.0, length=47.0, width=0.12, kind="solid") for y in (9.0, 16.0)]
+    marks += [_dash(X0 + 4.0 + 9.0 * k, Y0 - 12.5, 90.0, length=3.0, width=0.12) for k in range(5)]
+    out = tmp_path_factory.mktemp("road") / "road.tif"
+    return synth.render(marks, out, 0.1, crs=CRS, seed=11, bounds=(X0, Y0 - 25.6, X0 + 51.2, Y0))
+
+
+def test_pieces_of_a_line_are_stored_solid_and_reach_the_index_as_segments(road_scene, sqlite_url):
+    """The pieces the build cuts from one long cluster are stored as
+    ``kind="solid"`` in any tiling, the two end pieces of each line too, and the
+    localizer's index, built from the store as the service builds it, matches them
+    as segments: by the distance across their line. The dashes' kind stays unknown.
+    (Without the kind, the index guesses from the geometry and leaves the end pieces
+    of every line point-like.)"""
+    from localizer import MapIndex
+    from service.map_index import index_from_markings
+
+    store = Store(sqlite_url)
+    model = pipeline_model()
+    built = {}
+    for tile_px in (128, 4096):
+        build_map(store, f"road-{tile_px}", [road_scene.path], BuildParams(tile_px=tile_px, model=model),
+                  workers=1, progress=False)
+        built[tile_px] = _detected(store, f"road-{tile_px}")
+    a, b = built[128], built[4096]
+    pairs, _ = match(_xy(a), _xy(b), 0.1)
+    assert len(pairs) == len(a) == len(b)
+    assert all(a[i].kind == b[j].kind for i, j in pairs)
+    for y in (9.0, 16.0):
+        line = [m for m in b if abs(m.y - (Y0 - y)) < 0.2]
+        assert sum(m.length_m for m in line) > 45.0
+        assert len(line) >= 15 and all(m.kind == "solid" for m in line)
+    dashes = [m for m in b if abs(m.y - (Y0 - 12.5)) < 0.2]
+    assert len(dashes) == 5 and all(m.kind is None for m in dashes)
+
+    arrays = store.marking_arrays("road-128")
+    index = index_from_markings(arrays, CRS)
+    on_line = np.abs(arrays.y - (Y0 - 12.5)) > 1.0
+    first = np.argmin(np.where(on_line, arrays.x, np.inf))
+    assert np.all(index.half_length[on_line] > 0) and np.all(index.half_length[~on_line] == 0)
+    guessed = MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, CRS,
+                                   bearing_deg=arrays.bearing_deg, length_m=arrays.length_m)
+    assert guessed.half_length[first] == 0  # a line's end piece, taken for a dash
+    store.close()
 
 
 def test_build_summary_and_job(border_scene, sqlite_url):

@@ -126,10 +126,13 @@ def test_long_lines_are_cut_into_short_pieces():
     off = np.column_stack([c.x - X0 - 15, c.y - Y0 + 15])
     assert np.abs(off @ np.array([u[1], -u[0]])).max() < 0.02
     assert _angle_diff(c.bearing_deg, 60).max() < 1.0
+    # Every piece, the two at the line's ends too, knows it is one.
+    assert c.piece.dtype == bool and c.piece.all()
     # A marking not much longer than a piece (a 3 m dash) is not cut.
     img[:] = 0
     _draw(img, t, X0 + 15, Y0 - 15, 3.2, 0.15, 10)
-    assert len(detect_markings(img, None, t)) == 1
+    dash = detect_markings(img, None, t)
+    assert len(dash) == 1 and not dash.piece.any()
 
 
 def test_cuts_do_not_depend_on_the_window():
@@ -343,6 +346,9 @@ def test_wide_short_clusters_stay_whole():
     assert sum(by_row[12]) == pytest.approx(6.0, abs=0.2)
     assert len(by_row[20]) >= 4 and max(by_row[20]) <= 3.6
     assert abs(c.x[np.abs(c.y - (Y0 - 5)) < 0.5][0] - (X0 + 10)) < 0.05
+    # only the cut clusters are pieces: the stop line kept whole is not
+    np.testing.assert_array_equal(c.piece, np.abs(c.y - (Y0 - 5)) >= 0.5)
+    assert len(c.take(c.piece)) == len(c) - 1 and len(c.take(np.zeros(len(c), bool)).piece) == 0
     # the old behaviour on request
     cut = detect_markings(img, None, t, ClusterParams(whole_width_m=None))
     assert np.sum(np.abs(cut.y - (Y0 - 5)) < 0.5) >= 2
