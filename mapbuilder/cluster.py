@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import numpy as np
 from affine import Affine
@@ -217,10 +217,10 @@ class Clusters:
     y1: np.ndarray
     score: np.ndarray
     spread_m: np.ndarray
-    piece: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    piece: np.ndarray | None = None
 
     def __post_init__(self):
-        if len(self.piece) != len(self.x):
+        if self.piece is None:  # clusters measured without cutting: no piece
             self.piece = np.zeros(len(self.x), bool)
 
     def __len__(self) -> int:
@@ -395,8 +395,7 @@ def _measure(rows, cols, lab, score, transform: Affine, cut: np.ndarray | None =
         y1=my + uy * smax,
         score=mean_score[keep],
         spread_m=np.sqrt(12.0 * var_minor[keep] + res * res),
-        piece=(np.zeros(k, bool) if cut is None
-               else np.bincount(lab, np.asarray(cut, bool), k) > 0)[keep],
+        piece=None if cut is None else (np.bincount(lab, np.asarray(cut, bool), k) > 0)[keep],
     )
 
 
