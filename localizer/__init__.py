@@ -55,7 +55,11 @@ Methods
        the first 20 candidates holds less than 99.9 %, the next 20 coarse
        optima are refined and scored too (``Options.extra_candidates``): a
        truth crowded out of the first ones, or a rival that makes a
-       confident answer ambiguous.
+       confident answer ambiguous. Then the best pose is refined again from
+       a few starts beside it (1.5 m and 0.75 m along, 0.75 m across, 2°
+       turned; ``Options.neighbour_starts``): the coarse grid can hand over
+       a candidate that settles in the basin next to the truth's, and a
+       neighbouring optimum found this way wins or competes.
     4. The chosen pose is refined jointly with the camera's pitch error (a
        tilted ground plane stretches all ranges together, which a rigid fit
        would absorb by sliding along the road; ``Options.estimate_pitch``).

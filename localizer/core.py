@@ -264,6 +264,16 @@ def localize(
             refined = refined + _refine_candidates(scene, extra)
             ranked = _rank_hypotheses(scene, refined)
             searched = first + extra
+        if options.neighbour_starts:
+            # The coarse grid's cells are about as wide as a basin on a map with
+            # short or shifted markings: the best candidate's refinement can
+            # settle in a basin next to the truth's while no coarse candidate
+            # lay in the truth's. Restarts around the answer find the
+            # neighbouring basins; a better one wins, an equal one makes the
+            # answer ambiguous instead of confidently wrong.
+            near = _neighbour_starts(ranked.kept[0][1].pose, options)
+            refined = refined + _refine_candidates(scene, near)
+            ranked = _rank_hypotheses(scene, refined)
         all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in searched]
         kept, scores, prob, score_options = ranked.kept, ranked.scores, ranked.prob, ranked.score_options
         need = ranked.need
@@ -364,6 +374,16 @@ class _Ranked:
     best_pose: tuple[float, float, float]
     best_fit: Any
     need: int  # matched observations the answer needs: min_inliers, or the fallback's
+
+
+def _neighbour_starts(pose, options: Options) -> list[Candidate]:
+    """Starts around ``pose``: along and across its heading, and turned, by ``options.neighbour_starts``."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    out = []
+    for along, across, turn_deg in options.neighbour_starts:
+        out.append(Candidate(pose[0] + along * c - across * s, pose[1] + along * s + across * c,
+                             pose[2] + math.radians(turn_deg), -math.inf))
+    return out
 
 
 def _refine_candidates(sc: _Scene, cands: list[Candidate]) -> list:

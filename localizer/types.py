@@ -208,6 +208,15 @@ class Options:
         ``extra_candidates`` further coarse optima are refined too (where
         clutter or a wide prior crowded the truth out of the first ones; an
         answer beyond doubt costs nothing more). 0 disables it.
+    neighbour_starts : sequence of (along_m, across_m, turn_deg)
+        Once the hypotheses are ranked, the best one's pose is refined again
+        (fine scales only) from each of these offsets: metres along and across
+        its heading, degrees turned counter-clockwise. A coarse cell is about
+        as wide as the basin of a pose's optimum, so the best candidate can
+        settle in a basin next to the truth's while no coarse candidate lay in
+        the truth's; a restart from beside it finds that basin, which then
+        wins or, as a rival, makes the answer ambiguous instead of
+        confidently wrong. Empty: no restarts.
     candidate_margin : float
         Beyond the best four, coarse optima scoring more than this below the best
         (log units) are not refined.
@@ -319,8 +328,8 @@ class Options:
     bearing_noise_rad: float | None = 0.003
     outlier_density: float = 0.05
     clutter_reference: float = 8.0
-    miss_probability: float = 0.2
-    solid_miss_probability: float = 0.2
+    miss_probability: float = 0.3
+    solid_miss_probability: float = 0.3
     explain_distance_m: float = 1.5
     solid_explain_along_m: float = 3.0
     solid_explain_across_m: float = 0.75
@@ -329,7 +338,7 @@ class Options:
     view_half_fov_deg: float | None = 30.0
     view_margin_m: float = 1.0
     view_margin_deg: float = 2.0
-    temperature: float = 1.5
+    temperature: float = 1.35
     ambiguity_probability: float = 0.95
     null_score: float = -1.0
     max_hypotheses: int = 8
@@ -343,6 +352,10 @@ class Options:
     covariance_inflation: float = 1.0
     max_observations: int = 500
     max_observation_range_m: float = 150.0
+    neighbour_starts: tuple[tuple[float, float, float], ...] = (
+        (-1.5, 0.0, 0.0), (-0.75, 0.0, 0.0), (0.75, 0.0, 0.0), (1.5, 0.0, 0.0),
+        (0.0, -0.75, 0.0), (0.0, 0.75, 0.0), (0.0, 0.0, -2.0), (0.0, 0.0, 2.0),
+    )
     record_trace: bool = False
     record_candidates: bool = False
 
@@ -360,6 +373,17 @@ class Options:
         if not isinstance(self.null_score, (int, float, np.floating)) or math.isnan(self.null_score) \
                 or self.null_score == math.inf:
             raise LocalizationInputError(f"options.null_score: must be a number or -inf, got {self.null_score!r}")
+        starts = self.neighbour_starts
+        if not isinstance(starts, (tuple, list)) or not all(
+            isinstance(t, (tuple, list)) and len(t) == 3
+            and all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                    and math.isfinite(v) for v in t)
+            for t in starts
+        ):
+            raise LocalizationInputError(
+                "options.neighbour_starts: must be a sequence of (along_m, across_m, turn_deg) "
+                f"triples of finite numbers, got {starts!r}"
+            )
         anneal = self.anneal_m
         if not isinstance(anneal, (tuple, list)) or not anneal:
             raise LocalizationInputError("options.anneal_m: must be a non-empty sequence of scales in metres")

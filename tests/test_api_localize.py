@@ -218,13 +218,16 @@ def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: 
 
 
 def test_a_drive_is_localized_frame_by_frame(api, kmap):
+    # Behind a dash, with dashes and lines in view. (Behind solid lines alone,
+    # marking 400, a pose 1 m along the road explains the view as well: the
+    # answers are rightly ambiguous there.)
     map_id, feats = kmap
-    yaw = along_lane(feats, 400)
+    yaw = along_lane(feats, 250)
     step = 1.5
     frames, truth = [], []
     for k in range(5):
         off = (1.0 + k * step * math.cos(yaw), 0.5 + k * step * math.sin(yaw))
-        p, lon, lat, heading, obs = scene(feats, 400, yaw, offset=off)
+        p, lon, lat, heading, obs = scene(feats, 250, yaw, offset=off)
         frame = {"observations": obs}
         if k:
             frame["motion"] = {"dx": step, "dy": 0.0, "dyaw_deg": 0.0}
@@ -300,7 +303,9 @@ def test_bad_drive_input_is_named(api, kmap, frames, words):
 
 
 def test_the_kinds_a_map_was_imported_with_reach_the_localizer(api):
-    # Two solid lines of four 3 m pieces along grid east and one dash. The
+    # Two solid lines of four 3 m pieces along grid east and two dashes (with
+    # one, a pose 1.4 m along the lines explains all but that dash and makes
+    # the answer fairly ambiguous). The
     # camera's clusters on the lines' first pieces lie 1.2 m ahead of their
     # centres; knowing the pieces are solid, the localizer matches them across
     # the line only. Without kinds (a detected map) the end pieces look like
@@ -315,7 +320,7 @@ def test_the_kinds_a_map_was_imported_with_reach_the_localizer(api):
     pieces = [(-12.0 + 3 * k, 1.8) for k in range(4)] + [(-4.0 + 3 * k, -1.8) for k in range(4)]
     obs = [{"x": x, "y": y, "weight": w} for x, y, w in
            ((5.2, 1.8, 60), (9.0, 1.8, 60), (12.0, 1.8, 60), (13.2, -1.8, 60), (16.5, -1.8, 60),
-            (20.0, -1.8, 60), (16.0, 5.0, 40))]
+            (20.0, -1.8, 60), (16.0, 5.0, 40), (13.0, 5.0, 40))]
     p = (e0 - 16.0, n0)
     lon, lat = tr.transform(*p)
     heading = 90.0 + float(meridian_convergence_deg(CRS, lon, lat))
@@ -324,8 +329,8 @@ def test_the_kinds_a_map_was_imported_with_reach_the_localizer(api):
     for kinds in (True, False):
         items = [Marking(x=e0 + dx, y=n0 + dy, length_m=3.0, width_m=0.12, bearing_deg=true_bearing,
                          weight=60.0, kind="solid" if kinds else None) for dx, dy in pieces]
-        items.append(Marking(x=e0, y=n0 + 5.0, length_m=0.2, width_m=0.12, bearing_deg=true_bearing,
-                             weight=40.0, kind="dash" if kinds else None))
+        items += [Marking(x=e0 + dx, y=n0 + 5.0, length_m=0.2, width_m=0.12, bearing_deg=true_bearing,
+                          weight=40.0, kind="dash" if kinds else None) for dx in (0.0, -3.0)]
         for m in items:
             m.lon, m.lat = tr.transform(m.x, m.y)
         map_id = api.new_map(prefix="kinds")
