@@ -272,7 +272,7 @@ def localize(
             # neighbouring basins; a better one wins, an equal one makes the
             # answer ambiguous instead of confidently wrong.
             near = _neighbour_starts(ranked.kept[0][1].pose, options)
-            refined = refined + _refine_candidates(scene, near)
+            refined = refined + _refine_candidates(scene, near, fine_only=True)
             ranked = _rank_hypotheses(scene, refined)
         all_search = [(c.x + px, c.y + py, c.yaw, c.score) for c in searched]
         kept, scores, prob, score_options = ranked.kept, ranked.scores, ranked.prob, ranked.score_options
@@ -386,12 +386,22 @@ def _neighbour_starts(pose, options: Options) -> list[Candidate]:
     return out
 
 
-def _refine_candidates(sc: _Scene, cands: list[Candidate]) -> list:
-    """Refine coarse candidates; ``(score, RefineResult, candidate, schedule)`` per candidate."""
+def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = False) -> list:
+    """Refine coarse candidates; ``(score, RefineResult, candidate, schedule)`` per candidate.
+
+    ``fine_only``: starts next to an optimum (:func:`_neighbour_starts`) run
+    the last two annealing scales only, at half the cost.
+    """
     if not cands:
         return []
     o = sc.options
     inits = [(c.x, c.y, c.yaw) for c in cands]
+    if fine_only:
+        fine = replace(o, anneal_m=o.anneal_m[-2:])
+        runs = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig, inits, fine)
+        data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [r.pose for r in runs], o, sc.view)
+        return [(float(d) / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw), r, c, fine)
+                for d, r, c in zip(data, runs, cands)]
     # The coarse-to-fine schedule can be dragged off a right candidate by heavy
     # clutter; a fine-only refinement from the same start cannot go far. Keep
     # whichever explains the observations better. Both run in one batch (the
