@@ -396,18 +396,17 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
         return []
     o = sc.options
     inits = [(c.x, c.y, c.yaw) for c in cands]
+    fine_options = replace(o, anneal_m=o.anneal_m[-2:])
     if fine_only:
-        fine = replace(o, anneal_m=o.anneal_m[-2:])
-        runs = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig, inits, fine)
+        runs = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig, inits, fine_options)
         data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [r.pose for r in runs], o, sc.view)
-        return [(float(d) / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw), r, c, fine)
-                for d, r, c in zip(data, runs, cands)]
+        return [(float(d) / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw),
+                 r, c, fine_options) for d, r, c in zip(data, runs, cands)]
     # The coarse-to-fine schedule can be dragged off a right candidate by heavy
     # clutter; a fine-only refinement from the same start cannot go far. Keep
     # whichever explains the observations better. Both run in one batch (the
     # fine-only ones join at the last two scales): one KD-tree query per
     # iteration for all, instead of a second round of iterations.
-    fine_options = replace(o, anneal_m=o.anneal_m[-2:])
     n_c = len(inits)
     both_runs = robust_refine(
         sc.local, sc.obs_xy, sc.w_data, sc.sig, inits + inits, o,
