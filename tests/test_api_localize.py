@@ -285,6 +285,33 @@ def test_answers_follow_the_documented_schema(api, kmap):
     assert list(single.iter_errors({**answers[0], "undocumented": 1}))  # every field is documented
 
 
+def test_a_request_sets_the_probability_an_ok_answer_needs(api, kmap):
+    """``min_probability`` moves the line between ok and ambiguous; the pose and its probability stay."""
+    map_id, feats = kmap
+    url = f"{api.base_url}/collections/{map_id}/localize"
+    p, lon, lat, heading, obs = scene(feats, 250)
+    # The four markings nearest the lane's middle and a vague fix: the answer is in doubt, not hopeless.
+    dashes = sorted(obs, key=lambda o: abs(o["y"]))[:4]
+    body = {"gps": {**gps_near(p, heading), "position_sigma_m": 6.0}, "observations": dashes}
+    base = httpx.post(url, json=body, timeout=60).json()
+    prob = base["probability"]
+    assert 0.5 <= prob < 0.9999, base
+    strict = httpx.post(url, json={**body, "min_probability": 0.9999}, timeout=60).json()
+    lenient = httpx.post(url, json={**body, "min_probability": math.floor(prob * 1e4) / 1e4}, timeout=60).json()
+    assert strict["status"] == "ambiguous" and strict["hypotheses"], strict
+    assert lenient["status"] == "ok" and not lenient["hypotheses"], lenient
+    for a in (strict, lenient):
+        assert a["probability"] == pytest.approx(prob)
+        assert (a["easting"], a["northing"]) == pytest.approx((base["easting"], base["northing"]))
+    # A drive takes it too: its first frame is this one.
+    drive = httpx.post(f"{url}/sequence", json={"gps": body["gps"], "frames": [{"observations": dashes}],
+                                                "min_probability": 0.9999}, timeout=60).json()  # fmt: skip
+    assert drive["poses"][0]["status"] == "ambiguous"
+    for extra, words in [({"min_probability": 0.3}, "min_probability"), ({"min_probability": 1.0}, "min_probability"),
+                         ({"min_probability": 0.9, "method": "pink2008"}, "pink2008")]:  # fmt: skip
+        assert_problem(httpx.post(url, json={**body, **extra}, timeout=60), 422, words)
+
+
 @pytest.mark.parametrize("frames, words", [
     ([], "frames"),
     ([{"observations": [{"x": 10, "y": 1}]}] * 51, "frames"),

@@ -53,6 +53,18 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     out = json.loads(res.stdout)
     assert out["status"] == "ok" and out["crs"] == "EPSG:25832"
     assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
+    # Five markings leave a little doubt: asking for more than the answer's
+    # probability makes it ambiguous, with the same pose.
+    few = tmp_path / "few.json"
+    heavy = scene.observations[np.argsort(-scene.observations[:, 2])[:5]]
+    few.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in heavy]))
+    args = ["localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+            "--observations", str(few), "--position-sigma", "2", "--heading-sigma", "8"]  # fmt: skip
+    out = json.loads(CliRunner().invoke(app, args).stdout)
+    assert out["status"] == "ok" and out["probability"] < 0.9999, out
+    res = CliRunner().invoke(app, [*args, "--min-probability", "0.9999"])
+    strict = json.loads(res.stdout)
+    assert strict["status"] == "ambiguous" and strict["easting"] == pytest.approx(out["easting"]), strict
     # A bare list works too, and the paper's method answers from the same prior.
     path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
     res = CliRunner().invoke(app, [
@@ -72,6 +84,8 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
         ('[{"x": 1, "y": 2, "weight": 0}]', [], "weights must be positive"),
         ('[{"x": 1, "y": 2}]', ["--method", "nope"], "--method"),
         ('[{"x": 1, "y": 2}]', ["--position-sigma", "0"], "position_sigma"),
+        ('[{"x": 1, "y": 2}]', ["--min-probability", "1"], "--min-probability must be between"),
+        ('[{"x": 1, "y": 2}]', ["--method", "pink2008", "--min-probability", "0.9"], "pink2008 has no"),
     ],
 )
 def test_cli_bad_input_is_one_line(stored_map, tmp_path, monkeypatch, content, extra, needle):

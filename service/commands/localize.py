@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from localizer import METHODS, LocalizationInputError, Prior, localize
+from localizer import METHODS, LocalizationInputError, Options, Prior, localize
 from service.cli_errors import fail
 from service.map_index import index_from_markings
 
@@ -83,6 +83,10 @@ def register(app: typer.Typer) -> None:
         method: str = typer.Option("default", "--method", help=f"One of: {', '.join(METHODS)}."),
         position_sigma: float = typer.Option(5.0, "--position-sigma", help="GPS position sigma, metres."),
         heading_sigma: float = typer.Option(10.0, "--heading-sigma", help="GPS heading sigma, degrees."),
+        min_probability: float = typer.Option(
+            None, "--min-probability", help="Posterior probability an answer needs to be ok, 0.5-0.9999 "
+            f"(default {Options().ambiguity_probability}); below it the answer is ambiguous (default method).",
+        ),
     ) -> None:
         """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed).
 
@@ -99,6 +103,13 @@ def register(app: typer.Typer) -> None:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         if seq is not None and method != "default":
             fail("--frames works with the default method only")
+        options = Options()
+        if min_probability is not None:
+            if method != "default":
+                fail("--min-probability works with the default method only (pink2008 has no probability)")
+            if not 0.5 <= min_probability <= 0.9999:
+                fail(f"--min-probability must be between 0.5 and 0.9999, got {min_probability}")
+            options = Options(ambiguity_probability=min_probability)
         store = Store()
         info = store.get_map(map_id)
         if info.crs is None:
@@ -113,10 +124,10 @@ def register(app: typer.Typer) -> None:
             if seq is not None:
                 from localizer.track import localize_sequence
 
-                result = localize_sequence(index, seq, prior)
+                result = localize_sequence(index, seq, prior, options=options)
                 out = {"poses": [p.to_dict() for p in result.poses], "tracks": result.tracks}
             else:
-                out = localize(index, obs, prior, method=method).to_dict()
+                out = localize(index, obs, prior, method=method, options=options).to_dict()
         except LocalizationInputError as exc:
             fail(str(exc))
         typer.echo(json.dumps(out, indent=2, allow_nan=False))

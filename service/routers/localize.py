@@ -15,6 +15,8 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 
+from localizer import Options
+
 from ..deps import Context, get_ctx, require_read
 from ..problems import Problem
 
@@ -29,6 +31,13 @@ MAX_RANGE_M = 1000.0
 #: requests and sends answers (measured: answers took seconds at 64 clients).
 #: Cores are used by running several server processes (``--workers``).
 LOCALIZE_THREADS = 1
+
+_DEFAULT_OK = Options().ambiguity_probability
+_MIN_PROBABILITY = Field(
+    None, ge=0.5, le=0.9999,
+    description="Posterior probability the answer needs to be ok (default method); below it the answer is "
+                "ambiguous with its hypotheses. Default: the localizer's (see PoseOut.probability). Higher: "
+                "fewer ok answers and fewer of them wrong.")  # fmt: skip
 
 
 class GpsIn(BaseModel):
@@ -62,6 +71,7 @@ class LocalizeIn(BaseModel):
     gps: GpsIn
     observations: list[ObservationIn] = Field(..., max_length=10_000)
     method: Literal["default", "pink2008"] = "default"
+    min_probability: float | None = _MIN_PROBABILITY
 
 
 class MotionIn(BaseModel):
@@ -92,6 +102,7 @@ class SequenceIn(BaseModel):
     )  # fmt: skip
     gps: GpsIn = Field(..., description="GPS fix at the first frame")
     frames: list[FrameIn] = Field(..., min_length=1, max_length=50, description="Consecutive frames, oldest first")
+    min_probability: float | None = _MIN_PROBABILITY
 
 
 class HypothesisOut(BaseModel):
@@ -137,8 +148,8 @@ class PoseOut(BaseModel):
     rms_m: float | None = Field(None, description="RMS distance of the matched observations, metres")
     probability: float | None = Field(
         None, ge=0, le=1,
-        description="Posterior probability that the answer is right (default method; ok needs 0.95; "
-                    "null for pink2008 and failed)")  # fmt: skip
+        description="Posterior probability that the answer is right (default method; ok needs the "
+                    f"request's min_probability, by default {_DEFAULT_OK}; null for pink2008 and failed)")  # fmt: skip
     hypotheses: list[HypothesisOut] = Field(..., description="Best first; filled when ambiguous")
     reason: str | None = Field(None, description="Why the localization failed, or that a drive's frame "
                                                   "matched nothing and the pose is the odometry's prediction")
@@ -176,6 +187,9 @@ async def localize_vehicle(
     ctx: Context = Depends(get_ctx),
 ):
     _check_count(ctx, len(body.observations), "observations")
+    if body.min_probability is not None and body.method != "default":
+        raise Problem(422, "min_probability: the pink2008 method has no posterior probability",
+                      "min-probability-needs-default-method")  # fmt: skip
     return await _admit(ctx, _localize, mapId, body)
 
 
@@ -232,7 +246,7 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
     t1 = time.perf_counter()
     obs = _observations(body.observations)
     try:
-        pose = localize(index, obs, _prior(body.gps), method=body.method)
+        pose = localize(index, obs, _prior(body.gps), method=body.method, options=_options(body.min_probability))
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("localization on %s failed numerically: %r", map_id, exc)
         return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
@@ -255,7 +269,7 @@ def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float
         for f in body.frames
     ]  # fmt: skip
     try:
-        result = localize_sequence(index, frames, _prior(body.gps))
+        result = localize_sequence(index, frames, _prior(body.gps), options=_options(body.min_probability))
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("drive localization on %s failed numerically: %r", map_id, exc)
         failed = {"status": "failed", "crs": index.crs, "hypotheses": [],
@@ -275,6 +289,12 @@ def _prior(g: GpsIn):
     if g.heading_sigma_deg is not None:
         kw["heading_sigma_deg"] = g.heading_sigma_deg
     return Prior(**kw)
+
+
+def _options(min_probability: float | None):
+    from localizer import Options
+
+    return Options() if min_probability is None else Options(ambiguity_probability=min_probability)
 
 
 def _observations(items: list[ObservationIn]) -> np.ndarray:
