@@ -13,7 +13,8 @@ lowest log-loss whose confidently-wrong rate stays well under 1 % (the
 defaults of 2026-12-03, temperature 1.35 and miss probabilities 0.3, were
 chosen so on seeds 3, 5, 7 and 11, all poses and intersections).
 
-Run: ``.venv/bin/python benchmarks/localize_calibrate.py [--runs 120] [--seed 7]``
+Run: ``.venv/bin/python benchmarks/localize_calibrate.py [--runs 120] [--seed 7] [--intersections] [--save F]``;
+``--load F1 F2 ...`` evaluates several saved seeds together.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
+import pickle
 import sys
 from pathlib import Path
 
@@ -100,11 +102,21 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=120)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--intersections", action="store_true")
+    ap.add_argument("--save", type=Path, help="pickle the collected runs to this file")
+    ap.add_argument("--load", type=Path, nargs="+",
+                    help="evaluate runs pickled by --save (e.g. several seeds together) instead of collecting")
     args = ap.parse_args()
     opts = Options(record_candidates=True)
-    runs = collect(args, opts)
+    if args.load:
+        runs = [r for path in args.load for r in pickle.loads(path.read_bytes())]
+        what = f"loaded from {len(args.load)} file(s)"
+    else:
+        runs = collect(args, opts)
+        what = f"seed {args.seed}" + (", intersections" if args.intersections else "")
+        if args.save:
+            args.save.write_bytes(pickle.dumps(runs))
     n = len(runs)
-    print(f"{n} runs, seed {args.seed}; near: 0.5-2 m/±15° (+heavy), far: 8-10 m/±15° (+heavy)")
+    print(f"{n} runs, {what}; near: 0.5-2 m/±15° (+heavy), far: 8-10 m/±15° (+heavy)")
     print(f"ok threshold {opts.ambiguity_probability}")
     print("p_miss  p_miss_solid  T     null   conf.wrong  near ok / amb   far ok / amb   log-loss")
     rows = []
@@ -120,6 +132,13 @@ def main() -> None:
               f"{nr[0] / max(nr[2], 1):6.1%} / {nr[1] / max(nr[2], 1):5.1%}  "
               f"{fr[0] / max(fr[2], 1):6.1%} / {fr[1] / max(fr[2], 1):5.1%}  "
               f"{e['logloss'] / max(e['scored'], 1):8.4f}{mark}")
+    print("\nok threshold (min_probability) at the current scoring: confidently wrong, near / far success")
+    cur = (opts.miss_probability, opts.solid_miss_probability, opts.temperature, opts.null_score)
+    for thr in (0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 0.98):
+        e = evaluate(runs, *cur[:3], thr, cur[3])
+        nr, fr = e["near"], e["far"]
+        print(f"  {thr:4.2f}: {e['cw']:4d} ({e['cw'] / n:6.2%})  near {nr[0] / max(nr[2], 1):6.1%}  "
+              f"far {fr[0] / max(fr[2], 1):6.1%}")
     maha = np.array([r["maha"] for r in runs if not r["failed"] and len(r["err"]) and r["err"][0] <= 1.0])
     for k in (1.0, 1.5, 2.0):
         print(f"inflation {k}: 95% ellipse coverage {np.mean(maha / k <= 5.991):.1%}, "

@@ -256,7 +256,7 @@ def main() -> None:
                     row[name] = dict(status=p.status, err=math.inf, herr=math.inf)
                 else:
                     row[name] = dict(status=p.status, err=math.hypot(p.easting - pose[0], p.northing - pose[1]),
-                                     herr=lp.heading_err_deg(p.yaw_grid_rad, pose[2]))
+                                     herr=lp.heading_err_deg(p.yaw_grid_rad, pose[2]), probability=p.probability)
             sig = cam.range_noise_m + cam.range_noise_coeff * np.sum(scene.observations[:, :2] ** 2, 1)
             o = oracle_pose(scene, sig)
             row["oracle"] = (dict(status="failed", err=math.inf, herr=math.inf) if o is None else
