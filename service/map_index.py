@@ -4,8 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from localizer import GeoFrame, MapIndex
+from localizer import GeoFrame, MapIndex, Options
 from mapbuilder.store import MarkingArrays
+
+#: Range of a request's ``min_probability``, the posterior an ``ok`` answer
+#: needs: below 0.5 an ``ok`` answer could be likelier wrong than right.
+MIN_PROBABILITY_RANGE = (0.5, 0.9999)
+
+
+def localize_options(min_probability: float | None) -> Options | None:
+    """Options of a request that sets its own ``ok`` threshold; None: the localizer's defaults."""
+    return None if min_probability is None else Options(ambiguity_probability=min_probability)
 
 
 def index_from_markings(arrays: MarkingArrays, crs: str) -> MapIndex:

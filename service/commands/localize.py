@@ -10,7 +10,7 @@ import typer
 
 from localizer import METHODS, LocalizationInputError, Options, Prior, localize
 from service.cli_errors import fail
-from service.map_index import index_from_markings
+from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 
 
 def _read_json(path: Path):
@@ -83,8 +83,9 @@ def register(app: typer.Typer) -> None:
         method: str = typer.Option("default", "--method", help=f"One of: {', '.join(METHODS)}."),
         position_sigma: float = typer.Option(5.0, "--position-sigma", help="GPS position sigma, metres."),
         heading_sigma: float = typer.Option(10.0, "--heading-sigma", help="GPS heading sigma, degrees."),
-        min_probability: float = typer.Option(
-            None, "--min-probability", help="Posterior probability an answer needs to be ok, 0.5-0.9999 "
+        min_probability: float | None = typer.Option(
+            None, "--min-probability", help="Posterior probability an answer needs to be ok, "
+            f"{MIN_PROBABILITY_RANGE[0]}-{MIN_PROBABILITY_RANGE[1]} "
             f"(default {Options().ambiguity_probability}); below it the answer is ambiguous (default method).",
         ),
     ) -> None:
@@ -103,13 +104,13 @@ def register(app: typer.Typer) -> None:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         if seq is not None and method != "default":
             fail("--frames works with the default method only")
-        options = Options()
         if min_probability is not None:
             if method != "default":
                 fail("--min-probability works with the default method only (pink2008 has no probability)")
-            if not 0.5 <= min_probability <= 0.9999:
-                fail(f"--min-probability must be between 0.5 and 0.9999, got {min_probability}")
-            options = Options(ambiguity_probability=min_probability)
+            lo, hi = MIN_PROBABILITY_RANGE
+            if not lo <= min_probability <= hi:
+                fail(f"--min-probability must be between {lo} and {hi}, got {min_probability}")
+        options = localize_options(min_probability)
         store = Store()
         info = store.get_map(map_id)
         if info.crs is None:

@@ -14,10 +14,10 @@ from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-
 from localizer import Options
 
 from ..deps import Context, get_ctx, require_read
+from ..map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 from ..problems import Problem
 
 log = logging.getLogger(__name__)
@@ -34,7 +34,7 @@ LOCALIZE_THREADS = 1
 
 _DEFAULT_OK = Options().ambiguity_probability
 _MIN_PROBABILITY = Field(
-    None, ge=0.5, le=0.9999,
+    None, ge=MIN_PROBABILITY_RANGE[0], le=MIN_PROBABILITY_RANGE[1],
     description="Posterior probability the answer needs to be ok (default method); below it the answer is "
                 "ambiguous with its hypotheses. Default: the localizer's (see PoseOut.probability). Higher: "
                 "fewer ok answers and fewer of them wrong.")  # fmt: skip
@@ -163,8 +163,6 @@ class SequenceOut(BaseModel):
 
 def map_index(ctx: Context, map_id: str):
     """The map's spatial index, rebuilt when the map's revision moved on."""
-    from ..map_index import index_from_markings
-
     revision = ctx.store.map_revision(map_id)
     with ctx.index_lock:
         cached = ctx.indexes.get(map_id)
@@ -246,7 +244,8 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
     t1 = time.perf_counter()
     obs = _observations(body.observations)
     try:
-        pose = localize(index, obs, _prior(body.gps), method=body.method, options=_options(body.min_probability))
+        pose = localize(index, obs, _prior(body.gps), method=body.method,
+                        options=localize_options(body.min_probability))  # fmt: skip
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("localization on %s failed numerically: %r", map_id, exc)
         return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
@@ -269,7 +268,8 @@ def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float
         for f in body.frames
     ]  # fmt: skip
     try:
-        result = localize_sequence(index, frames, _prior(body.gps), options=_options(body.min_probability))
+        result = localize_sequence(index, frames, _prior(body.gps),
+                                   options=localize_options(body.min_probability))  # fmt: skip
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("drive localization on %s failed numerically: %r", map_id, exc)
         failed = {"status": "failed", "crs": index.crs, "hypotheses": [],
@@ -289,12 +289,6 @@ def _prior(g: GpsIn):
     if g.heading_sigma_deg is not None:
         kw["heading_sigma_deg"] = g.heading_sigma_deg
     return Prior(**kw)
-
-
-def _options(min_probability: float | None):
-    from localizer import Options
-
-    return Options() if min_probability is None else Options(ambiguity_probability=min_probability)
 
 
 def _observations(items: list[ObservationIn]) -> np.ndarray:
