@@ -153,6 +153,7 @@ class MarkingArrays:
     length_m: np.ndarray
     bearing_deg: np.ndarray
     kind: np.ndarray  # object: "dash", "solid", "stop_line", ... or None where unknown
+    source: np.ndarray | None = None  # object: "detected", "imported", ...; None: not read
 
     def __len__(self) -> int:
         return len(self.id)
@@ -861,7 +862,7 @@ class Store:
         self, map_id: str, statuses: Sequence[str] = ("unreviewed", "accepted")
     ) -> MarkingArrays:
         c = markings.c
-        q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg, c.kind).where(
+        q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg, c.kind, c.source).where(
             c.map_id == map_id, c.status.in_(list(statuses))
         )
         with self._read() as conn:
@@ -870,9 +871,11 @@ class Store:
         a = np.array([r[:6] for r in rows], dtype=float).reshape(-1, 6)
         kind = np.empty(len(rows), object)
         kind[:] = [r[6] for r in rows]
+        source = np.empty(len(rows), object)
+        source[:] = [r[7] for r in rows]
         return MarkingArrays(
             id=a[:, 0].astype(np.int64), x=a[:, 1], y=a[:, 2], weight=a[:, 3],
-            length_m=a[:, 4], bearing_deg=a[:, 5], kind=kind,
+            length_m=a[:, 4], bearing_deg=a[:, 5], kind=kind, source=source,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ edits

@@ -24,7 +24,9 @@ def index_from_markings(arrays: MarkingArrays, crs: str) -> MapIndex:
     bearings, so the meridian convergence at the map's centre is taken off.
     Kinds the store knows (an imported map's ``solid``, ``dash``, ...) tell
     the index which pieces belong to solid lines; for the others (detections)
-    it infers that from their geometry.
+    it infers that from their geometry. Detections (``source="detected"``)
+    of unknown kind cut short or run long get slack along their axis
+    (:func:`localizer.index.length_slack`); imported markings do not.
 
     Raises
     ------
@@ -39,4 +41,5 @@ def index_from_markings(arrays: MarkingArrays, crs: str) -> MapIndex:
         arrays.x, arrays.y, arrays.weight, crs,
         bearing_deg=np.asarray(arrays.bearing_deg) - frame.convergence_deg(lon, lat),
         length_m=arrays.length_m, kind=arrays.kind,
+        measured=None if arrays.source is None else arrays.source == "detected",
     )

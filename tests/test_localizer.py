@@ -381,6 +381,56 @@ def test_a_solid_line_predicted_in_view_but_not_seen_counts_against_a_pose():
         assert (solid[0] >= 4) if expect_missed else (solid[0] == 0)
 
 
+def test_detections_cut_short_or_run_long_get_slack_along_their_axis():
+    from localizer.index import length_slack
+
+    # Two dashed lines of 3 m dashes, 9 m apart, detected with unknown kind. A
+    # tree hides two thirds of one dash (1 m detected, at its far end); another
+    # touches a patch of paint (4.6 m); a stop line 6 m across the road.
+    xy = dash_rows(lateral=(0.0, 3.5), n=8)
+    n = len(xy)
+    length = np.full(n, 3.0)
+    bearing = np.full(n, 90.0)
+    short, long_ = 5, 12
+    xy[short, 0] += 1.0
+    length[short], length[long_] = 1.0, 4.6
+    xy = np.vstack([xy, ORIGIN + [[40.0, 1.75]]])
+    length = np.append(length, 6.0)
+    bearing = np.append(bearing, 0.0)
+    measured = np.ones(n + 1, bool)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, bearing_deg=bearing, length_m=length,
+                                 measured=measured)
+    assert index.half_length[short] == pytest.approx(1.0)  # the painted centroid is within ±1 m
+    assert index.half_length[long_] == pytest.approx(0.8)
+    assert index.half_length[-1] == pytest.approx(1.5)  # across the road: along-road position kept
+    assert np.allclose(index.axis[short], [1.0, 0.0])
+    assert np.allclose(index.axis[-1], [0.0, 1.0], atol=1e-9)
+    regular = np.ones(n + 1, bool)
+    regular[[short, long_, n]] = False
+    assert np.all(index.half_length[regular] == 0)
+    # Kinds a map knows are taken as they are: a dash is a point.
+    known = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, bearing_deg=bearing, length_m=length,
+                                 kind=["dash"] * n + ["stop_line"], measured=measured)
+    assert np.all(known.half_length == 0)
+    # Nor is a surveyed map's geometry, kinds or not.
+    exact = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, bearing_deg=bearing, length_m=length)
+    assert np.all(exact.half_length == 0)
+    # The service's index gives it to detections only, not to imported markings.
+    from mapbuilder.store import MarkingArrays
+    from service.map_index import index_from_markings
+
+    source = np.full(n + 1, "detected", object)
+    arrays = MarkingArrays(id=np.arange(n + 1), x=xy[:, 0], y=xy[:, 1], weight=np.ones(n + 1),
+                           length_m=length, bearing_deg=bearing, kind=np.full(n + 1, None, object),
+                           source=source)
+    assert index_from_markings(arrays, CRS).half_length[short] == pytest.approx(1.0, abs=0.02)
+    source[:] = "imported"
+    assert np.all(index_from_markings(arrays, CRS).half_length == 0)
+    # Too few detections to tell what is typical: nothing changes.
+    few = length_slack(xy[:5], length[:5], np.ones(5, bool))
+    assert np.all(few == 0)
+
+
 def test_a_cluster_along_the_line_explains_an_expected_cluster_of_its_end_piece():
     from localizer.robust import missed_counts, view_of
 
