@@ -97,11 +97,12 @@ def length_slack(xy: np.ndarray, length: np.ndarray, candidate: np.ndarray) -> n
     dist, nb = cKDTree(xy[idx]).query(xy[idx], k=k, distance_upper_bound=TYPICAL_RADIUS_M)
     near = np.isfinite(dist)
     near[:, 0] = False  # itself
-    lens_nb = np.where(near, lens[np.minimum(nb, idx.size - 1)], np.nan)
-    local = near.sum(axis=1) >= TYPICAL_MIN
-    typical = np.full(idx.size, float(np.median(lens)))
-    if local.any():
-        typical[local] = np.nanmedian(lens_nb[local], axis=1)
+    count = near.sum(axis=1)
+    # Median of each row's neighbours: sorted, the missing ones (inf) last.
+    srt = np.sort(np.where(near, lens[np.minimum(nb, idx.size - 1)], np.inf), axis=1)
+    rows = np.arange(idx.size)
+    med = 0.5 * (srt[rows, np.maximum((count - 1) // 2, 0)] + srt[rows, np.maximum(count // 2, 0)])
+    typical = np.where(count >= TYPICAL_MIN, med, float(np.median(lens)))
     off = np.abs(lens - typical)
     slack[idx] = np.where(off > LENGTH_TOLERANCE * typical + 0.1, off, 0.0)
     return slack
@@ -118,17 +119,15 @@ def expected_points(xy: np.ndarray, axis: np.ndarray, half: np.ndarray):
     ``L`` gives ``max(1, round(L / SOLID_SAMPLE_M))`` evenly spaced points.
     """
     point = half == 0
-    pts = [xy[point]]
-    owner = [np.flatnonzero(point)]
-    solid = [np.zeros(int(point.sum()), bool)]
-    for i in np.flatnonzero(~point):
-        n = max(1, int(round(2 * half[i] / SOLID_SAMPLE_M)))
-        a = (np.arange(n) + 0.5) / n * 2 * half[i] - half[i]
-        pts.append(xy[i] + a[:, None] * axis[i])
-        owner.append(np.full(n, i))
-        solid.append(np.ones(n, bool))
-    return (np.concatenate(pts).reshape(-1, 2), np.concatenate(owner).astype(np.intp),
-            np.concatenate(solid))
+    line = np.flatnonzero(~point)
+    n = np.maximum(1, np.round(2 * half[line] / SOLID_SAMPLE_M).astype(np.intp))
+    own = np.repeat(line, n)
+    k = np.arange(own.size) - np.repeat(np.cumsum(n) - n, n)  # index of the point on its marking
+    a = (k + 0.5) / np.repeat(n, n) * 2 * half[own] - half[own]
+    pts = np.concatenate([xy[point], xy[own] + a[:, None] * axis[own]]).reshape(-1, 2)
+    owner = np.concatenate([np.flatnonzero(point), own]).astype(np.intp)
+    solid = np.concatenate([np.zeros(int(point.sum()), bool), np.ones(own.size, bool)])
+    return pts, owner, solid
 
 
 @dataclass(frozen=True, eq=False)
