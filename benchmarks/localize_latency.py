@@ -74,6 +74,16 @@ def main() -> None:
         xy = ORIGIN + rng.uniform(0, side, (n, 2))
         ms = timeit(lambda: MapIndex.from_arrays(xy[:, 0], xy[:, 1], np.ones(n), "EPSG:25832"), 5)
         rows.append(line(f"MapIndex.from_arrays, {n:,} markings", ms))
+    # A map built from imagery: detections with axes and lengths, some cut short
+    # or run long (slack along the axis, :func:`localizer.index.length_slack`).
+    drng = np.random.default_rng(1)
+    n = 200_000
+    xy = ORIGIN + drng.uniform(0, math.sqrt(n / 0.05), (n, 2))
+    length = drng.choice([3.0, 3.0, 3.0, 3.0, 1.2, 5.5], n)
+    bearing = drng.uniform(0, 180, n)
+    ms = timeit(lambda: MapIndex.from_arrays(xy[:, 0], xy[:, 1], np.ones(n), "EPSG:25832", bearing_deg=bearing,
+                                             length_m=length, measured=np.ones(n, bool)), 5)
+    rows.append(line(f"MapIndex.from_arrays, {n:,} detections (lengths, slack)", ms))
 
     # About 2,000 markings within the 45 m neighbourhood of one request.
     xy = ORIGIN + rng.uniform(-60, 60, (4_550, 2))

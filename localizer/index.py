@@ -44,12 +44,11 @@ def _continuous_pieces(xy: np.ndarray, u: np.ndarray, length: np.ndarray) -> np.
     return touched[:n] & touched[n:]
 
 
-#: A detection of unknown kind is compared with the detections around it: its
-#: ``TYPICAL_NEIGHBOURS`` nearest of unknown kind within ``TYPICAL_RADIUS_M``
-#: (fewer than ``TYPICAL_MIN`` of them: all of the map's). Longer ones than
+#: A detection of unknown kind is compared with the detections around it: those
+#: of unknown kind in the same ``TYPICAL_CELL_M`` square of the map grid (fewer
+#: than ``TYPICAL_MIN`` there: all of the map's). Longer ones than
 #: ``MAX_DASH_LENGTH_M`` (stop lines, uncut lines) are not compared.
-TYPICAL_NEIGHBOURS = 16
-TYPICAL_RADIUS_M = 40.0
+TYPICAL_CELL_M = 40.0
 TYPICAL_MIN = 6
 MAX_DASH_LENGTH_M = 8.0
 #: A detection whose length departs from the typical one by more than this
@@ -64,7 +63,7 @@ def length_slack(xy: np.ndarray, length: np.ndarray, candidate: np.ndarray) -> n
     breaks, is detected short; one that touches another marking, long. Its
     centroid then lies anywhere within ``|length - typical| / 2`` of the
     painted dash's along the axis, where ``typical`` is the median length of
-    the detections around it (:data:`TYPICAL_NEIGHBOURS`): a vehicle's camera
+    the detections around it (:data:`TYPICAL_CELL_M`): a vehicle's camera
     sees the whole dash, so where along that stretch it matches is unknown.
     On the map built from the Karlsruhe renders 23 of 264 dash detections were
     0.25-1.5 m off (fragments under trees and cars, dashes run into crossing
@@ -93,16 +92,15 @@ def length_slack(xy: np.ndarray, length: np.ndarray, candidate: np.ndarray) -> n
     if idx.size < TYPICAL_MIN + 1:
         return slack
     lens = length[idx]
-    k = min(TYPICAL_NEIGHBOURS + 1, idx.size)
-    dist, nb = cKDTree(xy[idx]).query(xy[idx], k=k, distance_upper_bound=TYPICAL_RADIUS_M)
-    near = np.isfinite(dist)
-    near[:, 0] = False  # itself
-    count = near.sum(axis=1)
-    # Median of each row's neighbours: sorted, the missing ones (inf) last.
-    srt = np.sort(np.where(near, lens[np.minimum(nb, idx.size - 1)], np.inf), axis=1)
-    rows = np.arange(idx.size)
-    med = 0.5 * (srt[rows, np.maximum((count - 1) // 2, 0)] + srt[rows, np.maximum(count // 2, 0)])
-    typical = np.where(count >= TYPICAL_MIN, med, float(np.median(lens)))
+    # The median length per grid cell: sorted by cell, then by length.
+    cell_xy = np.floor(xy[idx] / TYPICAL_CELL_M).astype(np.int64)
+    _, cell = np.unique(cell_xy, axis=0, return_inverse=True)
+    cell = cell.reshape(-1)
+    order = np.lexsort((lens, cell))
+    count = np.bincount(cell)
+    first = np.cumsum(count) - count
+    med = 0.5 * (lens[order][first + (count - 1) // 2] + lens[order][first + count // 2])
+    typical = np.where(count >= TYPICAL_MIN, med, float(np.median(lens)))[cell]
     off = np.abs(lens - typical)
     slack[idx] = np.where(off > LENGTH_TOLERANCE * typical + 0.1, off, 0.0)
     return slack
