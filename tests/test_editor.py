@@ -310,6 +310,69 @@ def test_edits_are_saved_as_one_changeset(editor, fx, server):
     page.screenshot(path=str(ARTIFACTS / "editor.png"))
 
 
+def test_detections_whose_length_the_localizer_doubts_stand_out_and_are_explained(editor, fx, server):
+    """Eight detections of unknown kind in one 40 m square of the page's grid: six 3 m dashes,
+    a 1.2 m piece (a dash half hidden) and a 5.5 m one (run into something). The odd two
+    are doubted, the dashes not; the review queue says why; once a kind is set, it is not."""
+    r0 = 6378137.0
+    middle = [sum(c) / len(fx.features) for c in zip(*(fx.lonlat(f) for f in fx.features))]
+    k = math.cos(math.radians(math.floor(middle[1])))
+    # The middle of the page grid's square that holds the window's middle.
+    east = (math.floor(math.radians(middle[0]) * r0 * k / 40.0) + 0.5) * 40.0
+    north = (math.floor(math.radians(middle[1]) * r0 / 40.0) + 0.5) * 40.0
+    lon0, lat0 = math.degrees(east / (r0 * k)), math.degrees(north / r0)
+
+    def at(de, dn):
+        return [lon0 + math.degrees(de / (r0 * math.cos(math.radians(lat0)))), lat0 + math.degrees(dn / r0)]
+
+    marks = [(at(-12.0 + 4.0 * i, 1.5 * (i % 2)), 3.0, 0.5 + 0.01 * i) for i in range(6)]
+    marks.append((at(0.0, -4.0), 1.2, 0.011))  # the review queue's first
+    marks.append((at(8.0, -4.0), 5.5, 0.7))  # run into something
+    feats = [{"type": "Feature", "geometry": {"type": "Point", "coordinates": c},
+              "properties": {"length_m": length, "width_m": 0.12, "bearing_deg": 90.0, "weight": 30.0,
+                             "score": score, "source": "detected", "status": "unreviewed"}}
+             for c, length, score in marks]  # fmt: skip
+    with server.client(headers=server.auth) as c:
+        assert c.post(f"/collections/{fx.map_id}/import", json={"type": "FeatureCollection", "features": feats},
+                      params={"comment": "detections of unknown kind"}).status_code == 201  # fmt: skip
+        got = c.get(f"/collections/{fx.map_id}/items", params={"limit": 10000}).json()["features"]
+    ids = {f["properties"]["score"]: f["id"] for f in got if f["properties"].get("kind") is None
+           and f["properties"]["source"] == "detected"}  # fmt: skip
+    short, long_, dashes = ids[0.011], ids[0.7], [ids[round(0.5 + 0.01 * i, 3)] for i in range(6)]
+
+    editor.open().enter_token()
+    page = editor.page
+    page.evaluate("([lon, lat]) => { lanemapEditor.map.setView([lat, lon], 19, {animate: false}); }", [lon0, lat0])
+    page.wait_for_function(f"lanemapEditor.state.lengthDoubts.has('{short}')")
+    doubts = page.evaluate("Object.fromEntries(lanemapEditor.state.lengthDoubts)")
+    assert set(doubts) & set(dashes) == set()
+    assert doubts[short] == pytest.approx(3.0) and doubts[long_] == pytest.approx(3.0)
+    halo = page.evaluate(f"[lanemapEditor.layer.dashes.get('{long_}').halo?.options.color,"
+                         f" lanemapEditor.layer.dashes.get('{short}').halo?.options.color]")
+    assert halo == ["#ff8c00", "#ff2bd6"]  # a low score outranks the length
+    others = page.evaluate(f"{json.dumps(dashes)}.map((id) => lanemapEditor.layer.dashes.get(id).halo?.options.color ?? null)")
+    assert others == [None] * 6
+
+    # The review queue (lowest score first) starts with it and says what is odd about it.
+    page.click("#review-start")
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{short}')")
+    status = page.text_content("#review-status")
+    assert "1.20 m long where 3.00 m is typical" in status
+    editor.key("Escape")
+
+    # A person who finds it right sets its kind: the localizer then takes it as it is.
+    with server.client(headers=server.auth) as c:
+        r = c.patch(f"/collections/{fx.map_id}/items/{short}", json={"properties": {"kind": "dash"}},
+                    headers={"If-Match": c.get(f"/collections/{fx.map_id}/items/{short}").headers["ETag"]})
+        assert r.status_code == 200, r.text
+    page.reload()
+    editor.wait_loaded()
+    page.evaluate("([lon, lat]) => { lanemapEditor.map.setView([lat, lon], 19, {animate: false}); }", [lon0, lat0])
+    page.wait_for_function(f"lanemapEditor.state.lengthDoubts.has('{long_}')")
+    kind = page.evaluate(f"lanemapEditor.layer.dashes.get('{short}').marking.kind")
+    assert kind == "dash" and not page.evaluate(f"lanemapEditor.state.lengthDoubts.has('{short}')")
+
+
 def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     editor.open().enter_token()
     page = editor.page

@@ -41,6 +41,50 @@ export function fromEnds(lonA, latA, lonB, latB) {
   return { lon: (lonA + lonB) / 2, lat: (latA + latB) / 2, length_m: length, bearing_deg: bearing };
 }
 
+/**
+ * The localizer's doubt about a detection's length (localizer/index.py, length_slack): a
+ * detection of unknown kind (up to 8 m) whose length departs from the median of such
+ * detections in its 40 m square by more than 15 % + 0.1 m (the median of all of them where
+ * fewer than 6 lie in the square) is matched with slack along its axis, its painted dash
+ * taken to lie somewhere along the difference. The squares here are on a grid of this page's
+ * own (east/north metres at the markings' whole-degree latitude), not the map CRS's, so a
+ * detection near a square's edge may be judged against other neighbours than the server's.
+ * Returns a Map from id to the typical length (m) of each doubted detection.
+ */
+export const LENGTH_DOUBT = { cellM: 40, minCount: 6, tolerance: 0.15, maxLengthM: 8 };
+
+export function lengthCell(lon, lat) {
+  const lat0 = Math.floor(lat) * DEG;
+  const east = lon * DEG * EARTH_RADIUS_M * Math.cos(lat0);
+  const north = lat * DEG * EARTH_RADIUS_M;
+  return `${Math.floor(east / LENGTH_DOUBT.cellM)},${Math.floor(north / LENGTH_DOUBT.cellM)}`;
+}
+
+function median(values) {
+  const v = [...values].sort((a, b) => a - b);
+  return (v[(v.length - 1) >> 1] + v[v.length >> 1]) / 2;
+}
+
+export function lengthDoubts(markings) {
+  const cand = markings.filter((m) => m.source === 'detected' && m.status !== 'rejected'
+    && !(m.kind && String(m.kind).trim()) && m.length_m > 0 && m.length_m <= LENGTH_DOUBT.maxLengthM);
+  const out = new Map();
+  if (cand.length < LENGTH_DOUBT.minCount + 1) return out;
+  const cells = new Map();
+  for (const m of cand) {
+    const key = lengthCell(m.lon, m.lat);
+    if (!cells.has(key)) cells.set(key, []);
+    cells.get(key).push(m.length_m);
+  }
+  const all = median(cand.map((m) => m.length_m));
+  const typical = new Map([...cells].map(([k, v]) => [k, v.length >= LENGTH_DOUBT.minCount ? median(v) : all]));
+  for (const m of cand) {
+    const t = typical.get(lengthCell(m.lon, m.lat));
+    if (Math.abs(m.length_m - t) > LENGTH_DOUBT.tolerance * t + 0.1) out.set(String(m.id), t);
+  }
+  return out;
+}
+
 export function isLowScore(m) {
   return m.source === 'detected' && m.status === 'unreviewed' && m.score !== null && m.score < LOW_SCORE;
 }
@@ -61,11 +105,12 @@ const HALOS = {
   selected: { color: '#ffffff', weight: 10, opacity: 0.95 },
   edited: { color: '#000000', weight: 8, opacity: 0.55 },
   low: { color: '#ff2bd6', weight: 10, opacity: 0.55 },
+  length: { color: '#ff8c00', weight: 10, opacity: 0.6 },
 };
 
 /**
  * The layer of markings: one canvas polyline per marking, and halos beneath (selected,
- * conflicting, edited, low-score). Redraws only what changed.
+ * conflicting, edited, low-score, doubtful length). Redraws only what changed.
  */
 export class MarkingLayer {
   constructor(map, { onDown, onClick } = {}) {

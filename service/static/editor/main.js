@@ -2,7 +2,7 @@
 
 import { Api, ApiError } from './api.js';
 import { EditSession, isLocalId } from './edits.js';
-import { MarkingLayer, fromEnds, isLowScore, metres } from './layer.js';
+import { MarkingLayer, fromEnds, isLowScore, lengthDoubts, metres } from './layer.js';
 
 const L = globalThis.L;
 const $ = (id) => document.getElementById(id);
@@ -27,6 +27,7 @@ const state = {
   conflicts: new Map(), // id -> conflict from the server
   mode: 'select',
   review: null, // {queue: [marking], index}
+  lengthDoubts: new Map(), // id -> typical length (m) of detections whose length the localizer doubts
   gesture: null, // a drag, box or dash being drawn
   afterGesture: false, // the click that ends a drag is not a click
   loadAbort: null,
@@ -115,12 +116,15 @@ function visibleMarkings() {
 function render() {
   if (!state.session) return;
   const edited = state.session.pending;
-  layer.draw(visibleMarkings(), (m) => {
+  const markings = visibleMarkings();
+  state.lengthDoubts = lengthDoubts(markings);
+  layer.draw(markings, (m) => {
     const id = String(m.id);
     if (state.conflicts.has(id)) return 'conflict';
     if (state.selection.has(id)) return 'selected';
     if (edited.has(id)) return 'edited';
     if (isLowScore(m)) return 'low';
+    if (state.lengthDoubts.has(id)) return 'length';
     return null;
   });
   renderSelection();
@@ -671,8 +675,11 @@ function nextReview() {
   const m = current(r.queue[r.index].id);
   state.selection = new Set([String(m.id)]);
   map.setView([m.lat, m.lon], REVIEW_ZOOM);
-  $('review-status').textContent = `${r.index + 1} of ${r.queue.length}: marking ${m.id}, score ${m.score == null ? '–' : m.score.toFixed(3)}`;
   render();
+  const typical = state.lengthDoubts.get(String(m.id));
+  const doubt = typical === undefined ? ''
+    : `; ${m.length_m.toFixed(2)} m long where ${typical.toFixed(2)} m is typical: a dash cut short or run long? Fix its ends, or set its kind if it is right`;
+  $('review-status').textContent = `${r.index + 1} of ${r.queue.length}: marking ${m.id}, score ${m.score == null ? '–' : m.score.toFixed(3)}${doubt}`;
 }
 
 function reviewDecide(status) {
