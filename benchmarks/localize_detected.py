@@ -13,7 +13,8 @@ areas, and localized with the default method against
   as after an import (the upper bound a perfect map gives);
 * **detected**: the built map, indexed from the store as the service does,
   with the kinds the build gives (``solid`` for the pieces it cut from one
-  long cluster, unknown otherwise);
+  long cluster, unknown otherwise; a detection of unknown kind cut short or
+  run long gets slack along its axis, ``localizer.index.length_slack``);
 * **detected, no kinds**: the same markings with every kind unknown (the index
   then infers the pieces of solid lines from their geometry alone).
 
@@ -231,12 +232,15 @@ def main() -> None:
     agree = kind_agreement(markings, lmap, areas)
     print(f"{len(areas)} areas, {mpx:.0f} Mpx at 10 cm, built in {t_build:.0f} s; kinds: {agree}")
     detected = index_from_markings(arrays, CRS)
+    solid = np.array([k == "solid" for k in arrays.kind])
     arrays.kind[:] = None
     unknown = index_from_markings(arrays, CRS)
     indexes = {"Lanelet2": restricted_truth(areas), "detected": detected, "detected, no kinds": unknown}
     segs = {k: int((v.half_length > 0).sum()) for k, v in indexes.items()}
     print(f"markings indexed (line pieces matched as segments): "
           + ", ".join(f"{k} {len(v)} ({segs[k]})" for k, v in indexes.items()))
+    slack = int((~solid & (detected.half_length > 0)).sum())
+    print(f"detections of unknown kind cut short or run long (slack along the axis): {slack} of {int((~solid).sum())}")
 
     _, smap = karlsruhe(kinds=True)
     cam = Camera()
