@@ -78,8 +78,9 @@ def length_slack(xy: np.ndarray, length: np.ndarray, candidate: np.ndarray) -> n
     length : (M,) ndarray
         Lengths along the major axis, metres.
     candidate : (M,) bool ndarray
-        Detections that may be dashes (unknown kind, not pieces of lines, at
-        most :data:`MAX_DASH_LENGTH_M`); only these are compared and changed.
+        Detections that may be dashes (unknown kind, not pieces of lines, with
+        a length, at most :data:`MAX_DASH_LENGTH_M`); only these are compared
+        and changed.
 
     Returns
     -------
@@ -272,7 +273,7 @@ class MapIndex:
                 meas = np.asarray(measured, dtype=bool).reshape(-1)
                 if meas.size != xs.size:
                     raise LocalizationInputError(f"measured: {meas.size} values, expected {xs.size}")
-                slack = length_slack(xy, length, meas & ~known & ~solid & (length <= MAX_DASH_LENGTH_M))
+                slack = length_slack(xy, length, meas & ~known & ~solid & (length > 0) & (length <= MAX_DASH_LENGTH_M))
                 loose = slack > 0
                 axis[loose] = u[loose]
                 half[loose] = 0.5 * slack[loose]

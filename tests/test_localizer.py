@@ -426,6 +426,10 @@ def test_detections_cut_short_or_run_long_get_slack_along_their_axis():
     assert index_from_markings(arrays, CRS).half_length[short] == pytest.approx(1.0, abs=0.02)
     source[:] = "imported"
     assert np.all(index_from_markings(arrays, CRS).half_length == 0)
+    # A detection without a length (a point from elsewhere) has no axis to slide along.
+    pts = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS, bearing_deg=bearing,
+                               length_m=np.where(np.arange(n + 1) == short, 0.0, length), measured=measured)
+    assert pts.half_length[short] == 0 and pts.half_length[long_] == pytest.approx(0.8)
     # Too few detections to tell what is typical: nothing changes.
     few = length_slack(xy[:5], length[:5], np.ones(5, bool))
     assert np.all(few == 0)
