@@ -461,18 +461,6 @@ def fit_statistics(
     return Fit(n, rms, cov, m)
 
 
-#: The joint fit with the pitch may move a pose at most this far (metres) or
-#: turn it this much (radians), else it is undone. A pitch error of three
-#: sigmas (0.15°) moves a marking 15 m ahead 0.45 m along its ray and one 25 m
-#: ahead 1.3 m, the pose by a weighted mean of such shifts; a fit that moves
-#: the pose farther than a metre has slid along a
-#: weakly constrained road (pairs mostly on solid lines), in one seen case a
-#: whole dash period to a pose the scoring had not ranked (answered `ok`, 9 m
-#: off).
-PITCH_MAX_SHIFT_M = 1.0
-PITCH_MAX_TURN_RAD = math.radians(2.0)
-
-
 def refine_with_pitch(
     local_map: LocalMap,
     obs_xy: np.ndarray,
@@ -498,17 +486,12 @@ def refine_with_pitch(
     pitch : float
         The estimated pitch error, radians (undo it with :func:`pitch_corrected`).
     pitch_var : float
-        Its posterior variance, radians² (the prior's if nothing matched, or if
-        the fit moved the pose beyond :data:`PITCH_MAX_SHIFT_M` or
-        :data:`PITCH_MAX_TURN_RAD`: then the pose is returned unchanged and the
-        pitch 0).
+        Its posterior variance, radians² (the prior's if nothing matched).
     """
-    start = tuple(float(v) for v in pose)
     pose = np.array(pose, float)
     n = len(obs_xy)
-    unchanged = start, 0.0, math.radians(options.pitch_sigma_deg) ** 2
     if n < 2:
-        return unchanged
+        return tuple(float(v) for v in pose), 0.0, math.radians(options.pitch_sigma_deg) ** 2
     rng_j = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
     ray_v = obs_xy / np.maximum(rng_j, 1e-9)[:, None]
     k = pitch_lever(rng_j, options)
@@ -563,9 +546,6 @@ def refine_with_pitch(
         delta += step[3]
         if np.hypot(step[0], step[1]) < options.tolerance_m and abs(step[2]) < options.tolerance_rad:
             break
-    if (math.hypot(pose[0] - start[0], pose[1] - start[1]) > PITCH_MAX_SHIFT_M
-            or abs((pose[2] - start[2] + math.pi) % (2 * math.pi) - math.pi) > PITCH_MAX_TURN_RAD):
-        return unchanged
     return tuple(float(v) for v in pose), float(delta), var
 
 

@@ -536,23 +536,6 @@ def test_refinement_with_pitch_undoes_the_stretch_a_rigid_fit_absorbs():
     assert math.hypot(pose0[0], pose0[1]) < 1e-6 and abs(est0) < 1e-9
 
 
-def test_the_joint_fit_with_the_pitch_never_carries_a_pose_far(monkeypatch):
-    from localizer import robust
-    from localizer.robust import noise_sigma, refine_with_pitch
-
-    rng = np.random.default_rng(5)
-    v, local = _points_ahead(rng, n=15)
-    opts = Options()
-    sig = noise_sigma(v, opts)
-    start = (0.6, 0.0, 0.0)  # 0.6 m along the road: within the pairs' gate, the fit pulls it back
-    pose, _, _ = refine_with_pitch(local, v, sig, start, opts)
-    assert math.hypot(pose[0], pose[1]) < 0.05
-    # A fit that would move the pose beyond the bound is undone: pose, pitch 0, the prior's variance.
-    monkeypatch.setattr(robust, "PITCH_MAX_SHIFT_M", 0.3)
-    pose, est, var = refine_with_pitch(local, v, sig, start, opts)
-    assert pose == start and est == 0.0 and var == pytest.approx(math.radians(opts.pitch_sigma_deg) ** 2)
-
-
 def test_localize_estimates_the_pitch_unless_told_not_to():
     rng = np.random.default_rng(21)
     xy, w = random_map(rng)
