@@ -310,6 +310,20 @@ def test_edits_are_saved_as_one_changeset(editor, fx, server):
     page.screenshot(path=str(ARTIFACTS / "editor.png"))
 
 
+def test_the_page_doubts_lengths_by_the_localizers_own_numbers():
+    """The page repeats the localizer's rule in JavaScript: its numbers must be the index's."""
+    import re
+    from pathlib import Path
+
+    from localizer import index
+
+    js = (Path(__file__).resolve().parents[1] / "service" / "static" / "editor" / "layer.js").read_text()
+    rule = re.search(r"LENGTH_DOUBT = \{([^}]*)\}", js).group(1)
+    got = {k.strip(): float(v) for k, v in (kv.split(":") for kv in rule.split(","))}
+    assert got == {"cellM": index.TYPICAL_CELL_M, "minCount": index.TYPICAL_MIN,
+                   "tolerance": index.LENGTH_TOLERANCE, "maxLengthM": index.MAX_DASH_LENGTH_M}
+
+
 def test_detections_whose_length_the_localizer_doubts_stand_out_and_are_explained(editor, fx, server):
     """Eight detections of unknown kind in one 40 m square of the page's grid: six 3 m dashes,
     a 1.2 m piece (a dash half hidden) and a 5.5 m one (run into something). The odd two

@@ -41,18 +41,10 @@ export function fromEnds(lonA, latA, lonB, latB) {
   return { lon: (lonA + lonB) / 2, lat: (latA + latB) / 2, length_m: length, bearing_deg: bearing };
 }
 
-/**
- * The localizer's doubt about a detection's length (localizer/index.py, length_slack): a
- * detection of unknown kind (up to 8 m) whose length departs from the median of such
- * detections in its 40 m square by more than 15 % + 0.1 m (the median of all of them where
- * fewer than 6 lie in the square) is matched with slack along its axis, its painted dash
- * taken to lie somewhere along the difference. The squares here are on a grid of this page's
- * own (east/north metres at the markings' whole-degree latitude), not the map CRS's, so a
- * detection near a square's edge may be judged against other neighbours than the server's.
- * Returns a Map from id to the typical length (m) of each doubted detection.
- */
+/** The localizer's rule for doubted lengths (localizer/index.py: TYPICAL_CELL_M, TYPICAL_MIN, LENGTH_TOLERANCE, MAX_DASH_LENGTH_M). */
 export const LENGTH_DOUBT = { cellM: 40, minCount: 6, tolerance: 0.15, maxLengthM: 8 };
 
+/** The 40 m square of the page's own grid (east/north metres at the whole-degree latitude) a lon/lat lies in. */
 export function lengthCell(lon, lat) {
   const lat0 = Math.floor(lat) * DEG;
   const east = lon * DEG * EARTH_RADIUS_M * Math.cos(lat0);
@@ -65,6 +57,14 @@ function median(values) {
   return (v[(v.length - 1) >> 1] + v[v.length >> 1]) / 2;
 }
 
+/**
+ * The detections whose length the localizer doubts (localizer/index.py, length_slack): of
+ * unknown kind, up to 8 m, their length departing from the median of such detections in
+ * their 40 m square by more than 15 % + 0.1 m (the median of all of them where fewer than 6
+ * lie in the square). They are matched with slack along their axis. The squares are the
+ * page's own, not the map CRS's, so near a square's edge the page may judge a detection
+ * against other neighbours than the server does. Returns a Map from id to the typical length (m).
+ */
 export function lengthDoubts(markings) {
   const cand = markings.filter((m) => m.source === 'detected' && m.status !== 'rejected'
     && !(m.kind && String(m.kind).trim()) && m.length_m > 0 && m.length_m <= LENGTH_DOUBT.maxLengthM);
