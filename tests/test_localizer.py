@@ -536,6 +536,39 @@ def test_refinement_with_pitch_undoes_the_stretch_a_rigid_fit_absorbs():
     assert math.hypot(pose0[0], pose0[1]) < 1e-6 and abs(est0) < 1e-9
 
 
+def test_refinement_with_pitch_stays_put_where_nothing_pins_the_pose_along_the_road():
+    from localizer.robust import noise_sigma, refine_with_pitch
+
+    # Two solid lines on a gentle curve (radius 300 m), cut into 3 m pieces, and
+    # nothing else: sliding along the road (turning about the curve's centre)
+    # changes no residual. Undamped, the step along it was noise amplified:
+    # 5-20 m on these scenes. The fit must correct the pitch and stay put.
+    radius = 300.0
+    centre = ORIGIN + np.array([0.0, radius])
+    a = np.arange(-0.02, 0.14, 3.0 / radius)
+    pieces = np.vstack([
+        np.column_stack([centre[0] + (radius - off) * np.sin(a), centre[1] - (radius - off) * np.cos(a)])
+        for off in (-1.75, 1.75)
+    ])
+    bearing = np.tile((90.0 - np.degrees(a)) % 180.0, 2)
+    index = MapIndex.from_arrays(pieces[:, 0], pieces[:, 1], None, CRS, bearing_deg=bearing,
+                                 length_m=np.full(len(pieces), 3.0), kind=["solid"] * len(pieces))
+    local = LocalMap(index, ORIGIN, 100.0)
+    opts = Options()
+    start = (0.1, 0.02, 0.002)  # where a rigid fit left it
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        # The camera's clusters on the lines, 5-25 m ahead, with a pitch error and range noise.
+        b = rng.uniform(5.0, 25.0, (2, 6)) / radius
+        v = np.vstack([np.column_stack([(radius - off) * np.sin(t), radius - (radius - off) * np.cos(t)])
+                       for off, t in zip((-1.75, 1.75), b)])
+        r = np.hypot(v[:, 0], v[:, 1])
+        obs = _pitched(v, math.radians(0.05)) * (1 + rng.normal(0, 1, len(r)) * (0.03 + 3e-4 * r**2) / r)[:, None]
+        pose, _, _ = refine_with_pitch(local, obs, noise_sigma(obs, opts), start, opts)
+        assert math.hypot(pose[0] - start[0], pose[1] - start[1]) < 0.1, seed
+        assert abs(pose[2] - start[2]) < math.radians(0.2), seed
+
+
 def test_localize_estimates_the_pitch_unless_told_not_to():
     rng = np.random.default_rng(21)
     xy, w = random_map(rng)
