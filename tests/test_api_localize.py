@@ -370,4 +370,6 @@ def test_the_kinds_a_map_was_imported_with_reach_the_localizer(api):
         out = r.json()
         errors[kinds] = (out["status"], math.hypot(out["easting"] - p[0], out["northing"] - p[1]))
     assert errors[True][0] == "ok" and errors[True][1] < 0.05, errors
-    assert errors[False][1] > 1.0, errors
+    # About a metre along the road (the joint fit with the pitch, which used to
+    # carry it farther, now keeps the pose where the ranking put it).
+    assert errors[False][1] > 0.5, errors
