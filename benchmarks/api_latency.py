@@ -1,7 +1,7 @@
 """Latency of the REST API over HTTP, against a real ``lanemap serve`` process.
 
 The server (one uvicorn worker, SQLite by default or PostgreSQL with
-``--postgres URL``) gets the Karlsruhe Lanelet2 layout (836 markings) and
+``--postgres URL``) gets the Karlsruhe Lanelet2 layout (819 markings) and
 optionally ``--copies`` shifted copies of it to make a larger map. One
 client then times, sequentially:
 

@@ -1,7 +1,7 @@
 """Load test of ``POST /collections/{mapId}/localize`` over loopback, at rising concurrency.
 
 The map is the Karlsruhe Lanelet2 example laid out as lane markings (the
-demo map's markings, 836 of them) in a fresh SQLite store (or a fresh
+demo map's markings, 819 of them) in a fresh SQLite store (or a fresh
 PostgreSQL database with ``--postgres URL``). The requests are camera frames
 simulated by :mod:`localizer.simulate` on the same geometry: a forward camera
 seeing 4–35 m ahead within ±40°, paper-like clutter (curbs, a preceding

@@ -4,7 +4,9 @@ Lanelet2 stores a dashed line as one polyline; a camera and an aerial image see
 its individual dashes. :func:`layout_markings` turns the map's lines into the
 markings lanemap works with: dashes laid out with a dash/gap pattern, stop
 lines as single markings, and solid lines cut into short pieces so that every
-centroid is local.
+centroid is local. A painted dashed line often spans several line strings (a
+map splits it wherever a lanelet ends); its pattern runs on across such joins
+(:func:`dashed_chains`).
 """
 
 from __future__ import annotations
@@ -151,6 +153,83 @@ def _segment_marking(
     )
 
 
+#: Line strings of one dashed line meet end to end, turning by at most this
+#: much, degrees; a sharper turn (a junction's corner) starts a new pattern.
+MAX_JOIN_TURN_DEG = 30.0
+
+
+def dashed_chains(lines: list[Line]) -> list[tuple[str, np.ndarray]]:
+    """Dashed line strings joined into the painted lines they belong to.
+
+    Two line strings of the same type join where an end of one is an end of
+    the other (the same node, to 1 cm), no third dashed line string ends
+    there, and the line runs on straight enough (:data:`MAX_JOIN_TURN_DEG`).
+    Lanelet2 splits a line wherever a lanelet ends, every 15 m or so in a
+    city; laid out string by string, the dash pattern would restart at each
+    split and put dashes end to end or leave slivers, which no painter does.
+
+    Parameters
+    ----------
+    lines : list of Line
+        The dashed line strings.
+
+    Returns
+    -------
+    list of (type, (N, 2) ndarray)
+        Each painted line's type and polyline, metres, in the order of its
+        first line string where that is unambiguous.
+    """
+
+    def key(p) -> tuple[float, float]:
+        return round(float(p[0]), 2), round(float(p[1]), 2)
+
+    def leaving(xy: np.ndarray, at_start: bool) -> np.ndarray:
+        a, b = (xy[0], xy[1]) if at_start else (xy[-1], xy[-2])
+        d = b - a
+        return d / max(float(np.hypot(*d)), 1e-12)
+
+    ends: dict[tuple[float, float], list[tuple[int, int]]] = {}
+    for i, ln in enumerate(lines):
+        ends.setdefault(key(ln.xy[0]), []).append((i, 0))
+        ends.setdefault(key(ln.xy[-1]), []).append((i, -1))
+    straight = -math.cos(math.radians(MAX_JOIN_TURN_DEG))
+    link: dict[tuple[int, int], tuple[int, int]] = {}
+    for pair in ends.values():
+        if len(pair) != 2:
+            continue
+        (i, ei), (j, ej) = pair
+        if i == j or lines[i].type != lines[j].type:
+            continue
+        # Both directions leave the joint: a straight join points them apart.
+        if float(leaving(lines[i].xy, ei == 0) @ leaving(lines[j].xy, ej == 0)) > straight:
+            continue
+        link[(i, ei)] = (j, ej)
+        link[(j, ej)] = (i, ei)
+    done: set[int] = set()
+    chains = []
+    # Strings with a free end first, so that an open line is walked from its end.
+    for first in sorted(range(len(lines)), key=lambda i: ((i, 0) in link) + ((i, -1) in link)):
+        if first in done:
+            continue
+        i, e = first, 0
+        while (i, e) in link:  # back to the line's start (or round a loop once)
+            j, ej = link[(i, e)]
+            if j == first:
+                break
+            i, e = j, -1 if ej == 0 else 0
+        parts = []
+        while i not in done:
+            done.add(i)
+            xy = lines[i].xy if e == 0 else lines[i].xy[::-1]
+            parts.append(xy if not parts else xy[1:])
+            out = (i, -1 if e == 0 else 0)
+            if out not in link:
+                break
+            i, e = link[out][0], 0 if link[out][1] == 0 else -1
+        chains.append((lines[first].type, np.vstack(parts)))
+    return chains
+
+
 def layout_markings(
     lmap: LaneletMap,
     dash_m: float = 3.0,
@@ -169,7 +248,9 @@ def layout_markings(
     piece_m : float
         Longest piece a solid line is cut into, metres.
     phase_m : float
-        Offset of the first dash from the start of each dashed line, metres.
+        Offset of the first dash from the start of each dashed line, metres
+        (of each painted line: the pattern runs on across the line strings it
+        spans, :func:`dashed_chains`).
 
     Returns
     -------
@@ -180,8 +261,17 @@ def layout_markings(
     """
     out: list[Marking] = []
     period = dash_m + gap_m
+    dashed = [ln for ln in lmap.lines if ln.type in MARKING_TYPES and ln.type != "stop_line"
+              and ln.subtype == "dashed"]
+    for kind, xy in dashed_chains(dashed):
+        s_cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        total = float(s_cum[-1])
+        s = phase_m % period
+        while s < total - 0.5:  # a dash shorter than 0.5 m is not painted
+            out.append(_segment_marking(xy, s_cum, s, min(s + dash_m, total), LINE_WIDTH_M[kind], "dash"))
+            s += period
     for line in lmap.lines:
-        if line.type not in MARKING_TYPES:
+        if line.type not in MARKING_TYPES or (line.type != "stop_line" and line.subtype == "dashed"):
             continue
         width = LINE_WIDTH_M[line.type]
         xy = line.xy
@@ -191,13 +281,6 @@ def layout_markings(
             continue
         if line.type == "stop_line":
             out.append(_segment_marking(xy, s_cum, 0.0, total, width, "stop_line"))
-        elif line.subtype == "dashed":
-            s = phase_m % period
-            while s < total - 0.5:  # a dash shorter than 0.5 m is not painted
-                out.append(
-                    _segment_marking(xy, s_cum, s, min(s + dash_m, total), width, "dash")
-                )
-                s += period
         else:  # solid, and the solid side of solid_dashed / dashed_solid
             n = max(1, math.ceil(total / piece_m - 1e-9))
             edges = np.linspace(0.0, total, n + 1)

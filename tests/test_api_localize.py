@@ -289,7 +289,7 @@ def test_a_request_sets_the_probability_an_ok_answer_needs(api, kmap):
     """``min_probability`` moves the line between ok and ambiguous; the pose and its probability stay."""
     map_id, feats = kmap
     url = f"{api.base_url}/collections/{map_id}/localize"
-    p, lon, lat, heading, obs = scene(feats, 250)
+    p, lon, lat, heading, obs = scene(feats, 201)
     # The four markings nearest the lane's middle and a vague fix: the answer is in doubt, not hopeless.
     dashes = sorted(obs, key=lambda o: abs(o["y"]))[:4]
     body = {"gps": {**gps_near(p, heading), "position_sigma_m": 6.0}, "observations": dashes}

@@ -214,12 +214,12 @@ def test_default_recovers_karlsruhe_scenes():
 
 def test_a_restart_beside_the_answer_finds_the_better_basin_next_to_it():
     # A Karlsruhe scene (paper-like clutter, 0.5-2 m / ±15° start) in which the
-    # coarse search hands over only candidates that settle 1.1 m and 3° off,
+    # coarse search hands over only candidates that settle 1.7 m and 4.7° off,
     # and the truth's basin, next to it, scores higher.
     index, smap = karlsruhe()
     from localizer.simulate import Clutter, sample_poses
 
-    rng = np.random.default_rng(186)
+    rng = np.random.default_rng(2557)
     pose = sample_poses(smap, 1, rng, min_visible=4)[0]
     scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
     prior = prior_at(index, perturb(pose, rng.uniform(0.5, 2.0), rng.uniform(-15, 15), rng), 1.0, 9.0)

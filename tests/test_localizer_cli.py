@@ -41,7 +41,7 @@ def frame_and_prior(seed: int):
 
 def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
-    pose, scene, lat, lon, heading = frame_and_prior(3)
+    pose, scene, lat, lon, heading = frame_and_prior(6)
     path = tmp_path / "obs.json"
     path.write_text(json.dumps(
         {"observations": [{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]}))
