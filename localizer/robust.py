@@ -539,10 +539,10 @@ def refine_with_pitch(
         # variance for segments.
         info = gm[:, None, None] * (np.einsum("ni,nj->nij", u, u) / var_r[m][:, None, None]
                                     + np.einsum("ni,nj->nij", v, v) / var_t[m][:, None, None])
-        nv = normal
         if seg.any():
-            var_n = (nv[seg] * u[seg]).sum(1) ** 2 * var_r[m][seg] + (nv[seg] * v[seg]).sum(1) ** 2 * var_t[m][seg]
-            info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv[seg], nv[seg]) / var_n[:, None, None]
+            nv = normal[seg]
+            var_n = (nv * u[seg]).sum(1) ** 2 * var_r[m][seg] + (nv * v[seg]).sum(1) ** 2 * var_t[m][seg]
+            info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv, nv) / var_n[:, None, None]
         J = np.zeros((len(e), 2, 4))
         J[:, 0, 0] = 1.0
         J[:, 1, 1] = 1.0
