@@ -65,14 +65,45 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     res = CliRunner().invoke(app, [*args, "--min-probability", "0.9999"])
     strict = json.loads(res.stdout)
     assert strict["status"] == "ambiguous" and strict["easting"] == pytest.approx(out["easting"]), strict
+    # A script that reads only the exit code must not take it for a sure answer.
+    assert res.exit_code == 3, res.output
+    warn = res.stderr.strip().splitlines()
+    assert len(warn) == 1 and warn[0].startswith("warning: the answer is ambiguous"), warn
     # A bare list works too, and the paper's method answers from the same prior.
     path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
     res = CliRunner().invoke(app, [
         "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
         "--observations", str(path), "--method", "pink2008",
     ])
-    assert res.exit_code == 0, res.output
-    assert json.loads(res.stdout)["status"] in ("ok", "failed")
+    paper = json.loads(res.stdout)
+    assert res.exit_code == {"ok": 0, "failed": 4}[paper["status"]], res.output
+
+
+def test_cli_failed_answer_prints_the_pose_json_and_exits_4(stored_map, tmp_path, monkeypatch):
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    _, scene, lat, lon, heading = frame_and_prior(6)
+    path = tmp_path / "obs.json"
+    path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
+    # The same frame with a GPS fix in Berlin: a valid request, but no map there.
+    for method in ("default", "pink2008"):
+        res = CliRunner().invoke(app, [
+            "localize", "ka", "--lat", "52.52", "--lon", "13.40", "--heading", str(heading),
+            "--observations", str(path), "--method", method,
+        ])
+        assert res.exit_code == 4, res.output
+        out = json.loads(res.stdout)
+        assert out["status"] == "failed" and "no map markings within" in out["reason"], out
+        err = res.stderr.strip().splitlines()
+        assert err == [f"error: localization failed: {out['reason']}"], err
+    # A drive is judged by its last frame.
+    drive = tmp_path / "drive.json"
+    frame0 = {"observations": json.loads(path.read_text())}
+    drive.write_text(json.dumps({"frames": [frame0, {**frame0, "motion": {"dx": 0, "dy": 0}}]}))
+    res = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", "52.52", "--lon", "13.40", "--heading", "0", "--frames", str(drive),
+    ])
+    assert res.exit_code == 4, res.output
+    assert [p["status"] for p in json.loads(res.stdout)["poses"]] == ["failed", "failed"]
 
 
 @pytest.mark.parametrize(

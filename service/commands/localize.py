@@ -12,6 +12,13 @@ from localizer import METHODS, LocalizationInputError, Options, Prior, localize
 from service.cli_errors import fail
 from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 
+#: Exit codes of ``lanemap localize`` by the answer's status (the last frame's
+#: with ``--frames``). The JSON is printed whatever the status, so a script can
+#: read the hypotheses or the reason; the code lets a shell script tell a sure
+#: answer from one it must not act on without reading further. Bad input is 1
+#: (as for every command) and a usage error 2 (Click's).
+EXIT_CODES = {"ok": 0, "ambiguous": 3, "failed": 4}
+
 
 def _read_json(path: Path):
     try:
@@ -91,6 +98,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed).
 
+        Exits 0 when the answer is ok, 3 when it is ambiguous and 4 when
+        localization failed (the JSON is printed in every case; with --frames
+        the last frame decides), 1 on bad input.
+
         With --frames, a drive of several frames is localized with the
         multi-hypothesis filter of localizer.track (default method only).
         """
@@ -132,3 +143,14 @@ def register(app: typer.Typer) -> None:
         except LocalizationInputError as exc:
             fail(str(exc))
         typer.echo(json.dumps(out, indent=2, allow_nan=False))
+        last = out["poses"][-1] if seq is not None else out
+        status = last["status"]
+        if status == "failed":
+            typer.echo(f"error: localization failed: {last.get('reason') or 'no reason given'}", err=True)
+        elif status == "ambiguous":
+            typer.echo(
+                f"warning: the answer is ambiguous (probability {last.get('probability') or 0:.3f}); "
+                f"{len(last.get('hypotheses') or [])} hypotheses in the JSON",
+                err=True,
+            )
+        raise typer.Exit(EXIT_CODES[status])
