@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -386,6 +387,20 @@ def _neighbour_starts(pose, options: Options) -> list[Candidate]:
     return out
 
 
+# Options validate every field when built; these two are derived several
+# times per request, from a handful of distinct inputs.
+@functools.lru_cache(maxsize=64)
+def _fine_options(o: Options) -> Options:
+    """``o`` with its last two annealing scales only (a refinement next to an optimum)."""
+    return replace(o, anneal_m=o.anneal_m[-2:])
+
+
+@functools.lru_cache(maxsize=256)
+def _score_options(o: Options, n_clutter: int) -> Options:
+    """``o`` with the outlier density raised in proportion to ``n_clutter`` unexplained observations."""
+    return replace(o, outlier_density=o.outlier_density * max(1.0, n_clutter / o.clutter_reference))
+
+
 def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = False) -> list:
     """Refine coarse candidates; ``(score, RefineResult, candidate, schedule)`` per candidate.
 
@@ -396,7 +411,7 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
         return []
     o = sc.options
     inits = [(c.x, c.y, c.yaw) for c in cands]
-    fine_options = replace(o, anneal_m=o.anneal_m[-2:])
+    fine_options = _fine_options(o)
     if fine_only:
         runs = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig, inits, fine_options)
         data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [r.pose for r in runs], o, sc.view)
@@ -455,7 +470,7 @@ def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
     # The clutter rate: observations that the best pose leaves unexplained. The
     # more clutter, the likelier a chance match, the less each match tells.
     n_clutter = len(sc.obs_xy) - best_fit.inliers
-    score_options = replace(o, outlier_density=o.outlier_density * max(1.0, n_clutter / o.clutter_reference))
+    score_options = _score_options(o, n_clutter)
     if score_options.outlier_density != o.outlier_density:
         data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [k[1].pose for k in kept],
                            score_options, sc.view)

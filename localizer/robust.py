@@ -172,24 +172,17 @@ def _gauss_newton_step(pts, tgt, P, Y, w_iso, m, aniso, c):
     var_r, var_t, ray = aniso
     sr2 = c * c + var_r
     st2 = c * c + var_t
-    u = np.exp(1j * Y)[:, None] * ray[None]  # ray direction in the map frame (K, N)
-    e = np.where(m, pts - tgt, 0.0)
-    er = (e * u.conjugate()).real  # along the ray
-    et = (e * u.conjugate()).imag  # across it
-    a = w_iso  # (K, N): Geman-McClure weight / s_r²
-    ratio = (sr2 / st2)[None]
-    # Jacobian of the point in complex form: d/dx = 1, d/dy = i, d/dθ = i (p - t).
-    lever = 1j * (pts - P[:, None])
-    cols = [np.ones_like(pts), 1j * np.ones_like(pts), lever]
-    # Project each column on the ray and across it.
-    jr = [(col * u.conjugate()).real for col in cols]
-    jt = [(col * u.conjugate()).imag for col in cols]
-    H = np.empty((len(P), 3, 3))
-    b = np.empty((len(P), 3))
-    for i in range(3):
-        b[:, i] = -np.add.reduce(a * (jr[i] * er + ratio * jt[i] * et), 1)
-        for j in range(i, 3):
-            H[:, i, j] = H[:, j, i] = np.add.reduce(a * (jr[i] * jr[j] + ratio * jt[i] * jt[j]), 1)
+    uc = (np.exp(1j * Y)[:, None] * ray[None]).conjugate()  # the ray in the map frame, conjugated (K, N)
+    eu = np.where(m, pts - tgt, 0.0) * uc  # residual: real part along the ray, imaginary across
+    # Jacobian of the point in complex form: d/dx = 1, d/dy = i, d/dθ = i (p - t);
+    # rotated into the ray's frame, real parts along the ray, imaginary across.
+    J = np.stack([uc, 1j * uc, 1j * (pts - P[:, None]) * uc], axis=-1)  # (K, N, 3)
+    Jr, Jt = J.real, J.imag
+    Wr = w_iso[..., None] * Jr  # w_iso: Geman-McClure weight / s_r²
+    Wt = (w_iso * (sr2 / st2)[None])[..., None] * Jt
+    Wr_t, Wt_t = Wr.transpose(0, 2, 1), Wt.transpose(0, 2, 1)
+    H = Wr_t @ Jr + Wt_t @ Jt
+    b = -(Wr_t @ eu.real[..., None] + Wt_t @ eu.imag[..., None])[..., 0]
     H += np.eye(3) * 1e-9
     try:
         d = np.linalg.solve(H, b[..., None])[..., 0]
