@@ -212,20 +212,24 @@ def test_default_recovers_karlsruhe_scenes():
     assert good >= 8
 
 
-def test_a_restart_beside_the_answer_finds_the_better_basin_next_to_it():
-    # A Karlsruhe scene (paper-like clutter, 0.5-2 m / ±15° start) in which the
-    # coarse search hands over only candidates that settle 1.7 m and 4.7° off,
-    # and the truth's basin, next to it, scores higher.
-    index, smap = karlsruhe()
-    from localizer.simulate import Clutter, sample_poses
-
-    rng = np.random.default_rng(2557)
-    pose = sample_poses(smap, 1, rng, min_visible=4)[0]
-    scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
-    prior = prior_at(index, perturb(pose, rng.uniform(0.5, 2.0), rng.uniform(-15, 15), rng), 1.0, 9.0)
-    alone = localize(index, scene.observations, prior, options=Options(neighbour_starts=()))
+@pytest.mark.parametrize("shift", [1.5, -1.5])
+def test_a_restart_beside_the_answer_finds_the_better_basin_next_to_it(shift):
+    # Two rows of markings 1.5 m apart and three markings off the rows: a pose
+    # one spacing along the road explains the rows but not those three. The
+    # search is held to 0.3 m around a GPS fix one spacing off, so every coarse
+    # candidate lies in the basin next to the truth's, as happens on real maps
+    # where the coarse cells are as wide as a basin.
+    xy = np.vstack([dash_rows(lateral=(0.0, 3.5), period=1.5, n=200),
+                    ORIGIN + [[10.0, -1.0], [15.0, 2.5], [19.0, 4.5]]])
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 0.4, ORIGIN[1] + 1.7, 0.0)
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    prior = prior_at(index, (pose[0] + shift, pose[1], 0.0), 1.0, 2.0)
+    narrow = {"min_search_radius_m": 0.3, "max_search_radius_m": 0.3}
+    alone = localize(index, scene.observations, prior, options=Options(neighbour_starts=(), **narrow))
+    assert all(math.hypot(x - pose[0], y - pose[1]) > 1.0 for x, y, _, _ in alone.diagnostics["search"])
     assert alone.status == "ok" and errors(alone, pose)[0] > 1.0  # confidently wrong without restarts
-    r = localize(index, scene.observations, prior)
+    r = localize(index, scene.observations, prior, options=Options(**narrow))
     e, h = errors(r, pose)
     assert r.status == "ok" and e < 0.2 and h < 0.5
     assert r.log_score > alone.log_score
