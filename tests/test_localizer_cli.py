@@ -53,15 +53,21 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     out = json.loads(res.stdout)
     assert out["status"] == "ok" and out["crs"] == "EPSG:25832"
     assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
-    # Five markings leave a little doubt: asking for more than the answer's
-    # probability makes it ambiguous, with the same pose.
+    # Five markings leave a little doubt in most places (the first such frame
+    # of a few is taken): asking for more than the answer's probability makes
+    # it ambiguous, with the same pose.
     few = tmp_path / "few.json"
-    heavy = scene.observations[np.argsort(-scene.observations[:, 2])[:5]]
-    few.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in heavy]))
-    args = ["localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
-            "--observations", str(few), "--position-sigma", "2", "--heading-sigma", "8"]  # fmt: skip
-    out = json.loads(CliRunner().invoke(app, args).stdout)
-    assert out["status"] == "ok" and out["probability"] < 0.9999, out
+    for seed in range(6, 26):
+        _, f_scene, f_lat, f_lon, f_heading = frame_and_prior(seed)
+        heavy = f_scene.observations[np.argsort(-f_scene.observations[:, 2])[:5]]
+        few.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in heavy]))
+        args = ["localize", "ka", "--lat", str(f_lat), "--lon", str(f_lon), "--heading", str(f_heading),
+                "--observations", str(few), "--position-sigma", "2", "--heading-sigma", "8"]  # fmt: skip
+        out = json.loads(CliRunner().invoke(app, args).stdout)
+        if out["status"] == "ok" and out["probability"] < 0.9999:
+            break
+    else:
+        pytest.fail("no frame gave an ok answer in some doubt")
     res = CliRunner().invoke(app, [*args, "--min-probability", "0.9999"])
     strict = json.loads(res.stdout)
     assert strict["status"] == "ambiguous" and strict["easting"] == pytest.approx(out["easting"]), strict
