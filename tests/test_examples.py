@@ -1,0 +1,96 @@
+"""The README's localization examples, run as they are written there."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shlex
+from pathlib import Path
+
+import httpx
+import pytest
+from typer.testing import CliRunner
+
+from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+from mapbuilder.store import Store
+from service.cli import app
+from tests._api_helpers import shared_server
+from tests.test_api_features import karlsruhe_fc  # noqa: F401 (fixture)
+
+from ._localizer_helpers import KARLSRUHE_OSM
+
+REPO = Path(__file__).resolve().parents[1]
+README = (REPO / "README.md").read_text()
+TRUTH = json.loads((REPO / "docs" / "examples" / "truth.json").read_text())
+
+
+def _off(answer: dict, truth: dict) -> float:
+    return math.hypot(answer["easting"] - truth["easting"], answer["northing"] - truth["northing"])
+
+
+def _heading_off(answer: dict, truth: dict) -> float:
+    return abs((answer["heading_deg"] - truth["heading_deg"] + 180.0) % 360.0 - 180.0)
+
+
+@pytest.fixture(scope="module")
+def stored_map(tmp_path_factory):
+    url = f"sqlite:///{tmp_path_factory.mktemp('examples') / 'lanemap.sqlite'}"
+    store = Store(url)
+    store.create_map("ka", "Karlsruhe", "EPSG:25832")
+    store.add_markings("ka", layout_markings(read_lanelet2(KARLSRUHE_OSM, crs="EPSG:25832")))
+    store.close()
+    return url
+
+
+def test_the_readme_localize_commands_answer_as_documented(stored_map, monkeypatch):
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    monkeypatch.chdir(REPO)
+    lines = [ln for ln in README.splitlines() if ln.startswith("lanemap localize ka ")]
+    assert len(lines) == 2, lines
+    for line in lines:
+        argv = shlex.split(line.split("#")[0])[1:]
+        res = CliRunner().invoke(app, argv)
+        assert res.exit_code == 0, (line, res.output)
+        out = json.loads(res.stdout)
+        if "--frames" in argv:
+            assert all(p["status"] == "ok" for p in out["poses"]), out
+            answer, truth = out["poses"][-1], TRUTH["drive_last"]
+        else:
+            answer, truth = out, TRUTH["frame"]
+        assert answer["status"] == "ok"
+        assert _off(answer, truth) < 0.3 and _heading_off(answer, truth) < 1.0, (line, answer)
+
+
+def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F811
+    api = shared_server("sqlite")
+    map_id = api.new_map(prefix="readme")
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=api.auth, timeout=60)
+    assert r.status_code == 201
+    url = f"{api.base_url}/collections/{map_id}/localize"
+    # The single frame written out in the README, and the answer printed below it.
+    section = README[README.index("### Localization\n"):]
+    body = json.loads(re.search(r"/localize -H 'Content-Type: application/json' -d '(\{.*?\})'\n", section,
+                                re.S).group(1))
+    documented = json.loads(re.search(r"```json\n(\{.*?\})\n```", section, re.S).group(1))
+    answer = httpx.post(url, json=body, timeout=60).json()
+    assert answer["status"] == documented["status"] == "ok", answer
+    assert _off(answer, documented) < 0.05 and _heading_off(answer, documented) < 0.1, answer
+    # The example files are request bodies as they are.
+    frame = httpx.post(url, content=(REPO / "docs/examples/frame.json").read_bytes(),
+                       headers={"Content-Type": "application/json"}, timeout=60).json()
+    assert frame["status"] == "ok" and _off(frame, TRUTH["frame"]) < 0.3, frame
+    assert "-d @docs/examples/drive.json" in section
+    drive = httpx.post(f"{url}/sequence", content=(REPO / "docs/examples/drive.json").read_bytes(),
+                       headers={"Content-Type": "application/json"}, timeout=60).json()
+    assert len(drive["poses"]) == 8 and drive["poses"][-1]["status"] == "ok", drive
+    assert _off(drive["poses"][-1], TRUTH["drive_last"]) < 0.3
+
+
+def test_the_api_documents_the_example_frame():
+    from service.routers.localize import LocalizeIn
+
+    example = LocalizeIn.model_json_schema()["example"]
+    frame = json.loads((REPO / "docs" / "examples" / "frame.json").read_text())
+    assert {k: example[k] for k in ("gps", "observations")} == frame
+    LocalizeIn.model_validate(example)
