@@ -55,3 +55,17 @@ def karlsruhe(path: str = str(KARLSRUHE_OSM), kinds: bool = True) -> tuple[MapIn
         centerlines=lmap.centerlines,
     )
     return index, scene_map
+
+
+def karlsruhe_store(directory: Path) -> str:
+    """A SQLite store in ``directory`` holding map ``ka``: the Karlsruhe map as
+    ``lanemap from-lanelet2`` lays it out and ``lanemap import`` stores it. Its URL."""
+    from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+    from mapbuilder.store import Store
+
+    url = f"sqlite:///{directory / 'lanemap.sqlite'}"
+    store = Store(url)
+    store.create_map("ka", "Karlsruhe", CRS)
+    store.add_markings("ka", layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS)))
+    store.close()
+    return url

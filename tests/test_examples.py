@@ -12,13 +12,11 @@ import httpx
 import pytest
 from typer.testing import CliRunner
 
-from mapbuilder.lanelet2 import layout_markings, read_lanelet2
-from mapbuilder.store import Store
 from service.cli import app
 from tests._api_helpers import shared_server
 from tests.test_api_features import karlsruhe_fc  # noqa: F401 (fixture)
 
-from ._localizer_helpers import KARLSRUHE_OSM
+from ._localizer_helpers import karlsruhe_store
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
@@ -35,12 +33,7 @@ def _heading_off(answer: dict, truth: dict) -> float:
 
 @pytest.fixture(scope="module")
 def stored_map(tmp_path_factory):
-    url = f"sqlite:///{tmp_path_factory.mktemp('examples') / 'lanemap.sqlite'}"
-    store = Store(url)
-    store.create_map("ka", "Karlsruhe", "EPSG:25832")
-    store.add_markings("ka", layout_markings(read_lanelet2(KARLSRUHE_OSM, crs="EPSG:25832")))
-    store.close()
-    return url
+    return karlsruhe_store(tmp_path_factory.mktemp("examples"))
 
 
 def test_the_readme_localize_commands_answer_as_documented(stored_map, monkeypatch):

@@ -11,21 +11,14 @@ from typer.testing import CliRunner
 
 from localizer import GeoFrame
 from localizer.simulate import Camera, Clutter, sample_poses, simulate_scene
-from mapbuilder.lanelet2 import layout_markings, read_lanelet2
-from mapbuilder.store import Store
 from service.cli import app
 
-from ._localizer_helpers import KARLSRUHE_OSM, karlsruhe
+from ._localizer_helpers import karlsruhe, karlsruhe_store
 
 
 @pytest.fixture(scope="module")
 def stored_map(tmp_path_factory):
-    url = f"sqlite:///{tmp_path_factory.mktemp('loc') / 'lanemap.sqlite'}"
-    store = Store(url)
-    store.create_map("ka", "Karlsruhe", "EPSG:25832")
-    store.add_markings("ka", layout_markings(read_lanelet2(KARLSRUHE_OSM, crs="EPSG:25832")))
-    store.close()
-    return url
+    return karlsruhe_store(tmp_path_factory.mktemp("loc"))
 
 
 def frame_and_prior(seed: int):
