@@ -222,6 +222,11 @@ class Options:
         (log units) are not refined.
     anneal_m : tuple of float
         Robust (Geman-McClure) scales of the refinement, coarse to fine, metres.
+    iterations_per_scale : int
+        Most iterations of the refinement at each scale (fewer where every
+        candidate has stopped moving). 4 takes 15-30 % less CPU per request,
+        for a few more confidently wrong answers on maps built from imagery
+        (``benchmarks/RESULTS-localizer.md``).
     noise_m, noise_range_coeff : float
         Observation noise model ``sigma(r) = noise_m + noise_range_coeff * r**2``
         (flat-ground camera: range error grows with range²).
@@ -323,6 +328,7 @@ class Options:
     extra_search_probability: float = 0.999
     candidate_margin: float = 10.0
     anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2, 0.15)
+    iterations_per_scale: int = 6
     noise_m: float = 0.05
     noise_range_coeff: float = 5e-4
     bearing_noise_rad: float | None = 0.003
@@ -448,7 +454,8 @@ _OPTIONAL_RANGES = (
 )
 
 #: ``(field, least)`` of the options that count something.
-_OPTION_COUNTS = (("max_iterations", 1), ("max_search_observations", 1), ("candidates", 1),
+_OPTION_COUNTS = (("max_iterations", 1), ("iterations_per_scale", 1),
+                  ("max_search_observations", 1), ("candidates", 1),
                   ("extra_candidates", 0), ("max_hypotheses", 1), ("min_inliers", 1),
                   ("fallback_min_inliers", 1), ("max_observations", 1))
 

@@ -495,8 +495,14 @@ def test_refinement_converges_exactly_and_trusts_bearings_more_than_ranges():
     v, local = _points_ahead(rng)
     opts = Options()
     start = [(0.4, -0.3, math.radians(1.5))]
-    exact = robust_refine(local, v, np.ones(len(v)), noise_sigma(v, opts), start, opts)[0].pose
+    run = robust_refine(local, v, np.ones(len(v)), noise_sigma(v, opts), start, opts)[0]
+    exact = run.pose
     assert math.hypot(exact[0], exact[1]) < 1e-3 and abs(exact[2]) < 1e-5
+    # The iterations a scale may take are an option; one each is not enough here.
+    once = robust_refine(local, v, np.ones(len(v)), noise_sigma(v, opts), start,
+                         Options(iterations_per_scale=1))[0]
+    assert once.iterations == len(opts.anneal_m) < run.iterations
+    assert math.hypot(once.pose[0], once.pose[1]) > math.hypot(exact[0], exact[1])
     # Range errors only, as large as the noise model says: the anisotropic
     # last scale recovers the heading better than weighing both directions alike.
     heading = {True: [], False: []}
@@ -818,6 +824,7 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
      ({"extra_search_probability": 1.5}, "extra_search_probability"),
      ({"fallback_min_inliers": 0}, "fallback_min_inliers"),
+     ({"iterations_per_scale": 0}, "iterations_per_scale"),
      ({"solid_explain_across_m": -1.0}, "solid_explain_across_m"),
      ({"neighbour_starts": ((1.0, 0.0),)}, "neighbour_starts"),
      ({"neighbour_starts": ((1.0, float("nan"), 0.0),)}, "neighbour_starts")],
@@ -832,6 +839,7 @@ def test_edge_options_are_accepted_and_used(small):
     for opts in (Options(estimate_pitch=False, pitch_sigma_deg=0.0), Options(null_score=-math.inf),
                  Options(bearing_noise_rad=None, search_cell_m=None, view_half_fov_deg=None)):
         assert localize(index, obs, prior, options=opts).status == "ok"
+    assert localize(index, obs, prior, options=Options(iterations_per_scale=1)).status == "ok"
 
 
 def test_bad_method_and_map_inputs_raise(small):
