@@ -60,7 +60,6 @@ def robust_refine(
     sigma_obs: np.ndarray,
     inits,
     options: Options,
-    iterations_per_scale: int | None = None,
     record: bool = False,
     start_scale=None,
 ) -> list[RefineResult]:
@@ -110,7 +109,7 @@ def robust_refine(
         wo_s2 = wo / s2
         inv_s2 = 1.0 / s2
         active = start <= si
-        for _ in range(iterations_per_scale or options.iterations_per_scale):
+        for _ in range(options.iterations_per_scale):
             idx = np.flatnonzero(active)
             if idx.size == 0:
                 break

@@ -395,6 +395,10 @@ class Options:
             raise LocalizationInputError("options.anneal_m: must be a non-empty sequence of scales in metres")
         for v in anneal:
             _check_range("anneal_m", v, 0.0, True, math.inf, True)
+        # Lists are accepted and kept as tuples: Options are compared and hashed
+        # (the localizer caches options derived from them).
+        object.__setattr__(self, "anneal_m", tuple(float(v) for v in anneal))
+        object.__setattr__(self, "neighbour_starts", tuple(tuple(float(v) for v in t) for t in starts))
         if self.min_search_radius_m > self.max_search_radius_m:
             raise LocalizationInputError(
                 f"options.min_search_radius_m: {self.min_search_radius_m!r} exceeds "

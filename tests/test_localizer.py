@@ -840,6 +840,10 @@ def test_edge_options_are_accepted_and_used(small):
                  Options(bearing_noise_rad=None, search_cell_m=None, view_half_fov_deg=None)):
         assert localize(index, obs, prior, options=opts).status == "ok"
     assert localize(index, obs, prior, options=Options(iterations_per_scale=1)).status == "ok"
+    # Sequences may be lists; the options keep them as tuples (they are hashed).
+    listed = Options(anneal_m=[0.8, 0.2, 0.15], neighbour_starts=[[1.5, 0, 0], [-1.5, 0, 0]])
+    assert listed.anneal_m == (0.8, 0.2, 0.15) and listed.neighbour_starts == ((1.5, 0.0, 0.0), (-1.5, 0.0, 0.0))
+    assert localize(index, obs, prior, options=listed).status == "ok"
 
 
 def test_bad_method_and_map_inputs_raise(small):
