@@ -668,8 +668,8 @@ def _ensure_map(store, map_id: str, first_image: str, title: str) -> str:
         crs = default_storage_crs(first_image)
         info = store.create_map(map_id, title=title, crs=crs)
         log.info("created map %s in %s", map_id, crs)
-    if not info.crs:
-        raise BuildError(f"map {map_id!r} has no storage CRS; create it with a CRS first")
+    if not info.crs:  # created without one: the first build chooses it, as a first import does
+        return store.adopt_crs(map_id, default_storage_crs(first_image))
     return info.crs
 
 

@@ -545,7 +545,7 @@ class Store:
 
     # ------------------------------------------------------------------ maps
     def create_map(self, map_id: str, title: str = "", crs: str | None = None) -> MapInfo:
-        """Create an empty map. ``crs`` must be metric; None: chosen at the first import."""
+        """Create an empty map. ``crs`` must be metric; None: chosen at the first import or build."""
         check_map_id(map_id)
         if crs is not None:
             try:
@@ -564,6 +564,25 @@ class Store:
         except IntegrityError:
             raise MapExistsError(map_id) from None
         return self.get_map(map_id)
+
+    def adopt_crs(self, map_id: str, crs: str) -> str:
+        """Give a map that has no storage CRS yet ``crs`` (metric); the map's CRS.
+
+        A map created without a CRS takes one from the first data written to
+        it; a build takes its image's (:func:`mapbuilder.raster.default_storage_crs`).
+        A map that already has a CRS keeps it.
+        """
+        try:
+            metric_crs(crs)
+        except CRSError as exc:
+            raise StoreError(str(exc)) from exc
+        with self._write() as conn:
+            row = self._map_row(conn, map_id, lock=True)
+            if row.crs:
+                return row.crs
+            conn.execute(update(maps).where(maps.c.id == map_id).values(crs=crs, updated_at=_now()))
+        log.info("map %s: storage CRS set to %s", map_id, crs)
+        return crs
 
     def _map_row(self, conn: Connection, map_id: str, *, lock: bool = False):
         q = select(maps).where(maps.c.id == map_id)

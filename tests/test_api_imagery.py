@@ -126,12 +126,16 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     jobs = httpx.get(f"{api.base_url}/jobs", params={"map": map_id}).json()["jobs"]
     assert [j["jobID"] for j in jobs] == [job_id]
     # The default build verifies its clusters; without verification the same
-    # imagery gives the kerbs and car outlines back.
-    raw_map = api.new_map(crs="EPSG:26913")
+    # imagery gives the kerbs and car outlines back. (This map is created
+    # without a CRS: its first build gives it the image's.)
+    raw_map = api.new_map(crs=None)
     raw_img = upload(api, raw_map, USGS).json()
+    assert httpx.get(f"{api.base_url}/collections/{raw_map}").json()["storageCrs"] is None
     r = httpx.post(f"{api.base_url}/collections/{raw_map}/builds",
                    json={"imagery": raw_img["id"], "verify": False}, headers=api.auth)
     assert r.status_code == 202, r.text
+    storage = httpx.get(f"{api.base_url}/collections/{raw_map}").json()["storageCrs"]
+    assert storage == "http://www.opengis.net/def/crs/EPSG/0/26913"
     assert wait_job(api, r.headers["location"].rsplit("/", 1)[1])["status"] == "successful"
     raw = httpx.get(f"{api.base_url}/collections/{raw_map}/items?limit=1000").json()["numberMatched"]
     assert raw > items["numberMatched"] + 3

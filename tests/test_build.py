@@ -17,7 +17,7 @@ from mapbuilder.build import BuildError, BuildParams, build_map
 from mapbuilder.cluster import ClusterParams
 from mapbuilder.model import Marking
 from mapbuilder.raster import ImageryError
-from mapbuilder.store import Change, Store
+from mapbuilder.store import Change, Store, StoreError
 from tests._build_helpers import (
     USGS_ALPHA,
     USGS_BASE,
@@ -477,6 +477,32 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
     assert err.strip().startswith("error: ") and "cannot open image" in err
     assert len(err.strip().splitlines()) == 1
     assert Store(url).find_jobs(kind="build") == []
+
+
+def test_a_map_created_without_a_crs_takes_its_first_builds(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from mapbuilder.raster import default_storage_crs
+    from service.cli import app
+
+    url = f"sqlite:///{tmp_path / 'cli.sqlite'}"
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", url)
+    runner = CliRunner()
+    res = runner.invoke(app, ["maps", "create", "usgs"])
+    assert res.exit_code == 0 and "chosen at the first import or build" in res.stdout, res.output
+    res = runner.invoke(app, ["build", str(USGS_BASE), "--map", "usgs"])
+    assert res.exit_code == 0, res.output
+    store = Store(url)
+    info = store.get_map("usgs", with_count=True)
+    assert info.crs == default_storage_crs(USGS_BASE) == "EPSG:26913"
+    assert info.count and info.count > 0
+    # Later data keeps it; a CRS that is not metric is refused.
+    assert store.adopt_crs("usgs", "EPSG:25832") == "EPSG:26913"
+    store.create_map("empty")
+    with pytest.raises(StoreError, match="metre|metric|projected"):
+        store.adopt_crs("empty", "EPSG:4326")
+    assert store.get_map("empty").crs is None
+    store.close()
 
 
 def test_cli_verify_threshold_trades_markings_and_is_recorded(tmp_path, monkeypatch):

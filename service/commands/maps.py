@@ -36,7 +36,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Create an empty map."""
         info = Store().create_map(map_id, title, crs)
-        typer.echo(f"created map {info.id} ({info.crs or 'CRS chosen at first import'})")
+        typer.echo(f"created map {info.id} ({info.crs or 'CRS chosen at the first import or build'})")
 
     @maps.command("show")
     def show(map_id: str = typer.Argument(..., metavar="MAP")) -> None:

@@ -93,8 +93,11 @@ def post_build(
     if img.map_id != mapId:
         raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery")
     if info.crs is None:
-        raise Problem(409, f"map {mapId!r} has no storage CRS: create it with one (e.g. \"crs\": \"EPSG:25832\")",
-                      "no-crs")  # fmt: skip
+        # A map created without a CRS takes its first build's image's, as it
+        # would take its first import's.
+        from mapbuilder.raster import default_storage_crs
+
+        ctx.store.adopt_crs(mapId, default_storage_crs(img.path))
     try:
         threshold = body.threshold if body.threshold is not None else default_threshold(body.verify)
         threshold_low = body.threshold_low
