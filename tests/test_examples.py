@@ -78,12 +78,23 @@ def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F8
                        headers={"Content-Type": "application/json"}, timeout=60).json()
     assert len(drive["poses"]) == 8 and drive["poses"][-1]["status"] == "ok", drive
     assert _off(drive["poses"][-1], TRUTH["drive_last"]) < 0.3
+    # What /docs offers to try on the demo map answers too.
+    from service.routers.localize import LocalizeIn, SequenceIn
+
+    tried = httpx.post(url, json=LocalizeIn.model_json_schema()["example"], timeout=60).json()
+    assert tried["status"] == "ok" and _off(tried, TRUTH["frame"]) < 0.3, tried
+    tried = httpx.post(f"{url}/sequence", json=SequenceIn.model_json_schema()["example"], timeout=60).json()
+    assert [p["status"] for p in tried["poses"]] == ["ok", "ok"], tried
 
 
-def test_the_api_documents_the_example_frame():
-    from service.routers.localize import LocalizeIn
+def test_the_api_documents_the_example_frame_and_drive():
+    from service.routers.localize import LocalizeIn, SequenceIn
 
     example = LocalizeIn.model_json_schema()["example"]
     frame = json.loads((REPO / "docs" / "examples" / "frame.json").read_text())
     assert {k: example[k] for k in ("gps", "observations")} == frame
     LocalizeIn.model_validate(example)
+    example = SequenceIn.model_json_schema()["example"]
+    drive = json.loads((REPO / "docs" / "examples" / "drive.json").read_text())
+    assert example == {"gps": drive["gps"], "frames": drive["frames"][:2]}
+    SequenceIn.model_validate(example)

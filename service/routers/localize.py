@@ -102,11 +102,31 @@ class SequenceIn(BaseModel):
     model_config = ConfigDict(
         extra="forbid",
         json_schema_extra={
+            # The first two frames of docs/examples/drive.json (a test keeps them so).
             "example": {
-                "gps": {"lat": 49.0071, "lon": 8.4280, "heading_deg": 87.5, "position_sigma_m": 8.0},
-                "frames": [{"observations": [{"x": 12.3, "y": -1.6, "weight": 140}]},
-                           {"observations": [{"x": 10.8, "y": -1.6, "weight": 150}],
-                            "motion": {"dx": 1.5, "dy": 0.0, "dyaw_deg": 0.2}}],
+                "gps": {"lat": 49.0051049, "lon": 8.4152842, "heading_deg": 102.87, "position_sigma_m": 3.0,
+                        "heading_sigma_deg": 8.0},
+                "frames": [
+                    {"observations": [
+                        {"x": 22.679, "y": 4.6, "weight": 23.0}, {"x": 21.946, "y": -2.618, "weight": 26.0},
+                        {"x": 23.712, "y": 0.182, "weight": 21.0}, {"x": 20.993, "y": 6.636, "weight": 29.0},
+                        {"x": 23.478, "y": -5.065, "weight": 18.0}, {"x": 17.028, "y": 9.653, "weight": 41.0},
+                        {"x": 12.963, "y": -5.572, "weight": 53.0}, {"x": 10.183, "y": -3.485, "weight": 28.0},
+                        {"x": 21.089, "y": 3.591, "weight": 19.0}, {"x": 6.8, "y": 3.7, "weight": 51.0},
+                        {"x": 22.387, "y": 9.052, "weight": 26.0}, {"x": 14.938, "y": -8.253, "weight": 31.0},
+                        {"x": 12.081, "y": 5.616, "weight": 57.0}, {"x": 20.886, "y": 0.495, "weight": 27.0},
+                        {"x": 12.123, "y": 2.595, "weight": 43.0},
+                    ]},
+                    {"observations": [
+                        {"x": 19.702, "y": 1.059, "weight": 32.0}, {"x": 18.939, "y": -1.992, "weight": 26.0},
+                        {"x": 21.999, "y": -2.596, "weight": 39.0}, {"x": 14.356, "y": 0.028, "weight": 282.0},
+                        {"x": 16.511, "y": -0.343, "weight": 164.0}, {"x": 21.089, "y": -3.779, "weight": 37.0},
+                        {"x": 10.952, "y": 4.104, "weight": 52.0}, {"x": 21.623, "y": 6.165, "weight": 33.0},
+                        {"x": 15.439, "y": -0.307, "weight": 183.0}, {"x": 21.653, "y": 1.833, "weight": 27.0},
+                        {"x": 10.843, "y": 1.188, "weight": 46.0}, {"x": 19.672, "y": 3.874, "weight": 20.0},
+                        {"x": 20.981, "y": -0.966, "weight": 139.0},
+                    ], "motion": {"dx": 1.499, "dy": 0.015, "dyaw_deg": 7.308}},
+                ],
             }
         },
     )  # fmt: skip
