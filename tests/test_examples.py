@@ -83,6 +83,10 @@ def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F8
 
     tried = httpx.post(url, json=LocalizeIn.model_json_schema()["example"], timeout=60).json()
     assert tried["status"] == "ok" and _off(tried, TRUTH["frame"]) < 0.3, tried
+    from service.routers.localize import PoseOut
+
+    shown = PoseOut.model_json_schema()["example"]  # the answer /docs shows for it
+    assert _off(tried, shown) < 0.05 and _heading_off(tried, shown) < 0.1 and tried["inliers"] == shown["inliers"]
     tried = httpx.post(f"{url}/sequence", json=SequenceIn.model_json_schema()["example"], timeout=60).json()
     assert [p["status"] for p in tried["poses"]] == ["ok", "ok"], tried
 

@@ -40,6 +40,22 @@ _MIN_PROBABILITY = Field(
                 "fewer ok answers and fewer of them wrong.")  # fmt: skip
 
 
+#: The examples /docs offers: docs/examples/frame.json and the first two frames
+#: of docs/examples/drive.json, which answer ok on the demo map (a test keeps them so).
+_EXAMPLE_GPS = {"lat": 49.0051049, "lon": 8.4152842, "heading_deg": 102.87, "position_sigma_m": 3.0,
+                "heading_sigma_deg": 8.0}
+_EXAMPLE_FRAME = [
+    {"x": 22.679, "y": 4.6, "weight": 23.0}, {"x": 21.946, "y": -2.618, "weight": 26.0},
+    {"x": 23.712, "y": 0.182, "weight": 21.0}, {"x": 20.993, "y": 6.636, "weight": 29.0},
+    {"x": 23.478, "y": -5.065, "weight": 18.0}, {"x": 17.028, "y": 9.653, "weight": 41.0},
+    {"x": 12.963, "y": -5.572, "weight": 53.0}, {"x": 10.183, "y": -3.485, "weight": 28.0},
+    {"x": 21.089, "y": 3.591, "weight": 19.0}, {"x": 6.8, "y": 3.7, "weight": 51.0},
+    {"x": 22.387, "y": 9.052, "weight": 26.0}, {"x": 14.938, "y": -8.253, "weight": 31.0},
+    {"x": 12.081, "y": 5.616, "weight": 57.0}, {"x": 20.886, "y": 0.495, "weight": 27.0},
+    {"x": 12.123, "y": 2.595, "weight": 43.0},
+]
+
+
 class GpsIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     lat: float = Field(..., ge=-90, le=90, description="WGS84 latitude, degrees")
@@ -60,22 +76,7 @@ class LocalizeIn(BaseModel):
     model_config = ConfigDict(
         extra="forbid",
         json_schema_extra={
-            # docs/examples/frame.json: answers ok on the demo map (a test keeps it so).
-            "example": {
-                "gps": {"lat": 49.0051049, "lon": 8.4152842, "heading_deg": 102.87, "position_sigma_m": 3.0,
-                        "heading_sigma_deg": 8.0},
-                "observations": [
-                    {"x": 22.679, "y": 4.6, "weight": 23.0}, {"x": 21.946, "y": -2.618, "weight": 26.0},
-                    {"x": 23.712, "y": 0.182, "weight": 21.0}, {"x": 20.993, "y": 6.636, "weight": 29.0},
-                    {"x": 23.478, "y": -5.065, "weight": 18.0}, {"x": 17.028, "y": 9.653, "weight": 41.0},
-                    {"x": 12.963, "y": -5.572, "weight": 53.0}, {"x": 10.183, "y": -3.485, "weight": 28.0},
-                    {"x": 21.089, "y": 3.591, "weight": 19.0}, {"x": 6.8, "y": 3.7, "weight": 51.0},
-                    {"x": 22.387, "y": 9.052, "weight": 26.0}, {"x": 14.938, "y": -8.253, "weight": 31.0},
-                    {"x": 12.081, "y": 5.616, "weight": 57.0}, {"x": 20.886, "y": 0.495, "weight": 27.0},
-                    {"x": 12.123, "y": 2.595, "weight": 43.0},
-                ],
-                "method": "default",
-            }
+            "example": {"gps": _EXAMPLE_GPS, "observations": _EXAMPLE_FRAME, "method": "default"}
         },
     )  # fmt: skip
     gps: GpsIn
@@ -102,21 +103,10 @@ class SequenceIn(BaseModel):
     model_config = ConfigDict(
         extra="forbid",
         json_schema_extra={
-            # The first two frames of docs/examples/drive.json (a test keeps them so).
             "example": {
-                "gps": {"lat": 49.0051049, "lon": 8.4152842, "heading_deg": 102.87, "position_sigma_m": 3.0,
-                        "heading_sigma_deg": 8.0},
+                "gps": _EXAMPLE_GPS,
                 "frames": [
-                    {"observations": [
-                        {"x": 22.679, "y": 4.6, "weight": 23.0}, {"x": 21.946, "y": -2.618, "weight": 26.0},
-                        {"x": 23.712, "y": 0.182, "weight": 21.0}, {"x": 20.993, "y": 6.636, "weight": 29.0},
-                        {"x": 23.478, "y": -5.065, "weight": 18.0}, {"x": 17.028, "y": 9.653, "weight": 41.0},
-                        {"x": 12.963, "y": -5.572, "weight": 53.0}, {"x": 10.183, "y": -3.485, "weight": 28.0},
-                        {"x": 21.089, "y": 3.591, "weight": 19.0}, {"x": 6.8, "y": 3.7, "weight": 51.0},
-                        {"x": 22.387, "y": 9.052, "weight": 26.0}, {"x": 14.938, "y": -8.253, "weight": 31.0},
-                        {"x": 12.081, "y": 5.616, "weight": 57.0}, {"x": 20.886, "y": 0.495, "weight": 27.0},
-                        {"x": 12.123, "y": 2.595, "weight": 43.0},
-                    ]},
+                    {"observations": _EXAMPLE_FRAME},
                     {"observations": [
                         {"x": 19.702, "y": 1.059, "weight": 32.0}, {"x": 18.939, "y": -1.992, "weight": 26.0},
                         {"x": 21.999, "y": -2.596, "weight": 39.0}, {"x": 14.356, "y": 0.028, "weight": 282.0},
@@ -154,11 +144,11 @@ class PoseOut(BaseModel):
         extra="forbid",
         json_schema_extra={
             "example": {
-                "status": "ok", "lat": 49.0028977, "lon": 8.4245092, "heading_deg": 54.382,
-                "easting": 457909.691, "northing": 5427937.450, "crs": "EPSG:25832", "yaw_enu_rad": 0.62164,
-                "covariance": [[0.00708, 0.00415, 0.000054], [0.00415, 0.0207, -0.000598],
-                               [0.000054, -0.000598, 0.0000244]],
-                "iterations": 9, "inliers": 13, "rms_m": 0.003, "probability": 1.0, "hypotheses": [],
+                "status": "ok", "lat": 49.0051096, "lon": 8.4152576, "heading_deg": 107.846,
+                "easting": 457234.940, "northing": 5428188.496, "crs": "EPSG:25832", "yaw_enu_rad": -0.31147,
+                "covariance": [[0.01205, -0.00213, 0.0000866], [-0.00213, 0.00833, -0.000505],
+                               [0.0000866, -0.000505, 0.0000330]],
+                "iterations": 6, "inliers": 8, "rms_m": 0.089, "probability": 0.99992, "hypotheses": [],
             }
         },
     )  # fmt: skip
