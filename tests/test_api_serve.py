@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
@@ -66,6 +67,15 @@ def test_demo_map_has_markings_and_imagery(tmp_path):
         y = int((1 - math.asinh(math.tan(math.radians(lat))) / math.pi) / 2 * 2**z)
         t = httpx.get(f"{server.base_url}/collections/karlsruhe/imagery/tiles/WebMercatorQuad/{z}/{x}/{y}.png")
         assert t.status_code == 200 and t.content.startswith(b"\x89PNG")
+        # The example the banner points to localizes on the demo map.
+        assert "docs/examples/frame.json" in log
+        repo = Path(__file__).resolve().parents[1]
+        answer = httpx.post(f"{server.base_url}/collections/karlsruhe/localize", timeout=60,
+                            content=(repo / "docs/examples/frame.json").read_bytes(),
+                            headers={"Content-Type": "application/json"}).json()
+        truth = json.loads((repo / "docs/examples/truth.json").read_text())["frame"]
+        assert answer["status"] == "ok", answer
+        assert math.hypot(answer["easting"] - truth["easting"], answer["northing"] - truth["northing"]) < 0.3
     finally:
         server.stop()
     again = start_server(db, tmp_path / "data", args=("--demo",))

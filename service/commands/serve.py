@@ -78,6 +78,8 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"map editor:   {base}/editor/")
         if demo:
             typer.echo(f"demo map:     {base}/collections/karlsruhe/items")
+            typer.echo(f"localize:     POST {base}/collections/karlsruhe/localize "
+                       "(an example body: docs/examples/frame.json in the repository)")
         if token_note:
             typer.echo(token_note)
         else:
