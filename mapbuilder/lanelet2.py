@@ -106,8 +106,13 @@ def read_lanelet2(path: str | Path, crs: str = "EPSG:25832") -> LaneletMap:
     return LaneletMap(crs=crs, lines=list(lines.values()), centerlines=centerlines)
 
 
+def _arc_length(xy: np.ndarray) -> np.ndarray:
+    """Distance along the polyline ``xy`` at each of its vertices, metres (0 at the first)."""
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+
+
 def _resample(xy: np.ndarray, n: int) -> np.ndarray:
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    s = _arc_length(xy)
     t = np.linspace(0.0, s[-1], n)
     return np.column_stack([np.interp(t, s, xy[:, 0]), np.interp(t, s, xy[:, 1])])
 
@@ -261,21 +266,22 @@ def layout_markings(
     """
     out: list[Marking] = []
     period = dash_m + gap_m
-    dashed = [ln for ln in lmap.lines if ln.type in MARKING_TYPES and ln.type != "stop_line"
-              and ln.subtype == "dashed"]
+    painted = [ln for ln in lmap.lines if ln.type in MARKING_TYPES]
+    dashed = [ln for ln in painted if ln.type != "stop_line" and ln.subtype == "dashed"]
     for kind, xy in dashed_chains(dashed):
-        s_cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        s_cum = _arc_length(xy)
         total = float(s_cum[-1])
         s = phase_m % period
         while s < total - 0.5:  # a dash shorter than 0.5 m is not painted
             out.append(_segment_marking(xy, s_cum, s, min(s + dash_m, total), LINE_WIDTH_M[kind], "dash"))
             s += period
-    for line in lmap.lines:
-        if line.type not in MARKING_TYPES or (line.type != "stop_line" and line.subtype == "dashed"):
+    laid = {id(ln) for ln in dashed}
+    for line in painted:
+        if id(line) in laid:
             continue
         width = LINE_WIDTH_M[line.type]
         xy = line.xy
-        s_cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        s_cum = _arc_length(xy)
         total = float(s_cum[-1])
         if total < 0.05:
             continue
