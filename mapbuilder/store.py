@@ -577,12 +577,7 @@ class Store:
         except CRSError as exc:
             raise StoreError(str(exc)) from exc
         with self._write() as conn:
-            row = self._map_row(conn, map_id, lock=True)
-            if row.crs:
-                return row.crs
-            conn.execute(update(maps).where(maps.c.id == map_id).values(crs=crs, updated_at=_now()))
-        log.info("map %s: storage CRS set to %s", map_id, crs)
-        return crs
+            return self._crs_for_write(conn, map_id, crs=crs)
 
     def _map_row(self, conn: Connection, map_id: str, *, lock: bool = False):
         q = select(maps).where(maps.c.id == map_id)
@@ -669,16 +664,18 @@ class Store:
             values.update(minx=b[0], miny=b[1], maxx=b[2], maxy=b[3])
         conn.execute(update(maps).where(maps.c.id == map_id).values(**values))
 
-    def _crs_for_write(self, conn: Connection, map_id: str, lonlat_hint=None) -> str:
+    def _crs_for_write(self, conn: Connection, map_id: str, lonlat_hint=None, crs: str | None = None) -> str:
+        """The map's CRS; a map without one takes ``crs``, else the UTM zone of ``lonlat_hint``."""
         row = self._map_row(conn, map_id, lock=True)
         if row.crs:
             return row.crs
-        if lonlat_hint is None:
-            raise StoreError(
-                f"map {map_id!r} has no CRS yet: create it with a CRS or import lon/lat data first"
-            )
-        crs = utm_crs_for(*lonlat_hint)
-        conn.execute(update(maps).where(maps.c.id == map_id).values(crs=crs))
+        if crs is None:
+            if lonlat_hint is None:
+                raise StoreError(
+                    f"map {map_id!r} has no CRS yet: create it with a CRS or import lon/lat data first"
+                )
+            crs = utm_crs_for(*lonlat_hint)
+        conn.execute(update(maps).where(maps.c.id == map_id).values(crs=crs, updated_at=_now()))
         log.info("map %s: storage CRS set to %s", map_id, crs)
         return crs
 
