@@ -1,4 +1,4 @@
-"""Localize a vehicle against a lane-marking map (pure numerics: numpy, scipy, pyproj).
+"""Localize a vehicle against a lane-marking map (pure numerics: numpy, scipy, numba, pyproj).
 
 A vehicle's camera sees lane-marking centroids ahead of it (vehicle frame: x
 forward, y left, metres; each with a weight γ, the pixel count of its
@@ -97,7 +97,7 @@ Example
 'ok'
 """
 
-from .core import METHODS, localize, parse_observations
+from .core import METHODS, localize, parse_observations, warm_up
 from .errors import LocalizationInputError
 from .frames import GeoFrame, bearing_to_yaw, wrap_angle, yaw_to_bearing
 from .index import MapIndex
@@ -120,6 +120,7 @@ __all__ = [
     "localize",
     "localize_sequence",
     "parse_observations",
+    "warm_up",
     "wrap_angle",
     "yaw_to_bearing",
 ]

@@ -350,6 +350,30 @@ def localize(
     return out
 
 
+def warm_up() -> float:
+    """Compile the localizer's kernels, or load them from numba's cache; seconds taken.
+
+    The nearest-marking lookup and the refinement's inner loop are compiled
+    with numba on first use (several seconds, then cached on disk next to the
+    package or in ``NUMBA_CACHE_DIR``). A server calls this once at start so
+    that no request waits for it; it localizes once on a small synthetic map.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    rows = np.arange(-2, 3) * 3.5
+    x = np.concatenate([np.arange(0.0, 60.0, 9.0) for _ in rows]) + 500_000.0
+    y = np.repeat(rows, 7) + 5_400_000.0
+    index = MapIndex.from_arrays(x, y, crs="EPSG:25832", bearing_deg=np.full(x.size, 90.0),
+                                 length_m=np.full(x.size, 3.0))
+    frame = index.frame
+    lon, lat = frame.to_lonlat(500_010.0, 5_400_000.0)
+    obs = np.column_stack([x - 500_010.0, y - 5_400_000.0, np.ones(x.size)])
+    obs = obs[(obs[:, 0] > 4) & (obs[:, 0] < 25)]
+    localize(index, obs, Prior(lat, lon, float(frame.grid_yaw_to_heading(0.0, lon, lat))))
+    return time.perf_counter() - t0
+
+
 @dataclass(frozen=True)
 class _Scene:
     """What every candidate of one request is refined and scored against."""
@@ -420,8 +444,7 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
     # The coarse-to-fine schedule can be dragged off a right candidate by heavy
     # clutter; a fine-only refinement from the same start cannot go far. Keep
     # whichever explains the observations better. Both run in one batch (the
-    # fine-only ones join at the last two scales): one KD-tree query per
-    # iteration for all, instead of a second round of iterations.
+    # fine-only ones join at the last two scales).
     n_c = len(inits)
     both_runs = robust_refine(
         sc.local, sc.obs_xy, sc.w_data, sc.sig, inits + inits, o,

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from .index import MapIndex
@@ -76,36 +78,39 @@ def compose(delta_theta: float, delta_t: np.ndarray, pose) -> tuple[float, float
     )
 
 
-#: Where the missing-neighbour row of :class:`LocalMap`'s tables lies (metres).
+#: Where an unmatched point's target lies (metres): so far away that it never matches.
 _FAR = 1e12 + 0j
+#: Cell of the bucket grid that finds a request's nearest markings, metres: a
+#: few markings per cell on a road, so that most lookups read nine cells.
+GRID_CELL_M = 2.0
+#: Nearest centroids whose marking (point or segment) is examined per lookup.
+NEAREST_CENTROIDS = 3
 
 
 class LocalMap:
     """The markings around one request, in coordinates relative to ``origin``.
 
     Working relative to an origin near the vehicle keeps the numerics well
-    conditioned (UTM northings are ~5e6 m).
+    conditioned (UTM northings are ~5e6 m). The markings are bucketed in a
+    grid of :data:`GRID_CELL_M` cells, which the compiled lookups
+    (:func:`closest_points`) and the refinement's inner loop read.
     """
 
     def __init__(self, index: MapIndex, origin, radius: float):
         self.origin = np.asarray(origin, float)
-        self._offsets: dict[tuple[int, int], np.ndarray] = {}
         sel = index.near(self.origin, radius)
         self.indices = sel
         self.xy = index.xy[sel] - self.origin
         self.axis = index.axis[sel]
         self.half = index.half_length[sel]
         self.max_half = float(self.half.max()) if sel.size else 0.0
-        # Complex tables of the markings (centroid, conjugate axis, half length),
-        # one row more than markings: the KD-tree reports a missing neighbour as
-        # index len(self), and that row lies so far away that it never matches.
-        # Complex arithmetic halves the number of numpy calls on the small
-        # arrays of each refinement iteration, which is what they cost.
-        self._c = np.append(self.xy[:, 0] + 1j * self.xy[:, 1], _FAR)
-        self._uc = np.append(self.axis[:, 0] - 1j * self.axis[:, 1], 0j)
-        self._h = np.append(self.half, 0.0)
-        self._nh = -self._h
-        self.tree = cKDTree(self.xy) if sel.size else None
+        # Complex tables of the markings: centroid, conjugate axis (0 for
+        # point-like markings), half length.
+        self._c = np.ascontiguousarray(self.xy[:, 0] + 1j * self.xy[:, 1])
+        self._uc = np.ascontiguousarray(self.axis[:, 0] - 1j * self.axis[:, 1])
+        self._h = np.ascontiguousarray(self.half, float)
+        # What the compiled lookups take: the tables and their bucket grid.
+        self.tables = (self._c, self._uc, self._h, self.max_half) + _bucket_grid(self._c, GRID_CELL_M)
         if index.expect_xy is not None and sel.size:
             keep = index.expect_of(sel)
             self.expect_xy = index.expect_xy[keep] - self.origin
@@ -119,6 +124,11 @@ class LocalMap:
     def __len__(self) -> int:
         return int(self.xy.shape[0])
 
+    @functools.cached_property
+    def tree(self) -> cKDTree | None:
+        """KD-tree of the centroids (the paper's nearest-centroid pairing)."""
+        return cKDTree(self.xy) if len(self) else None
+
     def nearest_centroid(self, p: np.ndarray, max_dist: float):
         """Nearest centroid of each point: ``(distance, index)``, inf/-1 beyond ``max_dist``."""
         if self.tree is None:
@@ -128,45 +138,21 @@ class LocalMap:
         return d, i
 
     def closest_c(self, p: np.ndarray, max_dist: float, full: bool = True):
-        """:meth:`closest` of complex points ``p`` (x + iy, contiguous (N,)).
+        """:meth:`closest` of complex points ``p`` (x + iy, (N,)).
 
         Returns ``(dist, target, axis, index)``: complex targets, the complex unit
         axis of the matched marking (0 for point-like markings and no match) and
         the local index, ``len(self)`` where nothing lies within ``max_dist``;
         only ``(dist, target)`` unless ``full``.
         """
-        p = np.ascontiguousarray(p, complex)
-        n = len(p)
-        if self.tree is None or n == 0:
-            out = np.full(n, np.inf), np.zeros(n, complex), np.zeros(n, complex), np.full(n, len(self))
-            return out if full else out[:2]
-        pr = p.view(float).reshape(n, 2)
-        if self.max_half == 0.0:
-            d, i = self.tree.query(pr, distance_upper_bound=max_dist)
-            return (d, self._c[i], np.zeros(n, complex), i) if full else (d, self._c[i])
-        k = min(3, len(self))
-        _, ii = self.tree.query(pr, k=k, distance_upper_bound=max_dist + self.max_half)
-        if k == 1:
-            ii = ii[:, None]
-        r = p[:, None] - self._c[ii]  # from the marking's centroid to p
-        uc = self._uc[ii]
-        # Position along the marking's axis, clipped to its half length (0 for points).
-        a = np.minimum(np.maximum((r * uc).real, self._nh[ii]), self._h[ii])
-        e = r - a * uc.conjugate()  # from the closest point of the marking to p
-        dist = np.abs(e)
-        best = dist.argmin(axis=1)
-        best += self._row_offsets(n, k)
-        d = dist.ravel()[best]
-        d[d > max_dist] = np.inf
+        p = np.ascontiguousarray(p, complex).ravel()
+        d, tgt, i = closest_points(p, float(max_dist), self.tables)
         if not full:
-            return d, p - e.ravel()[best]
-        return d, p - e.ravel()[best], uc.ravel()[best].conjugate(), ii.ravel()[best]
-
-    def _row_offsets(self, n: int, k: int) -> np.ndarray:
-        off = self._offsets.get((n, k))
-        if off is None:
-            off = self._offsets[(n, k)] = np.arange(n) * k
-        return off
+            return d, tgt
+        axis = np.zeros(len(p), complex)
+        hit = i < len(self)
+        axis[hit] = self._uc[i[hit]].conjugate()
+        return d, tgt, axis, i
 
     def closest(self, p: np.ndarray, max_dist: float, return_index: bool = False):
         """Closest map point of each of ``p`` (segments for line-like markings).
@@ -198,3 +184,142 @@ class LocalMap:
         if return_index:
             return d, target, normal, np.where(ok, i, -1)
         return d, target, normal
+
+
+def _bucket_grid(c: np.ndarray, cell: float) -> tuple:
+    """The markings' centroids ``c`` (complex) bucketed in square cells of ``cell`` metres.
+
+    Returns ``(x0, y0, cell, nx, ny, start, items)``: cell ``(i, j)`` (row ``i``
+    along y, from ``y0``; column ``j`` along x, from ``x0``) holds the markings
+    ``items[start[i * nx + j]:start[i * nx + j + 1]]``.
+    """
+    if c.size == 0:
+        return 0.0, 0.0, cell, 1, 1, np.zeros(2, np.int64), np.zeros(0, np.int64)
+    x0, y0 = float(c.real.min()), float(c.imag.min())
+    nx = int((c.real.max() - x0) // cell) + 1
+    ny = int((c.imag.max() - y0) // cell) + 1
+    ids = ((c.imag - y0) // cell).astype(np.int64) * nx + ((c.real - x0) // cell).astype(np.int64)
+    items = np.argsort(ids, kind="stable").astype(np.int64)
+    start = np.zeros(nx * ny + 1, np.int64)
+    np.cumsum(np.bincount(ids, minlength=nx * ny), out=start[1:])
+    return x0, y0, float(cell), nx, ny, start, items
+
+
+@njit(cache=True, nogil=True)
+def nearest_marking(p, tables, best_i, best_d):
+    """The marking closest to point ``p`` among its nearest centroids (compiled).
+
+    Of the :data:`NEAREST_CENTROIDS` centroids nearest to ``p`` within the
+    search radius, the marking that lies closest: a point, or for a line-like
+    marking the closest point of its segment. The grid is read ring by ring
+    around ``p``'s cell until no unread cell can hold a nearer centroid.
+
+    Parameters
+    ----------
+    p : complex
+        The point, x + iy, metres in the local frame.
+    tables : tuple
+        :attr:`LocalMap.tables`.
+    best_i, best_d : (NEAREST_CENTROIDS,) int64 / float64 arrays
+        Scratch space; on entry ``best_d[0]`` holds the squared search radius
+        (m²): the longest distance of interest plus the longest half length,
+        so that no segment reaching within that distance is missed.
+
+    Returns
+    -------
+    dist : float
+        Distance to the marking, metres; inf when no centroid lies within the radius.
+    e : complex
+        From the marking's closest point to ``p``.
+    index : int
+        The marking's local index, ``len(c)`` when none.
+    """
+    c, uc, h, max_half, x0, y0, cell, nx, ny, start, items = tables
+    k = min(NEAREST_CENTROIDS, c.size)
+    r2max = best_d[0]
+    for q in range(k):
+        best_d[q] = np.inf
+        best_i[q] = -1
+    found = 0
+    fj = math.floor((p.real - x0) / cell)
+    fi = math.floor((p.imag - y0) / cell)
+    reach = math.sqrt(r2max)
+    if abs(fj) > 1e9 or abs(fi) > 1e9:
+        return np.inf, 0j, c.size
+    cj, ci = int(fj), int(fi)
+    r = 0
+    while True:
+        if r > 0:
+            # Every unread cell lies at least (r - 1) cells away.
+            lb = (r - 1) * cell
+            if lb > reach or (found == k and lb * lb >= best_d[k - 1]):
+                break
+            if ci - r < 0 and ci + r >= ny and cj - r < 0 and cj + r >= nx:
+                break
+        for ii in range(max(ci - r, 0), min(ci + r, ny - 1) + 1):
+            edge = ii == ci - r or ii == ci + r
+            jj = max(cj - r, 0)
+            while jj <= min(cj + r, nx - 1):
+                if not edge and jj != cj - r and jj != cj + r:
+                    jj = cj + r  # inside the ring's rows only its two ends are new
+                    continue
+                cid = ii * nx + jj
+                for t in range(start[cid], start[cid + 1]):
+                    m = items[t]
+                    dz = p - c[m]
+                    d2 = dz.real * dz.real + dz.imag * dz.imag
+                    if d2 > r2max or (found == k and d2 >= best_d[k - 1]):
+                        continue
+                    # Insert, keeping best_d sorted (ties keep the earlier).
+                    q = min(found, k - 1)
+                    while q > 0 and best_d[q - 1] > d2:
+                        best_d[q] = best_d[q - 1]
+                        best_i[q] = best_i[q - 1]
+                        q -= 1
+                    best_d[q] = d2
+                    best_i[q] = m
+                    if found < k:
+                        found += 1
+                jj += 1
+        r += 1
+    dist = np.inf
+    e = 0j
+    idx = c.size
+    for q in range(found):
+        m = best_i[q]
+        rr = p - c[m]
+        a = (rr * uc[m]).real
+        if a > h[m]:
+            a = h[m]
+        elif a < -h[m]:
+            a = -h[m]
+        ee = rr - a * uc[m].conjugate()
+        de = abs(ee)
+        if de < dist:
+            dist, e, idx = de, ee, m
+    return dist, e, idx
+
+
+@njit(cache=True, nogil=True)
+def closest_points(p, max_dist, tables):
+    """:func:`nearest_marking` of each of the complex points ``p`` (N,), compiled.
+
+    Returns ``(dist, target, index)``: ``dist`` inf beyond ``max_dist``,
+    ``target`` the closest point of the marking (far away where nothing lies
+    within reach), ``index`` ``len(c)`` where nothing does.
+    """
+    n = p.size
+    max_half = tables[3]
+    dist = np.empty(n)
+    tgt = np.empty(n, np.complex128)
+    idx = np.empty(n, np.int64)
+    best_i = np.empty(NEAREST_CENTROIDS, np.int64)
+    best_d = np.empty(NEAREST_CENTROIDS)
+    reach2 = (max_dist + max_half) ** 2
+    for j in range(n):
+        best_d[0] = reach2
+        d, e, m = nearest_marking(p[j], tables, best_i, best_d)
+        dist[j] = d if d <= max_dist else np.inf
+        tgt[j] = p[j] - e if m < tables[0].size else _FAR
+        idx[j] = m
+    return dist, tgt, idx

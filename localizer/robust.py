@@ -6,9 +6,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
-from .geometry import LocalMap, apply, rotation
+from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, nearest_marking, rotation
 from .types import Options
 
 
@@ -72,8 +73,10 @@ def robust_refine(
     far), the finest weighs them by their noise. Pairs are point-to-point for
     point-like markings and point-to-segment for line-like ones.
 
-    All initial poses ``inits`` (K, 3) are refined together (one KD-tree query
-    per iteration for all of them). ``record`` keeps the trace of the first.
+    All initial poses ``inits`` (K, 3) are refined in one call of a compiled
+    loop (:func:`_refine_batch`; each pose on its own, as if refined alone):
+    at a few hundred pairs per iteration, numpy's fixed cost per call would
+    dominate. ``record`` keeps the trace of the first.
     ``start_scale`` (K,), optional: index into ``options.anneal_m`` at which
     each pose starts (default 0); a pose starting at the last two scales is
     refined exactly as with ``anneal_m[-2:]``, so coarse-to-fine and fine-only
@@ -86,108 +89,164 @@ def robust_refine(
     """
     poses = np.array(inits, float).reshape(-1, 3)
     K, N = len(poses), len(obs_xy)
-    iters = np.zeros(K, int)
-    trace = [tuple(poses[0])] if record else []
-    var = sigma_obs**2
-    start = np.zeros(K, int) if start_scale is None else np.asarray(start_scale, int).reshape(K)
-    # Positions and observations as complex numbers, rotations as unit complex
-    # factors: each iteration is a few dozen operations on small (K, N) arrays,
-    # so the number of numpy calls is the cost.
-    pos = poses[:, 0] + 1j * poses[:, 1]
-    yaw = poses[:, 2].copy()
-    obs = obs_xy[:, 0] + 1j * obs_xy[:, 1]
-    aniso = None
-    if options.bearing_noise_rad is not None and N:
-        aniso = (var, bearing_sigma(obs_xy, options) ** 2, obs / np.maximum(np.abs(obs), 1e-9))
-    for si, c in enumerate(options.anneal_m):
-        s2 = c * c + var
-        gate = 3.0 * np.sqrt(s2)
-        gmax = float(gate.max())
-        last = c == options.anneal_m[-1]
-        tol = options.tolerance_m if last else max(options.tolerance_m, 0.01)
-        wo = np.ones_like(w_obs) if last else w_obs
-        wo_s2 = wo / s2
-        inv_s2 = 1.0 / s2
-        active = start <= si
-        for _ in range(options.iterations_per_scale):
-            idx = np.flatnonzero(active)
-            if idx.size == 0:
-                break
-            P, Y = pos[idx], yaw[idx]
-            pts = np.multiply.outer(np.exp(1j * Y), obs)
-            pts += P[:, None]
-            d, tgt = local_map.closest_c(pts.ravel(), gmax, full=False)
-            d, tgt = d.reshape(-1, N), tgt.reshape(-1, N)
-            m = d <= gate
-            # Unmatched observations (d = inf) get t = inf and so weight 0.
-            t = d * d
-            t *= inv_s2
-            t += 1.0
-            w = wo_s2 / (t * t)
-            w *= m
-            wsum = np.add.reduce(w, 1)
-            ok = (np.add.reduce(m, 1) >= 2) & (wsum > 0)
-            if last and aniso is not None:
-                new, th = _gauss_newton_step(pts, tgt, P, Y, w, m, aniso, c)
-                new = np.where(ok, new, P)
-                th = np.where(ok, th, 0.0)
-            else:
-                w /= np.where(wsum > 0, wsum, 1.0)[:, None]
-                cs = np.add.reduce(w * pts, 1)
-                cd = np.add.reduce(w * tgt, 1)
-                # Weighted 2D Procrustes: the rotation is the angle of
-                # sum w conj(p - cs) (g - cd).
-                pts -= cs[:, None]
-                tgt -= cd[:, None]
-                th = np.where(ok, np.angle(np.add.reduce(w * pts.conjugate() * tgt, 1)), 0.0)
-                new = np.where(ok, np.exp(1j * th) * (P - cs) + cd, P)
-            step = np.abs(new - P)
-            pos[idx] = new
-            yaw[idx] = Y + th
-            iters[idx[ok]] += 1
-            if record and idx[0] == 0 and ok[0]:
-                trace.append((float(new[0].real), float(new[0].imag), float(Y[0] + th[0])))
-            done = ~ok | ((step < tol) & (np.abs(th) < options.tolerance_rad))
-            active[idx[done]] = False
-    poses = np.column_stack([pos.real, pos.imag, yaw])
+    start = np.zeros(K, np.int64) if start_scale is None else np.asarray(start_scale, np.int64).reshape(K)
+    pos = np.ascontiguousarray(poses[:, 0] + 1j * poses[:, 1])
+    yaw = poses[:, 2].copy()  # the kernel updates pos and yaw in place
+    obs = np.ascontiguousarray(obs_xy[:, 0] + 1j * obs_xy[:, 1])
+    var = np.ascontiguousarray(sigma_obs, float) ** 2
+    aniso = options.bearing_noise_rad is not None and N > 0
+    if aniso:
+        var_t = bearing_sigma(obs_xy, options) ** 2
+        ray = obs / np.maximum(np.abs(obs), 1e-9)
+    else:
+        var_t, ray = var, obs
+    iters, trace = _refine_batch(
+        pos, yaw, obs, np.ascontiguousarray(w_obs, float), var, var_t, ray, start,
+        np.asarray(options.anneal_m, float), int(options.iterations_per_scale),
+        float(options.tolerance_m), float(options.tolerance_rad), aniso, record, local_map.tables,
+    )
+    first = [(float(poses[0, 0]), float(poses[0, 1]), float(poses[0, 2]))] if record else []
+    trace = first + [tuple(float(v) for v in t) for t in trace]
     return [
-        RefineResult(pose=tuple(float(v) for v in poses[k]), iterations=int(iters[k]),
+        RefineResult(pose=(float(pos[k].real), float(pos[k].imag), float(yaw[k])), iterations=int(iters[k]),
                      trace=trace if k == 0 else [])
         for k in range(K)
     ]
 
 
-def _gauss_newton_step(pts, tgt, P, Y, w_iso, m, aniso, c):
-    """One Gauss-Newton step of the rigid fit with anisotropic pair weights.
+@njit(cache=True, nogil=True)
+def _refine_batch(pos, yaw, obs, w_obs, var, var_t, ray, start, anneal, per_scale, tol_m, tol_rad,
+                  aniso, record, tables):
+    """The iterations of :func:`robust_refine`, compiled; updates ``pos`` and ``yaw`` in place.
 
-    A flat-ground camera measures bearing far better than range: along the
-    viewing ray an observation's scale is ``s_r = sqrt(c² + σ_r²)``, across
-    it ``s_t = sqrt(c² + σ_t²)``. ``w_iso`` holds each pair's Geman-McClure
-    weight over ``s_r²`` (from the isotropic residual); the pair's
-    information is that times ``u uᵀ + (s_r² / s_t²) v vᵀ``, u the ray and v
-    across it. The step is linearised about the current pose and moves the
-    vehicle origin by ``(dx, dy)`` and the heading by ``dθ``.
+    Each pose is refined on its own (their pairs do not interact). Returns the
+    iterations per pose and the trace of pose 0 (an (T, 3) array, empty
+    unless ``record``).
     """
-    var_r, var_t, ray = aniso
-    sr2 = c * c + var_r
-    st2 = c * c + var_t
-    uc = (np.exp(1j * Y)[:, None] * ray[None]).conjugate()  # the ray in the map frame, conjugated (K, N)
-    eu = np.where(m, pts - tgt, 0.0) * uc  # residual: real part along the ray, imaginary across
-    # Jacobian of the point in complex form: d/dx = 1, d/dy = i, d/dθ = i (p - t);
-    # rotated into the ray's frame, real parts along the ray, imaginary across.
-    J = np.stack([uc, 1j * uc, 1j * (pts - P[:, None]) * uc], axis=-1)  # (K, N, 3)
-    Jr, Jt = J.real, J.imag
-    Wr = w_iso[..., None] * Jr  # w_iso: Geman-McClure weight / s_r²
-    Wt = (w_iso * (sr2 / st2)[None])[..., None] * Jt
-    Wr_t, Wt_t = Wr.transpose(0, 2, 1), Wt.transpose(0, 2, 1)
-    H = Wr_t @ Jr + Wt_t @ Jt
-    b = -(Wr_t @ eu.real[..., None] + Wt_t @ eu.imag[..., None])[..., 0]
-    H += np.eye(3) * 1e-9
-    try:
-        d = np.linalg.solve(H, b[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        d = np.zeros_like(b)
-    return P + d[:, 0] + 1j * d[:, 1], d[:, 2]
+    K, N = pos.size, obs.size
+    iters = np.zeros(K, np.int64)
+    trace = np.empty((anneal.size * per_scale if record else 0, 3))
+    n_trace = 0
+    pts = np.empty(N, np.complex128)
+    tgt = np.empty(N, np.complex128)
+    w = np.empty(N)
+    best_i = np.empty(NEAREST_CENTROIDS, np.int64)
+    best_d = np.empty(NEAREST_CENTROIDS)
+    H = np.empty((3, 3))
+    b = np.empty(3)
+    n_map = tables[0].size
+    max_half = tables[3]
+    c_last = anneal[anneal.size - 1]
+    for si in range(anneal.size):
+        c = anneal[si]
+        last = c == c_last
+        gmax = 0.0
+        for j in range(N):
+            gmax = max(gmax, 3.0 * math.sqrt(c * c + var[j]))
+        reach2 = (gmax + max_half) ** 2
+        tol = tol_m if last else max(tol_m, 0.01)
+        for k in range(K):
+            if start[k] > si:
+                continue
+            for _ in range(per_scale):
+                P, Y = pos[k], yaw[k]
+                rot = complex(math.cos(Y), math.sin(Y))
+                n_match = 0
+                wsum = 0.0
+                for j in range(N):
+                    pts[j] = rot * obs[j] + P
+                    best_d[0] = reach2
+                    d, e, m = nearest_marking(pts[j], tables, best_i, best_d)
+                    tgt[j] = pts[j] - e if m < n_map else _FAR
+                    s2 = c * c + var[j]
+                    w[j] = 0.0
+                    # Pairs beyond 3 s_j are dropped; Geman-McClure weight within.
+                    if d <= gmax and d <= 3.0 * math.sqrt(s2):
+                        t = d * d / s2 + 1.0
+                        w[j] = (1.0 if last else w_obs[j]) / s2 / (t * t)
+                        n_match += 1
+                        wsum += w[j]
+                if n_match < 2 or not wsum > 0.0:
+                    break
+                if last and aniso:
+                    H[:] = 0.0
+                    b[:] = 0.0
+                    for j in range(N):
+                        if w[j] == 0.0:
+                            continue
+                        sr2 = c * c + var[j]
+                        st2 = c * c + var_t[j]
+                        # The ray in the map frame, conjugated: real parts along it, imaginary across.
+                        u = (rot * ray[j]).conjugate()
+                        eu = (pts[j] - tgt[j]) * u
+                        j0, j1, j2 = u, 1j * u, 1j * (pts[j] - P) * u
+                        wr = w[j]
+                        wt = w[j] * (sr2 / st2)
+                        jr = (j0.real, j1.real, j2.real)
+                        jt = (j0.imag, j1.imag, j2.imag)
+                        for a in range(3):
+                            b[a] -= wr * jr[a] * eu.real + wt * jt[a] * eu.imag
+                            for bb in range(3):
+                                H[a, bb] += wr * jr[a] * jr[bb] + wt * jt[a] * jt[bb]
+                    for a in range(3):
+                        H[a, a] += 1e-9
+                    dx, dy, th = _solve3(H, b)
+                    new = P + complex(dx, dy)
+                else:
+                    cs = 0j
+                    cd = 0j
+                    for j in range(N):
+                        if w[j] > 0.0:
+                            cs += w[j] / wsum * pts[j]
+                            cd += w[j] / wsum * tgt[j]
+                    acc = 0j
+                    for j in range(N):
+                        if w[j] > 0.0:
+                            acc += w[j] / wsum * (pts[j] - cs).conjugate() * (tgt[j] - cd)
+                    # Weighted 2D Procrustes: the rotation is the angle of acc.
+                    th = math.atan2(acc.imag, acc.real)
+                    new = complex(math.cos(th), math.sin(th)) * (P - cs) + cd
+                step = abs(new - P)
+                pos[k] = new
+                yaw[k] = Y + th
+                iters[k] += 1
+                if record and k == 0:
+                    trace[n_trace, 0] = new.real
+                    trace[n_trace, 1] = new.imag
+                    trace[n_trace, 2] = Y + th
+                    n_trace += 1
+                if step < tol and abs(th) < tol_rad:
+                    break
+    return iters, trace[:n_trace]
+
+
+@njit(cache=True, nogil=True)
+def _solve3(H, b):
+    """``H x = b`` for a 3x3 system by Gaussian elimination with partial pivoting; zeros if singular."""
+    A = H.copy()
+    x = b.copy()
+    for col in range(3):
+        piv = col
+        for r in range(col + 1, 3):
+            if abs(A[r, col]) > abs(A[piv, col]):
+                piv = r
+        if A[piv, col] == 0.0:
+            return 0.0, 0.0, 0.0
+        if piv != col:
+            for cc in range(3):
+                A[col, cc], A[piv, cc] = A[piv, cc], A[col, cc]
+            x[col], x[piv] = x[piv], x[col]
+        for r in range(col + 1, 3):
+            f = A[r, col] / A[col, col]
+            for cc in range(col, 3):
+                A[r, cc] -= f * A[col, cc]
+            x[r] -= f * x[col]
+    for r in range(2, -1, -1):
+        acc = x[r]
+        for cc in range(r + 1, 3):
+            acc -= A[r, cc] * x[cc]
+        x[r] = acc / A[r, r]
+    return x[0], x[1], x[2]
 
 
 def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:

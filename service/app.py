@@ -81,6 +81,10 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        # Compiled on first use otherwise: the first localization would wait seconds.
+        import localizer
+
+        log.info("localizer kernels ready in %.2f s", localizer.warm_up())
         if ctx.jobs is not None:
             ctx.jobs.start()
         try:

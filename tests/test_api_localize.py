@@ -173,6 +173,31 @@ def test_server_timing_splits_the_localizer_from_the_request(api, kmap):
     assert float(parts["index"]) >= 0 and float(parts["queue"]) >= 0
 
 
+def test_the_server_compiles_the_localizer_before_serving(tmp_path, karlsruhe_fc):  # noqa: F811
+    """With nothing in numba's cache, the kernels compile at start, not in the first request."""
+    from tests._api_helpers import start_server
+
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                          env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})  # fmt: skip
+    try:
+        assert "localizer kernels ready in" in server.log()
+        assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # compiled here, not loaded
+        map_id = server.new_map()
+        r = httpx.post(f"{server.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=server.auth,
+                       timeout=60)  # fmt: skip
+        assert r.status_code == 201
+        feats = httpx.get(f"{server.base_url}/collections/{map_id}/items?limit=10000").json()["features"]
+        p, lon, lat, heading, obs = scene(feats, 400)
+        r = httpx.post(f"{server.base_url}/collections/{map_id}/localize",
+                       json={"gps": gps_near(p, heading), "observations": obs}, timeout=60)  # fmt: skip
+        assert r.status_code == 200 and r.json()["status"] == "ok"
+        parts = dict(part.strip().split(";dur=") for part in r.headers["server-timing"].split(","))
+        # Compiling takes seconds; a localization, milliseconds.
+        assert float(parts["localize"]) < 1000.0, parts
+    finally:
+        server.stop()
+
+
 def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: F811
     """Beyond LANEMAP_LOCALIZE_MAX_PENDING a server answers 503 problems at once, then recovers."""
     import threading

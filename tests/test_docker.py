@@ -159,6 +159,16 @@ def test_dockerfile_runs_lanemap_serve_as_non_root_with_a_health_check(dockerfil
         assert opt in serve_help
 
 
+def test_the_images_python_build_steps_run_here(dockerfile):
+    """``python -c`` steps of the image build (compiling the localizer's kernels) work on this installation."""
+    steps = [m for w, r in _instructions(dockerfile) if w == "RUN"
+             for m in re.findall(r'python -c "([^"]+)"', r)]  # fmt: skip
+    assert any("localizer.warm_up()" in m for m in steps)
+    for code in steps:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+
+
 def test_hadolint_finds_nothing_in_the_dockerfile():
     hadolint = BIN / "hadolint"
     out = subprocess.run([str(hadolint), "--no-color", str(DOCKER / "Dockerfile")],

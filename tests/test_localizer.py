@@ -13,7 +13,7 @@ import pytest
 from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
 from localizer.geometry import LocalMap, apply, weighted_rigid_fit
 from localizer.pink2008 import pink2008_icp
-from localizer.simulate import NONE, Camera, SceneMap, perturb, simulate_scene
+from localizer.simulate import NONE, Camera, Clutter, SceneMap, perturb, sample_poses, simulate_scene
 
 from ._localizer_helpers import karlsruhe
 
@@ -94,6 +94,54 @@ def test_nearest_marking_queries_match_the_plain_definition():
             # unit normals across matched segments, none for points
             assert np.allclose(np.hypot(*normal[ok & seg].T), 1.0)
             assert not normal[ok & ~seg].any() and not normal[~ok].any()
+
+
+def test_nearest_marking_queries_on_tiny_and_point_only_maps():
+    """The bucket grid's edges: one or two markings, points far outside the grid, no segments."""
+    rng = np.random.default_rng(5)
+    for n, bearing in [(1, 90.0), (2, 30.0), (2, None), (7, None)]:
+        xy = rng.uniform(-3, 3, (n, 2)) + ORIGIN
+        extra = {} if bearing is None else dict(bearing_deg=np.full(n, bearing), length_m=np.full(n, 3.0),
+                                                 kind=np.full(n, "solid"))
+        index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], np.ones(n), "EPSG:25832", **extra)
+        local = LocalMap(index, ORIGIN, 20.0)
+        assert len(local) == n and (local.max_half > 0) == (bearing is not None)
+        p = np.concatenate([rng.uniform(-6, 6, (100, 2)), rng.uniform(-400, 400, (20, 2))])
+        for max_dist in (0.3, 2.0, 300.0):
+            d, tgt, _, which = local.closest(p, max_dist, return_index=True)
+            rd, rtgt, rwhich = _closest_reference(local, p, max_dist)
+            ok = np.isfinite(rd)
+            assert np.array_equal(np.isfinite(d), ok) and np.array_equal(which, rwhich)
+            assert np.allclose(d[ok], rd[ok], atol=1e-9) and np.allclose(tgt[ok], rtgt[ok], atol=1e-9)
+    empty = LocalMap(MapIndex.from_arrays([0.0], [0.0], [1.0], "EPSG:25832"), ORIGIN, 5.0)
+    d, _, _, which = empty.closest(np.zeros((3, 2)), 10.0, return_index=True)
+    assert len(empty) == 0 and np.isinf(d).all() and (which == -1).all()
+
+
+def test_a_batch_refines_each_pose_as_alone():
+    """robust_refine's poses do not interact: refined together or one by one, the same answers."""
+    from localizer.robust import noise_sigma, robust_refine
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(11)
+    pose = sample_poses(smap, 1, rng, Camera(), min_visible=6)[0]
+    scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+    local = LocalMap(index, pose[:2], 60.0)
+    obs = scene.observations[:, :2]
+    o = Options()
+    # Coarse-to-fine from up to a metre off, fine-only (from the third scale) from a few centimetres.
+    starts = [(dx, dy, pose[2] + dyaw) for dx, dy, dyaw in rng.normal(0, [0.7, 0.7, 0.03], (3, 3))]
+    starts += [(dx, dy, pose[2] + dyaw) for dx, dy, dyaw in rng.normal(0, [0.05, 0.05, 0.003], (3, 3))]
+    together = robust_refine(local, obs, scene.observations[:, 2] / 50, noise_sigma(obs, o), starts, o,
+                             start_scale=[0, 0, 0, 2, 2, 2], record=True)
+    for k, s in enumerate(starts):
+        alone = robust_refine(local, obs, scene.observations[:, 2] / 50, noise_sigma(obs, o), [s], o,
+                              start_scale=[[0, 0, 0, 2, 2, 2][k]], record=True)[0]
+        assert alone.pose == together[k].pose and alone.iterations == together[k].iterations
+        if k == 0:
+            assert alone.trace == together[0].trace and len(alone.trace) == alone.iterations + 1
+    # Each pose moved (none was left as it started).
+    assert all(r.iterations > 0 for r in together), [r.iterations for r in together]
 
 
 def test_small_volume_maximum_filter_is_scipys():
