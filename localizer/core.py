@@ -486,9 +486,10 @@ def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
     best_fit = fit_statistics(sc.local, sc.obs_xy, sc.w_data, sc.sig, refined[0][1].pose, o, sc.prior_info)
     # Refinements that end inside the best one's uncertainty are the same optimum
     # (e.g. sliding along a solid line), not an alternative.
+    info = _information(best_fit.covariance)
     kept = [refined[0]]
     for item in refined[1:]:
-        if not any(_same_optimum(item[1].pose, k[1].pose, best_fit.covariance) for k in kept):
+        if not any(_same_optimum(item[1].pose, k[1].pose, info) for k in kept):
             kept.append(item)
     # The clutter rate: observations that the best pose leaves unexplained. The
     # more clutter, the likelier a chance match, the less each match tells.
@@ -510,18 +511,29 @@ def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
     return _Ranked(kept, scores, prob, score_options, refined[0][1].pose, best_fit, need)
 
 
-def _same_optimum(a, b, cov) -> bool:
-    d = np.array([a[0] - b[0], a[1] - b[1], (a[2] - b[2] + math.pi) % (2 * math.pi) - math.pi])
+def _information(cov) -> list[list[float]] | None:
+    """The inverse of a 3x3 covariance as nested floats (None if there is none or it is singular)."""
+    if cov is None:
+        return None
+    try:
+        return np.linalg.inv(cov).tolist()
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _same_optimum(a, b, info) -> bool:
+    """Whether poses ``a`` and ``b`` are one optimum: within 0.75 m and 2°, or 3σ of ``info``'s covariance.
+
+    Plain floats: called for every pair of refined candidates.
+    """
+    d = (a[0] - b[0], a[1] - b[1], (a[2] - b[2] + math.pi) % (2 * math.pi) - math.pi)
     if abs(d[2]) > math.radians(2.0):
         return False
     if math.hypot(d[0], d[1]) < 0.75:
         return True
-    if cov is None:
+    if info is None:
         return False
-    try:
-        return float(d @ np.linalg.solve(cov, d)) < 9.0
-    except np.linalg.LinAlgError:
-        return False
+    return sum(d[i] * info[i][j] * d[j] for i in range(3) for j in range(3)) < 9.0
 
 
 def _make_pose(frame, origin, pose, status, crs) -> Pose:
