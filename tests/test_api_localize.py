@@ -173,20 +173,30 @@ def test_server_timing_splits_the_localizer_from_the_request(api, kmap):
     assert float(parts["index"]) >= 0 and float(parts["queue"]) >= 0
 
 
-def test_the_server_compiles_the_localizer_before_serving(tmp_path, karlsruhe_fc):  # noqa: F811
-    """With nothing in numba's cache, the kernels compile at start, not in the first request."""
+def _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, env: dict):  # noqa: F811
+    """A server of its own (SQLite, settings ``env``) holding the Karlsruhe map: ``(server, map id, features)``."""
     from tests._api_helpers import start_server
 
-    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
-                          env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})  # fmt: skip
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", env=env)
     try:
-        assert "localizer kernels ready in" in server.log()
-        assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # compiled here, not loaded
         map_id = server.new_map()
         r = httpx.post(f"{server.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=server.auth,
                        timeout=60)  # fmt: skip
         assert r.status_code == 201
         feats = httpx.get(f"{server.base_url}/collections/{map_id}/items?limit=10000").json()["features"]
+    except BaseException:
+        server.stop()
+        raise
+    return server, map_id, feats
+
+
+def test_the_server_compiles_the_localizer_before_serving(tmp_path, karlsruhe_fc):  # noqa: F811
+    """With nothing in numba's cache, the kernels compile at start, not in the first request."""
+    server, map_id, feats = _own_server_with_karlsruhe(
+        tmp_path, karlsruhe_fc, {"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})
+    try:
+        assert "localizer kernels ready in" in server.log()
+        assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # compiled here, not loaded
         p, lon, lat, heading, obs = scene(feats, 400)
         r = httpx.post(f"{server.base_url}/collections/{map_id}/localize",
                        json={"gps": gps_near(p, heading), "observations": obs}, timeout=60)  # fmt: skip
@@ -202,16 +212,8 @@ def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: 
     """Beyond LANEMAP_LOCALIZE_MAX_PENDING a server answers 503 problems at once, then recovers."""
     import threading
 
-    from tests._api_helpers import start_server
-
-    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
-                          env={"LANEMAP_LOCALIZE_MAX_PENDING": "1"})  # fmt: skip
+    server, map_id, feats = _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, {"LANEMAP_LOCALIZE_MAX_PENDING": "1"})
     try:
-        map_id = server.new_map()
-        r = httpx.post(f"{server.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=server.auth,
-                       timeout=60)  # fmt: skip
-        assert r.status_code == 201
-        feats = httpx.get(f"{server.base_url}/collections/{map_id}/items?limit=10000").json()["features"]
         p, lon, lat, heading, obs = scene(feats, 400)
         # a wide prior makes each localization long enough to overlap the others
         body = {"gps": {**gps_near(p, heading), "position_sigma_m": 30.0, "heading_sigma_deg": 45.0},
