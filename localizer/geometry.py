@@ -241,12 +241,12 @@ def nearest_marking(p, tables, best_i, best_d):
         best_d[q] = np.inf
         best_i[q] = -1
     found = 0
-    fj = math.floor((p.real - x0) / cell)
-    fi = math.floor((p.imag - y0) / cell)
+    fx = (p.real - x0) / cell
+    fy = (p.imag - y0) / cell
     reach = math.sqrt(r2max)
-    if abs(fj) > 1e9 or abs(fi) > 1e9:
+    if not (abs(fx) < 1e9 and abs(fy) < 1e9):  # also NaN: no cell to start from
         return np.inf, 0j, c.size
-    cj, ci = int(fj), int(fi)
+    cj, ci = int(math.floor(fx)), int(math.floor(fy))
     r = 0
     while True:
         if r > 0:

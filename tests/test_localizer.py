@@ -113,6 +113,9 @@ def test_nearest_marking_queries_on_tiny_and_point_only_maps():
             ok = np.isfinite(rd)
             assert np.array_equal(np.isfinite(d), ok) and np.array_equal(which, rwhich)
             assert np.allclose(d[ok], rd[ok], atol=1e-9) and np.allclose(tgt[ok], rtgt[ok], atol=1e-9)
+    # Points no cell holds (NaN, absurdly far) match nothing.
+    d, _, _, which = local.closest(np.array([[np.nan, 0.0], [1e15, -1e15]]), 10.0, return_index=True)
+    assert np.isinf(d).all() and (which == -1).all()
     empty = LocalMap(MapIndex.from_arrays([0.0], [0.0], [1.0], "EPSG:25832"), ORIGIN, 5.0)
     d, _, _, which = empty.closest(np.zeros((3, 2)), 10.0, return_index=True)
     assert len(empty) == 0 and np.isinf(d).all() and (which == -1).all()
