@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, nearest_marking, rotation
 from .types import Options
@@ -367,48 +366,78 @@ def missed_counts(local_map: LocalMap, obs_xy, poses, options: Options, view=Non
     halfang -= math.radians(options.view_margin_deg)
     if rmax <= rmin or halfang <= 0:
         return out
-    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
-    dx = E[None, :, 0] - P[:, 0, None]
-    dy = E[None, :, 1] - P[:, 1, None]
-    vx = cos[:, None] * dx + sin[:, None] * dy
-    vy = -sin[:, None] * dx + cos[:, None] * dy
-    r2 = vx * vx + vy * vy
-    seen = (r2 >= rmin * rmin) & (r2 <= rmax * rmax) & (np.abs(vy) <= np.tan(halfang) * vx) & (vx > 0)
-    kk, ee = np.nonzero(seen)
-    if kk.size == 0:
-        return out
-    tree = cKDTree(obs_xy)
-    q = np.column_stack([vx[kk, ee], vy[kk, ee]])
-    dist, _ = tree.query(q, distance_upper_bound=options.explain_distance_m)
-    missed = ~np.isfinite(dist)
-    on_line = local_map.expect_solid[ee]
-    if options.solid_explain_along_m > 0 and (line := np.flatnonzero(missed & on_line)).size:
-        missed[line] = ~_explained_along_line(tree, obs_xy, q[line], local_map.expect_axis[ee[line]],
-                                              cos[kk[line]], sin[kk[line]], options)
-    np.add.at(out[0], kk[missed & ~on_line], 1.0)
-    np.add.at(out[1], kk[missed & on_line], 1.0)
-    return out
+    return _missed_batch(
+        np.ascontiguousarray(P), np.ascontiguousarray(E, float), np.ascontiguousarray(local_map.expect_solid),
+        np.ascontiguousarray(local_map.expect_axis, float), np.ascontiguousarray(obs_xy, float),
+        rmin, rmax, math.tan(halfang), float(options.explain_distance_m),
+        float(options.solid_explain_along_m), float(options.solid_explain_across_m),
+    )
 
 
-def _explained_along_line(tree, obs_xy, q, axis, cos, sin, options: Options) -> np.ndarray:
-    """Which expected solid-line clusters ``q`` (vehicle frame) an observation explains along their line.
+#: Observations examined when an expected solid-line cluster may be explained along its line.
+ALONG_LINE_NEIGHBOURS = 4
 
-    ``axis`` is each line's direction in the map, ``cos``/``sin`` the pose's
-    heading: explained where one of the (four) nearest observations lies within
-    ``solid_explain_along_m`` along the line and ``solid_explain_across_m``
-    across it.
+
+@njit(cache=True, nogil=True)
+def _missed_batch(P, E, solid, axis, obs, rmin, rmax, tan_half, explain, along_max, across_max):
+    """The counting of :func:`missed_counts`, compiled: ``(points, solid)`` per pose.
+
+    An expected centroid in view is explained by an observation within
+    ``explain`` metres; one of a solid line also by one of the
+    :data:`ALONG_LINE_NEIGHBOURS` observations nearest to it (within
+    ``along_max``) that lies within ``along_max`` along the line and
+    ``across_max`` across it (the camera clusters a line at its own phase).
     """
-    along_max = options.solid_explain_along_m
-    d, i = tree.query(q, k=min(4, len(obs_xy)), distance_upper_bound=along_max)
-    d, i = d.reshape(len(q), -1), i.reshape(len(q), -1)
-    near = np.isfinite(d)
-    ux = cos * axis[:, 0] + sin * axis[:, 1]  # the line's direction in the vehicle frame
-    uy = -sin * axis[:, 0] + cos * axis[:, 1]
-    ob = obs_xy[np.where(near, i, 0)]
-    ex, ey = ob[..., 0] - q[:, None, 0], ob[..., 1] - q[:, None, 1]
-    along = np.abs(ex * ux[:, None] + ey * uy[:, None])
-    across = np.abs(ey * ux[:, None] - ex * uy[:, None])
-    return (near & (along <= along_max) & (across <= options.solid_explain_across_m)).any(axis=1)
+    K, M, N = P.shape[0], E.shape[0], obs.shape[0]
+    points = np.zeros(K)
+    lines = np.zeros(K)
+    n_near = min(ALONG_LINE_NEIGHBOURS, N)
+    near_i = np.empty(ALONG_LINE_NEIGHBOURS, np.int64)
+    near_d = np.empty(ALONG_LINE_NEIGHBOURS)
+    ex2, al2 = explain * explain, along_max * along_max
+    for k in range(K):
+        c, s = math.cos(P[k, 2]), math.sin(P[k, 2])
+        for e in range(M):
+            dx, dy = E[e, 0] - P[k, 0], E[e, 1] - P[k, 1]
+            vx = c * dx + s * dy
+            vy = -s * dx + c * dy
+            r2 = vx * vx + vy * vy
+            if not (r2 >= rmin * rmin and r2 <= rmax * rmax and abs(vy) <= tan_half * vx and vx > 0):
+                continue
+            found = 0
+            best = np.inf
+            for j in range(N):
+                ox, oy = obs[j, 0] - vx, obs[j, 1] - vy
+                d2 = ox * ox + oy * oy
+                best = min(best, d2)
+                if d2 < al2 and (found < n_near or d2 < near_d[n_near - 1]):
+                    q = min(found, n_near - 1)
+                    while q > 0 and near_d[q - 1] > d2:
+                        near_d[q] = near_d[q - 1]
+                        near_i[q] = near_i[q - 1]
+                        q -= 1
+                    near_d[q] = d2
+                    near_i[q] = j
+                    if found < n_near:
+                        found += 1
+            if best < ex2:
+                continue
+            if not solid[e]:
+                points[k] += 1.0
+                continue
+            explained = False
+            if along_max > 0:
+                # The line's direction in the vehicle frame.
+                ux = c * axis[e, 0] + s * axis[e, 1]
+                uy = -s * axis[e, 0] + c * axis[e, 1]
+                for q in range(found):
+                    ox, oy = obs[near_i[q], 0] - vx, obs[near_i[q], 1] - vy
+                    if abs(ox * ux + oy * uy) <= along_max and abs(oy * ux - ox * uy) <= across_max:
+                        explained = True
+                        break
+            if not explained:
+                lines[k] += 1.0
+    return points, lines
 
 
 def count_inliers(local_map: LocalMap, obs_xy, sigma_obs, poses, options: Options) -> np.ndarray:

@@ -147,6 +147,59 @@ def test_a_batch_refines_each_pose_as_alone():
     assert all(r.iterations > 0 for r in together), [r.iterations for r in together]
 
 
+def _missed_reference(local: LocalMap, obs: np.ndarray, pose, o: Options, view):
+    """missed_counts spelled out for one pose: expected centroids in the shrunk view
+    that no observation explains within explain_distance_m, nor (on a solid line)
+    one of the four nearest within solid_explain_along_m, lying along the line."""
+    from scipy.spatial import cKDTree
+
+    rmin, rmax = view[0] + o.view_margin_m, view[1] - o.view_margin_m
+    half = view[2] - math.radians(o.view_margin_deg)
+    v = (local.expect_xy - np.asarray(pose[:2])) @ np.array([[math.cos(pose[2]), -math.sin(pose[2])],
+                                                             [math.sin(pose[2]), math.cos(pose[2])]])
+    tree = cKDTree(obs)
+    points = lines = 0
+    for e, (vx, vy) in enumerate(v):
+        r = math.hypot(vx, vy)
+        if not (rmin <= r <= rmax and vx > 0 and abs(vy) <= math.tan(half) * vx):
+            continue
+        if tree.query((vx, vy), distance_upper_bound=o.explain_distance_m)[0] < math.inf:
+            continue
+        if not local.expect_solid[e]:
+            points += 1
+            continue
+        ax = local.expect_axis[e]
+        u = np.array([math.cos(pose[2]) * ax[0] + math.sin(pose[2]) * ax[1],
+                      -math.sin(pose[2]) * ax[0] + math.cos(pose[2]) * ax[1]])  # fmt: skip
+        d, i = tree.query((vx, vy), k=min(4, len(obs)), distance_upper_bound=o.solid_explain_along_m)
+        near = [obs[j] - (vx, vy) for dj, j in zip(np.atleast_1d(d), np.atleast_1d(i)) if dj < math.inf]
+        if not any(abs(w @ u) <= o.solid_explain_along_m and abs(w[1] * u[0] - w[0] * u[1])
+                   <= o.solid_explain_across_m for w in near):  # fmt: skip
+            lines += 1
+    return points, lines
+
+
+def test_negative_evidence_counts_match_the_plain_definition():
+    from localizer.robust import missed_counts, view_of
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(8)
+    o = Options()
+    seen_points = seen_lines = 0
+    for pose in sample_poses(smap, 12, rng, Camera(), min_visible=4):
+        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+        obs = scene.observations[:, :2]
+        local = LocalMap(index, pose[:2], 60.0)
+        view = view_of(obs, o)
+        poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in rng.normal(0, [3.0, 3.0, 0.2], (5, 3)) + [0, 0, pose[2]]]
+        pts, lines = missed_counts(local, obs, poses, o, view)
+        for k, q in enumerate(poses):
+            assert (pts[k], lines[k]) == _missed_reference(local, obs, q, o, view)
+        seen_points += pts.sum()
+        seen_lines += lines.sum()
+    assert seen_points > 20 and seen_lines > 20  # both kinds of misses were counted
+
+
 def test_small_volume_maximum_filter_is_scipys():
     from scipy.ndimage import maximum_filter
 
