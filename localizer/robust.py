@@ -313,33 +313,55 @@ def data_scores(
     the true one, but at the end of a dashed line, a stop line or a change of
     line type it predicts markings that nobody saw.
     """
-    P = np.asarray(poses, float).reshape(-1, 3)
-    K, N = len(P), len(obs_xy)
-    cos, sin = np.cos(P[:, 2]), np.sin(P[:, 2])
-    px = cos[:, None] * obs_xy[None, :, 0] - sin[:, None] * obs_xy[None, :, 1] + P[:, 0, None]
-    py = sin[:, None] * obs_xy[None, :, 0] + cos[:, None] * obs_xy[None, :, 1] + P[:, 1, None]
-    pts = np.stack([px, py], -1)
-    s = np.sqrt(SCORE_FLOOR_M**2 + sigma_obs**2)
-    d, tgt, _, which = local_map.closest(pts.reshape(-1, 2), 4.0 * float(s.max()), return_index=True)
-    d, which = d.reshape(K, N), which.reshape(K, N)
-    fin = np.isfinite(d)
-    if options.bearing_noise_rad is None:
-        u2 = (np.where(fin, d, 0.0) / s[None]) ** 2
-    else:
-        st = np.sqrt(SCORE_FLOOR_M**2 + bearing_sigma(obs_xy, options) ** 2)
-        e = (pts.reshape(-1, 2) - tgt).reshape(K, N, 2)
-        bear = P[:, 2, None] + np.arctan2(obs_xy[None, :, 1], obs_xy[None, :, 0])
-        er = e[..., 0] * np.cos(bear) + e[..., 1] * np.sin(bear)
-        et = -e[..., 0] * np.sin(bear) + e[..., 1] * np.cos(bear)
-        u2 = np.where(fin, (er / s[None]) ** 2 + (et / st[None]) ** 2, 0.0)
-    k = np.where(fin, np.exp(-0.5 * u2), 0.0)
-    # A solid-line piece explains an observation anywhere along its length: its
-    # density is spread over the length, so a match on it is weaker evidence.
-    half = np.where(which >= 0, local_map.half[np.maximum(which, 0)], 0.0)
-    seg = half > 0
-    k[seg] *= np.minimum(1.0, (math.sqrt(2 * math.pi) * s[None] / np.maximum(2 * half, 1e-9))[seg])
-    score = np.sum(w_obs[None] * np.log1p(k / options.outlier_density), axis=1)
+    P = np.ascontiguousarray(np.asarray(poses, float).reshape(-1, 3))
+    s = np.sqrt(SCORE_FLOOR_M**2 + np.asarray(sigma_obs, float) ** 2)
+    aniso = options.bearing_noise_rad is not None
+    st = np.sqrt(SCORE_FLOOR_M**2 + bearing_sigma(obs_xy, options) ** 2) if aniso else s
+    score = _positive_scores(P, np.ascontiguousarray(obs_xy, float), np.ascontiguousarray(w_obs, float), s, st,
+                             aniso, float(options.outlier_density), 4.0 * float(s.max()) if s.size else 0.0,
+                             local_map.tables)  # fmt: skip
     return score - miss_costs(local_map, obs_xy, P, options, view)
+
+
+@njit(cache=True, nogil=True)
+def _positive_scores(P, obs, w, s, st, aniso, outlier_density, max_dist, tables):
+    """The positive evidence of :func:`data_scores`, compiled: per pose, ``Σ w log(1 + k / π)``.
+
+    ``k`` is the Gaussian kernel of the residual to the closest marking
+    within ``max_dist`` (anisotropic: ``s`` along the viewing ray, ``st``
+    across it), divided by a segment's length over ``sqrt(2π) s`` where the
+    match lies on a line-like marking (capped at 1).
+    """
+    K, N = P.shape[0], obs.shape[0]
+    c, h = tables[0], tables[2]
+    reach2 = (max_dist + tables[3]) ** 2
+    best_i = np.empty(NEAREST_CENTROIDS, np.int64)
+    best_d = np.empty(NEAREST_CENTROIDS)
+    out = np.zeros(K)
+    for k in range(K):
+        rot = complex(math.cos(P[k, 2]), math.sin(P[k, 2]))
+        pos = complex(P[k, 0], P[k, 1])
+        for j in range(N):
+            p = rot * complex(obs[j, 0], obs[j, 1]) + pos
+            best_d[0] = reach2
+            d, e, m = nearest_marking(p, tables, best_i, best_d)
+            if not d <= max_dist:
+                continue
+            if aniso:
+                bear = P[k, 2] + math.atan2(obs[j, 1], obs[j, 0])
+                cb, sb = math.cos(bear), math.sin(bear)
+                er = e.real * cb + e.imag * sb
+                et = -e.real * sb + e.imag * cb
+                u2 = (er / s[j]) ** 2 + (et / st[j]) ** 2
+            else:
+                u2 = (d / s[j]) ** 2
+            kv = math.exp(-0.5 * u2)
+            # A solid-line piece explains an observation anywhere along its
+            # length: its density is spread over the length.
+            if h[m] > 0:
+                kv *= min(1.0, math.sqrt(2 * math.pi) * s[j] / max(2 * h[m], 1e-9))
+            out[k] += w[j] * math.log1p(kv / outlier_density)
+    return out
 
 
 def miss_costs(local_map: LocalMap, obs_xy, poses, options: Options, view=None) -> np.ndarray:

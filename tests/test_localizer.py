@@ -200,6 +200,40 @@ def test_negative_evidence_counts_match_the_plain_definition():
     assert seen_points > 20 and seen_lines > 20  # both kinds of misses were counted
 
 
+def test_positive_evidence_matches_the_plain_definition():
+    """data_scores less its negative evidence: per observation w log(1 + k / outlier density), k the
+    anisotropic Gaussian of the residual to the closest marking, discounted on segments."""
+    from localizer.robust import SCORE_FLOOR_M, bearing_sigma, data_scores, miss_costs, noise_sigma, view_of
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(9)
+    for bearing_noise in (Options().bearing_noise_rad, None):
+        o = Options(bearing_noise_rad=bearing_noise)
+        for pose in sample_poses(smap, 6, rng, Camera(), min_visible=4):
+            scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+            obs, w = scene.observations[:, :2], scene.observations[:, 2] / 40.0
+            local = LocalMap(index, pose[:2], 60.0)
+            sig = noise_sigma(obs, o)
+            view = view_of(obs, o)
+            poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in rng.normal(0, [0.3, 0.3, 0.01], (3, 3)) + [0, 0, pose[2]]]
+            got = data_scores(local, obs, w, sig, poses, o, view) + miss_costs(local, obs, poses, o, view)
+            s = np.sqrt(SCORE_FLOOR_M**2 + sig**2)
+            st = np.sqrt(SCORE_FLOOR_M**2 + bearing_sigma(obs, o) ** 2) if bearing_noise is not None else s
+            for q, g in zip(poses, got):
+                p = apply(q, obs)
+                d, tgt, _, which = local.closest(p, 4.0 * s.max(), return_index=True)
+                want = 0.0
+                for j in np.flatnonzero(np.isfinite(d)):
+                    b = q[2] + math.atan2(obs[j, 1], obs[j, 0])
+                    ray, across = np.array([math.cos(b), math.sin(b)]), np.array([-math.sin(b), math.cos(b)])
+                    e = p[j] - tgt[j]
+                    k = math.exp(-0.5 * ((e @ ray / s[j]) ** 2 + (e @ across / st[j]) ** 2))
+                    if local.half[which[j]] > 0:
+                        k *= min(1.0, math.sqrt(2 * math.pi) * s[j] / (2 * local.half[which[j]]))
+                    want += w[j] * math.log1p(k / o.outlier_density)
+                assert g == pytest.approx(want, rel=1e-9, abs=1e-9) and want > 0
+
+
 def test_small_volume_maximum_filter_is_scipys():
     from scipy.ndimage import maximum_filter
 
