@@ -504,43 +504,19 @@ def fit_statistics(
     line, so a view of a single solid line leaves the along-line direction to
     the prior information ``prior_info`` (3x3, added to the data information).
     """
-    p = apply(pose, obs_xy)
-    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
-    d, tgt, normal = local_map.closest(p, float(gate.max()))
-    m = np.isfinite(d) & (d <= gate)
+    gate = np.maximum(options.inlier_distance_m, 3.0 * np.asarray(sigma_obs, float))
+    lever = pitch_lever(np.hypot(obs_xy[:, 0], obs_xy[:, 1]), options)
+    m, sum_d2, H, G, B, chi2, dof = _fit_sums(
+        np.asarray(pose, float), np.ascontiguousarray(obs_xy, float), np.ascontiguousarray(w_obs, float),
+        np.ascontiguousarray(sigma_obs, float), gate, float(gate.max()) if gate.size else 0.0, lever,
+        local_map.tables,
+    )
     n = int(m.sum())
     if n == 0:
         return Fit(0, None, None, m)
-    rms = float(np.sqrt(np.mean(d[m] ** 2)))
+    rms = math.sqrt(sum_d2 / n)
     if n < 2:
         return Fit(n, rms, None, m)
-    q = (rotation(pose[2]) @ obs_xy[m].T).T  # lever arms from the vehicle origin
-    r = p[m] - tgt[m]
-    w = w_obs[m] / sigma_obs[m] ** 2
-    rng_j = np.hypot(obs_xy[m, 0], obs_xy[m, 1])
-    drdp = pitch_lever(rng_j, options)
-    radial = q / np.maximum(rng_j, 1e-9)[:, None]
-    shift = radial * drdp[:, None]
-    # Rows of the Jacobian: two per point pair (x, y), one per segment pair
-    # (across the line: the normal times the point rows).
-    nv = normal[m]
-    seg = nv.any(axis=1)
-    jx = np.column_stack([np.ones(n), np.zeros(n), -q[:, 1]])
-    jy = np.column_stack([np.zeros(n), np.ones(n), q[:, 0]])
-    js = nv[:, :1] * jx + nv[:, 1:] * jy
-    # Per pair: first row (x, or across the line), second row (y; zero for segments).
-    J1 = np.where(seg[:, None], js, jx)
-    J2 = np.where(seg[:, None], 0.0, jy)
-    r1 = np.where(seg, np.einsum("nd,nd->n", nv, r), r[:, 0])
-    r2 = np.where(seg, 0.0, r[:, 1])
-    s1 = np.where(seg, np.einsum("nd,nd->n", nv, shift), shift[:, 0])
-    s2_ = np.where(seg, 0.0, shift[:, 1])
-    H = (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2
-    G = (w * s1) @ J1 + (w * s2_) @ J2
-    g = (J1 * r1[:, None] + J2 * r2[:, None]) * w[:, None]
-    B = g.T @ g
-    chi2 = float(np.sum(w * (r1 * r1 + r2 * r2)))
-    dof = float(np.sum(np.where(seg, 1.0, 2.0)))
     s2 = chi2 / max(dof - 3.0, 1.0)
     s2 = max(s2, 0.25)  # optimistic residuals from few points must not shrink the ellipse
     info_prior = np.zeros((3, 3)) if prior_info is None else prior_info
@@ -561,6 +537,68 @@ def fit_statistics(
     cov = 0.5 * (model + sandwich) + pitch
     cov = options.covariance_inflation * 0.5 * (cov + cov.T)
     return Fit(n, rms, cov, m)
+
+
+@njit(cache=True, nogil=True)
+def _fit_sums(pose, obs, w_obs, sigma, gate, gmax, lever, tables):
+    """The sums behind :func:`fit_statistics`, compiled.
+
+    Pairs each observation with its closest marking within its ``gate`` and
+    accumulates, over the pairs, the information ``H = Σ w JᵀJ``, the
+    pitch sensitivity ``G = Σ w Jᵀ s`` (``s`` the shift a unit pitch error
+    gives the observation along its ray, ``lever`` metres per radian), the
+    scores' outer products ``B = Σ (w Jᵀ r)(w Jᵀ r)ᵀ``, ``χ² = Σ w |r|²``
+    and the degrees of freedom; ``w = w_obs / σ²``. A point pair has two
+    rows (x, y) in ``J``; a segment pair one, across its line.
+
+    Returns ``(inlier mask, Σ d², H, G, B, χ², dof)``.
+    """
+    N = obs.shape[0]
+    uc, max_half = tables[1], tables[3]
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    mask = np.zeros(N, np.bool_)
+    H = np.zeros((3, 3))
+    G = np.zeros(3)
+    B = np.zeros((3, 3))
+    J1 = np.empty(3)
+    J2 = np.empty(3)
+    best_i = np.empty(NEAREST_CENTROIDS, np.int64)
+    best_d = np.empty(NEAREST_CENTROIDS)
+    sum_d2 = chi2 = dof = 0.0
+    for j in range(N):
+        qx = c * obs[j, 0] - s * obs[j, 1]  # lever arm from the vehicle origin
+        qy = s * obs[j, 0] + c * obs[j, 1]
+        best_d[0] = (gmax + max_half) ** 2
+        d, e, m = nearest_marking(complex(qx + pose[0], qy + pose[1]), tables, best_i, best_d)
+        if not (d <= gmax and d <= gate[j]):
+            continue
+        mask[j] = True
+        sum_d2 += d * d
+        w = w_obs[j] / sigma[j] ** 2
+        rng = max(math.hypot(obs[j, 0], obs[j, 1]), 1e-9)
+        sx, sy = qx / rng * lever[j], qy / rng * lever[j]
+        # Rows x: (1, 0, -qy), y: (0, 1, qx); a segment's row is the normal times them.
+        nx, ny = uc[m].imag, uc[m].real  # the normal (-axis_y, axis_x); axis = conj(uc)
+        if nx != 0.0 or ny != 0.0:
+            J1[0], J1[1], J1[2] = nx, ny, -nx * qy + ny * qx
+            J2[:] = 0.0
+            r1, r2 = nx * e.real + ny * e.imag, 0.0
+            s1, s2 = nx * sx + ny * sy, 0.0
+            dof += 1.0
+        else:
+            J1[0], J1[1], J1[2] = 1.0, 0.0, -qy
+            J2[0], J2[1], J2[2] = 0.0, 1.0, qx
+            r1, r2 = e.real, e.imag
+            s1, s2 = sx, sy
+            dof += 2.0
+        chi2 += w * (r1 * r1 + r2 * r2)
+        for a in range(3):
+            G[a] += w * (s1 * J1[a] + s2 * J2[a])
+            ga = w * (J1[a] * r1 + J2[a] * r2)
+            for b in range(3):
+                H[a, b] += w * (J1[a] * J1[b] + J2[a] * J2[b])
+                B[a, b] += ga * w * (J1[b] * r1 + J2[b] * r2)
+    return mask, sum_d2, H, G, B, chi2, dof
 
 
 #: Information of the weak prior that keeps :func:`refine_with_pitch` near its

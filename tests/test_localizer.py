@@ -234,6 +234,53 @@ def test_positive_evidence_matches_the_plain_definition():
                 assert g == pytest.approx(want, rel=1e-9, abs=1e-9) and want > 0
 
 
+def test_fit_sums_match_the_jacobian_rows_spelled_out():
+    """fit_statistics' compiled sums: H, G, B, chi² and dof from the Jacobian rows of each pair
+    (x and y rows for a point, the normal's row for a segment), as numpy matrix products."""
+    from localizer.robust import _fit_sums, noise_sigma, pitch_lever
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(12)
+    o = Options()
+    n_seg = n_pt = 0
+    for pose in sample_poses(smap, 8, rng, Camera(), min_visible=4):
+        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+        obs, w_obs = scene.observations[:, :2], scene.observations[:, 2] / 40.0
+        local = LocalMap(index, pose[:2], 60.0)
+        sig = noise_sigma(obs, o)
+        q_pose = (0.05, -0.03, pose[2] + 0.002)
+        gate = np.maximum(o.inlier_distance_m, 3.0 * sig)
+        p = apply(q_pose, obs)
+        d, tgt, normal = local.closest(p, float(gate.max()))
+        m = np.isfinite(d) & (d <= gate)
+        q = apply((0.0, 0.0, q_pose[2]), obs)[m]
+        r, w, nv = p[m] - tgt[m], w_obs[m] / sig[m] ** 2, normal[m]
+        rng_j = np.hypot(obs[m, 0], obs[m, 1])
+        shift = q / rng_j[:, None] * pitch_lever(rng_j, o)[:, None]
+        seg = nv.any(axis=1)
+        jx = np.column_stack([np.ones(m.sum()), np.zeros(m.sum()), -q[:, 1]])
+        jy = np.column_stack([np.zeros(m.sum()), np.ones(m.sum()), q[:, 0]])
+        J1 = np.where(seg[:, None], nv[:, :1] * jx + nv[:, 1:] * jy, jx)
+        J2 = np.where(seg[:, None], 0.0, jy)
+        r1 = np.where(seg, (nv * r).sum(1), r[:, 0])
+        r2 = np.where(seg, 0.0, r[:, 1])
+        s1 = np.where(seg, (nv * shift).sum(1), shift[:, 0])
+        s2 = np.where(seg, 0.0, shift[:, 1])
+        g = (J1 * r1[:, None] + J2 * r2[:, None]) * w[:, None]
+        got = _fit_sums(np.array(q_pose), obs, w_obs, sig, gate, float(gate.max()),
+                        pitch_lever(np.hypot(obs[:, 0], obs[:, 1]), o), local.tables)  # fmt: skip
+        assert np.array_equal(got[0], m)
+        assert got[1] == pytest.approx(float((d[m] ** 2).sum()), rel=1e-12)
+        assert np.allclose(got[2], (J1 * w[:, None]).T @ J1 + (J2 * w[:, None]).T @ J2, rtol=1e-10, atol=1e-9)
+        assert np.allclose(got[3], (w * s1) @ J1 + (w * s2) @ J2, rtol=1e-10, atol=1e-9)
+        assert np.allclose(got[4], g.T @ g, rtol=1e-10, atol=1e-9)
+        assert got[5] == pytest.approx(float(np.sum(w * (r1 * r1 + r2 * r2))), rel=1e-10)
+        assert got[6] == float(np.sum(np.where(seg, 1.0, 2.0)))
+        n_seg += int(seg.sum())
+        n_pt += int((~seg).sum())
+    assert n_seg > 10 and n_pt > 10  # both kinds of pairs were exercised
+
+
 def test_small_volume_maximum_filter_is_scipys():
     from scipy.ndimage import maximum_filter
 
