@@ -651,8 +651,6 @@ def refine_with_pitch(
     var_t = c * c + (bearing_sigma(obs_xy, options) ** 2 if bn is not None else sigma_obs**2)
     gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
     info_pitch = 1.0 / math.radians(options.pitch_sigma_deg) ** 2
-    delta = 0.0
-    var = 1.0 / info_pitch
     # The pairs are those of the chosen pose and stay fixed: re-paired at
     # every step, a fit with no prior on the pose could walk along a road
     # that only a few dashes pin down, a dash period in a few steps.
@@ -660,57 +658,97 @@ def refine_with_pitch(
     m = np.isfinite(d) & (d <= gate)
     if m.sum() < 2:
         return tuple(float(v) for v in pose), 0.0, 1.0 / info_pitch
-    tgt, normal = tgt[m], normal[m]
-    seg = normal.any(axis=1)
+    pose, delta, var = _pitch_fit(
+        pose, np.ascontiguousarray(obs_xy[m], float), np.ascontiguousarray(ray_v[m]), k[m], var_r[m], var_t[m],
+        np.ascontiguousarray(tgt[m]), np.ascontiguousarray(normal[m]), float(options.camera_height_m), info_pitch,
+        np.ascontiguousarray(np.diag(PITCH_FIT_DAMPING)), float(options.tolerance_m), float(options.tolerance_rad),
+        int(iterations),
+    )  # fmt: skip
+    return (float(pose[0]), float(pose[1]), float(pose[2])), float(delta), float(var)
+
+
+@njit(cache=True, nogil=True)
+def _pitch_fit(pose, obs, ray, lever, var_r, var_t, tgt, normal, h, info_pitch, damping, tol_m, tol_rad,
+               iterations):  # fmt: skip
+    """The Gauss-Newton iterations of :func:`refine_with_pitch` over its fixed pairs, compiled.
+
+    ``obs``, ``ray`` (unit viewing rays), ``lever`` (metres per radian of
+    pitch), the variances along and across the ray, ``tgt`` and ``normal``
+    (zero for point pairs) are those of the paired observations. Returns
+    ``(pose, pitch, pitch variance)``.
+    """
+    n = obs.shape[0]
+    pose = pose.copy()
     start = pose.copy()
+    delta = 0.0
+    var = 1.0 / info_pitch
+    H = np.empty((4, 4))
+    b = np.empty(4)
+    J = np.empty((2, 4))
+    info = np.empty((2, 2))
+    JtI = np.empty((4, 2))
     for _ in range(iterations):
-        o = pitch_corrected(obs_xy, delta, options)
-        p = apply(tuple(pose), o)[m]
-        R = rotation(pose[2])
-        q = (R @ o[m].T).T
-        u = (R @ ray_v[m].T).T
-        v = np.column_stack([-u[:, 1], u[:, 0]])
-        e = p - tgt
-        # On a line only the distance across it is a residual.
-        e[seg] = (e[seg] * normal[seg]).sum(1, keepdims=True) * normal[seg]
-        d2 = (e * e).sum(1)
-        gm = 1.0 / (1.0 + d2 / var_r[m]) ** 2
-        # Per pair: a 2x2 information (ray / across) for points, the normal's
-        # variance for segments.
-        info = gm[:, None, None] * (np.einsum("ni,nj->nij", u, u) / var_r[m][:, None, None]
-                                    + np.einsum("ni,nj->nij", v, v) / var_t[m][:, None, None])
-        if seg.any():
-            nv = normal[seg]
-            var_n = (nv * u[seg]).sum(1) ** 2 * var_r[m][seg] + (nv * v[seg]).sum(1) ** 2 * var_t[m][seg]
-            info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv, nv) / var_n[:, None, None]
-        J = np.zeros((len(e), 2, 4))
-        J[:, 0, 0] = 1.0
-        J[:, 1, 1] = 1.0
-        J[:, 0, 2] = -q[:, 1]
-        J[:, 1, 2] = q[:, 0]
-        J[:, :, 3] = u * k[m][:, None]
-        JtI = np.einsum("nki,nkl->nil", J, info)
-        H = np.einsum("nil,nlj->ij", JtI, J)
-        b = -np.einsum("nil,nl->i", JtI, e)
+        H[:] = 0.0
+        b[:] = 0.0
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        for j in range(n):
+            # The observation moved along its ray to undo the pitch (see pitch_corrected).
+            r = math.hypot(obs[j, 0], obs[j, 1])
+            rr = max(r, 1e-9)
+            alpha = math.atan2(h, rr) - delta
+            f = h / math.tan(max(alpha, 1e-3)) / rr
+            ox, oy = obs[j, 0] * f, obs[j, 1] * f
+            qx, qy = c * ox - s * oy, s * ox + c * oy
+            ux, uy = c * ray[j, 0] - s * ray[j, 1], s * ray[j, 0] + c * ray[j, 1]
+            vx, vy = -uy, ux
+            ex, ey = qx + pose[0] - tgt[j, 0], qy + pose[1] - tgt[j, 1]
+            nx, ny = normal[j, 0], normal[j, 1]
+            seg = nx != 0.0 or ny != 0.0
+            if seg:  # on a line only the distance across it is a residual
+                en = ex * nx + ey * ny
+                ex, ey = en * nx, en * ny
+            gm = 1.0 / (1.0 + (ex * ex + ey * ey) / var_r[j]) ** 2
+            if seg:
+                nu, nv = nx * ux + ny * uy, nx * vx + ny * vy
+                g = gm / (nu * nu * var_r[j] + nv * nv * var_t[j])
+                info[0, 0], info[0, 1], info[1, 1] = g * nx * nx, g * nx * ny, g * ny * ny
+            else:
+                info[0, 0] = gm * (ux * ux / var_r[j] + vx * vx / var_t[j])
+                info[0, 1] = gm * (ux * uy / var_r[j] + vx * vy / var_t[j])
+                info[1, 1] = gm * (uy * uy / var_r[j] + vy * vy / var_t[j])
+            info[1, 0] = info[0, 1]
+            J[0, 0], J[0, 1], J[0, 2], J[0, 3] = 1.0, 0.0, -qy, ux * lever[j]
+            J[1, 0], J[1, 1], J[1, 2], J[1, 3] = 0.0, 1.0, qx, uy * lever[j]
+            for a in range(4):
+                for t in range(2):
+                    JtI[a, t] = J[0, a] * info[0, t] + J[1, a] * info[1, t]
+                b[a] -= JtI[a, 0] * ex + JtI[a, 1] * ey
+                for bb in range(4):
+                    H[a, bb] += JtI[a, 0] * J[0, bb] + JtI[a, 1] * J[1, bb]
         H[3, 3] += info_pitch
         b[3] -= info_pitch * delta
         # A weak prior on the pose, centred where the fit starts: along a road
         # that only solid lines (and dashes matched across only) constrain, the
         # information along it is nearly zero, and an undamped step there is
         # noise amplified, metres long.
-        H[:3, :3] += PITCH_FIT_DAMPING
-        b[:3] -= PITCH_FIT_DAMPING @ (pose - start)
+        for a in range(3):
+            H[a, a] += damping[a]
+            b[a] -= damping[a] * (pose[a] - start[a])
+        for a in range(4):
+            H[a, a] += 1e-9
         try:
-            Hinv = np.linalg.inv(H + np.eye(4) * 1e-9)
-        except np.linalg.LinAlgError:
+            Hinv = np.linalg.inv(H)
+        except Exception:  # singular: keep the last pose
             break
         step = Hinv @ b
-        var = float(Hinv[3, 3])
-        pose += step[:3]
+        var = Hinv[3, 3]
+        pose[0] += step[0]
+        pose[1] += step[1]
+        pose[2] += step[2]
         delta += step[3]
-        if np.hypot(step[0], step[1]) < options.tolerance_m and abs(step[2]) < options.tolerance_rad:
+        if math.hypot(step[0], step[1]) < tol_m and abs(step[2]) < tol_rad:
             break
-    return tuple(float(v) for v in pose), float(delta), var
+    return pose, delta, var
 
 
 def pitch_lever(range_m: np.ndarray, options: Options) -> np.ndarray:

@@ -281,6 +281,96 @@ def test_fit_sums_match_the_jacobian_rows_spelled_out():
     assert n_seg > 10 and n_pt > 10  # both kinds of pairs were exercised
 
 
+def _pitch_fit_reference(local_map: LocalMap, obs_xy, sigma_obs, pose, opts: Options, iterations: int = 5):
+    """refine_with_pitch as numpy on all pairs at once (before its iterations were compiled)."""
+    from localizer.geometry import rotation
+    from localizer.robust import PITCH_FIT_DAMPING, bearing_sigma, pitch_corrected, pitch_lever
+
+    pose = np.array(pose, float)
+    n = len(obs_xy)
+    if n < 2:
+        return tuple(float(v) for v in pose), 0.0, math.radians(opts.pitch_sigma_deg) ** 2
+    rng_j = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
+    ray_v = obs_xy / np.maximum(rng_j, 1e-9)[:, None]
+    k = pitch_lever(rng_j, opts)
+    c = opts.anneal_m[-1]
+    var_r = c * c + sigma_obs**2
+    bn = opts.bearing_noise_rad
+    var_t = c * c + (bearing_sigma(obs_xy, opts) ** 2 if bn is not None else sigma_obs**2)
+    gate = np.maximum(opts.inlier_distance_m, 3.0 * sigma_obs)
+    info_pitch = 1.0 / math.radians(opts.pitch_sigma_deg) ** 2
+    delta = 0.0
+    var = 1.0 / info_pitch
+    d, tgt, normal = local_map.closest(apply(tuple(pose), obs_xy), float(gate.max()))
+    m = np.isfinite(d) & (d <= gate)
+    if m.sum() < 2:
+        return tuple(float(v) for v in pose), 0.0, 1.0 / info_pitch
+    tgt, normal = tgt[m], normal[m]
+    seg = normal.any(axis=1)
+    start = pose.copy()
+    for _ in range(iterations):
+        o = pitch_corrected(obs_xy, delta, opts)
+        p = apply(tuple(pose), o)[m]
+        R = rotation(pose[2])
+        q = (R @ o[m].T).T
+        u = (R @ ray_v[m].T).T
+        v = np.column_stack([-u[:, 1], u[:, 0]])
+        e = p - tgt
+        e[seg] = (e[seg] * normal[seg]).sum(1, keepdims=True) * normal[seg]
+        d2 = (e * e).sum(1)
+        gm = 1.0 / (1.0 + d2 / var_r[m]) ** 2
+        info = gm[:, None, None] * (np.einsum("ni,nj->nij", u, u) / var_r[m][:, None, None]
+                                    + np.einsum("ni,nj->nij", v, v) / var_t[m][:, None, None])
+        if seg.any():
+            nv = normal[seg]
+            var_n = (nv * u[seg]).sum(1) ** 2 * var_r[m][seg] + (nv * v[seg]).sum(1) ** 2 * var_t[m][seg]
+            info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv, nv) / var_n[:, None, None]
+        J = np.zeros((len(e), 2, 4))
+        J[:, 0, 0] = 1.0
+        J[:, 1, 1] = 1.0
+        J[:, 0, 2] = -q[:, 1]
+        J[:, 1, 2] = q[:, 0]
+        J[:, :, 3] = u * k[m][:, None]
+        JtI = np.einsum("nki,nkl->nil", J, info)
+        H = np.einsum("nil,nlj->ij", JtI, J)
+        b = -np.einsum("nil,nl->i", JtI, e)
+        H[3, 3] += info_pitch
+        b[3] -= info_pitch * delta
+        H[:3, :3] += PITCH_FIT_DAMPING
+        b[:3] -= PITCH_FIT_DAMPING @ (pose - start)
+        try:
+            Hinv = np.linalg.inv(H + np.eye(4) * 1e-9)
+        except np.linalg.LinAlgError:
+            break
+        step = Hinv @ b
+        var = float(Hinv[3, 3])
+        pose += step[:3]
+        delta += step[3]
+        if np.hypot(step[0], step[1]) < opts.tolerance_m and abs(step[2]) < opts.tolerance_rad:
+            break
+    return tuple(float(v) for v in pose), float(delta), var
+
+
+def test_the_joint_pitch_fit_matches_its_numpy_form():
+    from localizer.robust import noise_sigma, refine_with_pitch
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(13)
+    o = Options()
+    moved = 0
+    for pose in sample_poses(smap, 10, rng, Camera(), min_visible=4):
+        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+        obs = scene.observations[:, :2]
+        local = LocalMap(index, pose[:2], 60.0)
+        start = (0.1, -0.1, pose[2] + 0.003)
+        got = refine_with_pitch(local, obs, noise_sigma(obs, o), start, o)
+        want = _pitch_fit_reference(local, obs, noise_sigma(obs, o), start, o)
+        assert np.allclose(got[0], want[0], rtol=0, atol=1e-9)
+        assert got[1] == pytest.approx(want[1], abs=1e-12) and got[2] == pytest.approx(want[2], rel=1e-9)
+        moved += math.hypot(got[0][0] - start[0], got[0][1] - start[1]) > 0.01
+    assert moved >= 5  # the fits did move the poses
+
+
 def test_small_volume_maximum_filter_is_scipys():
     from scipy.ndimage import maximum_filter
 
