@@ -325,7 +325,7 @@ def data_scores(
 
 @njit(cache=True, nogil=True)
 def _positive_scores(P, obs, w, s, st, aniso, outlier_density, max_dist, tables):
-    """The positive evidence of :func:`data_scores`, compiled: per pose, ``Σ w log(1 + k / π)``.
+    """The positive evidence of :func:`data_scores`, compiled: per pose, ``Σ w log(1 + k / outlier_density)``.
 
     ``k`` is the Gaussian kernel of the residual to the closest marking
     within ``max_dist`` (anisotropic: ``s`` along the viewing ray, ``st``
@@ -333,7 +333,7 @@ def _positive_scores(P, obs, w, s, st, aniso, outlier_density, max_dist, tables)
     match lies on a line-like marking (capped at 1).
     """
     K, N = P.shape[0], obs.shape[0]
-    c, h = tables[0], tables[2]
+    h = tables[2]
     reach2 = (max_dist + tables[3]) ** 2
     best_i = np.empty(NEAREST_CENTROIDS, np.int64)
     best_d = np.empty(NEAREST_CENTROIDS)
