@@ -205,6 +205,24 @@ def _bucket_grid(c: np.ndarray, cell: float) -> tuple:
     return x0, y0, float(cell), nx, ny, start, items
 
 
+@njit(cache=True, nogil=True, inline="always")
+def keep_nearest(best_d, best_i, found, k, d2, i):
+    """Offer item ``i`` at squared distance ``d2`` to the ``k`` nearest so far; their new count.
+
+    ``best_d[:found]`` stays sorted, nearest first (ties keep the earlier).
+    """
+    if found == k and d2 >= best_d[k - 1]:
+        return found
+    q = min(found, k - 1)
+    while q > 0 and best_d[q - 1] > d2:
+        best_d[q] = best_d[q - 1]
+        best_i[q] = best_i[q - 1]
+        q -= 1
+    best_d[q] = d2
+    best_i[q] = i
+    return min(found + 1, k)
+
+
 @njit(cache=True, nogil=True)
 def nearest_marking(p, tables, best_i, best_d):
     """The marking closest to point ``p`` among its nearest centroids (compiled).
@@ -268,18 +286,8 @@ def nearest_marking(p, tables, best_i, best_d):
                     m = items[t]
                     dz = p - c[m]
                     d2 = dz.real * dz.real + dz.imag * dz.imag
-                    if d2 > r2max or (found == k and d2 >= best_d[k - 1]):
-                        continue
-                    # Insert, keeping best_d sorted (ties keep the earlier).
-                    q = min(found, k - 1)
-                    while q > 0 and best_d[q - 1] > d2:
-                        best_d[q] = best_d[q - 1]
-                        best_i[q] = best_i[q - 1]
-                        q -= 1
-                    best_d[q] = d2
-                    best_i[q] = m
-                    if found < k:
-                        found += 1
+                    if d2 <= r2max:
+                        found = keep_nearest(best_d, best_i, found, k, d2, m)
                 jj += 1
         r += 1
     dist = np.inf

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, nearest_marking, rotation
+from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, keep_nearest, nearest_marking, rotation
 from .types import Options
 
 
@@ -432,16 +432,8 @@ def _missed_batch(P, E, solid, axis, obs, rmin, rmax, tan_half, explain, along_m
                 ox, oy = obs[j, 0] - vx, obs[j, 1] - vy
                 d2 = ox * ox + oy * oy
                 best = min(best, d2)
-                if d2 < al2 and (found < n_near or d2 < near_d[n_near - 1]):
-                    q = min(found, n_near - 1)
-                    while q > 0 and near_d[q - 1] > d2:
-                        near_d[q] = near_d[q - 1]
-                        near_i[q] = near_i[q - 1]
-                        q -= 1
-                    near_d[q] = d2
-                    near_i[q] = j
-                    if found < n_near:
-                        found += 1
+                if d2 < al2:
+                    found = keep_nearest(near_d, near_i, found, n_near, d2, j)
             if best < ex2:
                 continue
             if not solid[e]:
@@ -639,32 +631,45 @@ def refine_with_pitch(
         Its posterior variance, radians² (the prior's if nothing matched).
     """
     pose = np.array(pose, float)
-    n = len(obs_xy)
-    if n < 2:
-        return tuple(float(v) for v in pose), 0.0, math.radians(options.pitch_sigma_deg) ** 2
-    rng_j = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
-    ray_v = obs_xy / np.maximum(rng_j, 1e-9)[:, None]
-    k = pitch_lever(rng_j, options)
-    c = options.anneal_m[-1]
-    var_r = c * c + sigma_obs**2
-    bn = options.bearing_noise_rad
-    var_t = c * c + (bearing_sigma(obs_xy, options) ** 2 if bn is not None else sigma_obs**2)
-    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
     info_pitch = 1.0 / math.radians(options.pitch_sigma_deg) ** 2
-    # The pairs are those of the chosen pose and stay fixed: re-paired at
-    # every step, a fit with no prior on the pose could walk along a road
-    # that only a few dashes pin down, a dash period in a few steps.
+    pairs = pitch_pairs(local_map, obs_xy, sigma_obs, pose, options)
+    if pairs is None:
+        return tuple(float(v) for v in pose), 0.0, 1.0 / info_pitch
+    pose, delta, var = _pitch_fit(
+        pose, *pairs, float(options.camera_height_m), info_pitch, np.ascontiguousarray(np.diag(PITCH_FIT_DAMPING)),
+        float(options.tolerance_m), float(options.tolerance_rad), int(iterations),
+    )  # fmt: skip
+    return (float(pose[0]), float(pose[1]), float(pose[2])), float(delta), float(var)
+
+
+def pitch_pairs(local_map: LocalMap, obs_xy: np.ndarray, sigma_obs: np.ndarray, pose, options: Options):
+    """The pairs of :func:`refine_with_pitch`, made once at ``pose``; None if fewer than two.
+
+    The pairs are those of the chosen pose and stay fixed: re-paired at every
+    step, a fit with no prior on the pose could walk along a road that only a
+    few dashes pin down, a dash period in a few steps.
+
+    Returns
+    -------
+    tuple of arrays, one row per pair
+        The observations, their unit viewing rays, their pitch levers
+        (metres per radian), their variances along and across the ray at
+        the finest annealing scale, the closest points of their markings and
+        the markings' unit normals (zero for point-like markings).
+    """
+    if len(obs_xy) < 2:
+        return None
+    gate = np.maximum(options.inlier_distance_m, 3.0 * sigma_obs)
     d, tgt, normal = local_map.closest(apply(tuple(pose), obs_xy), float(gate.max()))
     m = np.isfinite(d) & (d <= gate)
     if m.sum() < 2:
-        return tuple(float(v) for v in pose), 0.0, 1.0 / info_pitch
-    pose, delta, var = _pitch_fit(
-        pose, np.ascontiguousarray(obs_xy[m], float), np.ascontiguousarray(ray_v[m]), k[m], var_r[m], var_t[m],
-        np.ascontiguousarray(tgt[m]), np.ascontiguousarray(normal[m]), float(options.camera_height_m), info_pitch,
-        np.ascontiguousarray(np.diag(PITCH_FIT_DAMPING)), float(options.tolerance_m), float(options.tolerance_rad),
-        int(iterations),
-    )  # fmt: skip
-    return (float(pose[0]), float(pose[1]), float(pose[2])), float(delta), float(var)
+        return None
+    rng_j = np.hypot(obs_xy[m, 0], obs_xy[m, 1])
+    c = options.anneal_m[-1]
+    var_t = bearing_sigma(obs_xy[m], options) ** 2 if options.bearing_noise_rad is not None else sigma_obs[m] ** 2
+    return (np.ascontiguousarray(obs_xy[m], float), obs_xy[m] / np.maximum(rng_j, 1e-9)[:, None],
+            pitch_lever(rng_j, options), c * c + sigma_obs[m] ** 2, c * c + var_t,
+            np.ascontiguousarray(tgt[m]), np.ascontiguousarray(normal[m]))  # fmt: skip
 
 
 @njit(cache=True, nogil=True)

@@ -75,6 +75,14 @@ def _closest_reference(local: LocalMap, p: np.ndarray, max_dist: float):
     return dist, target, which
 
 
+def _karlsruhe_scenes(seed: int, n: int):
+    """``(true pose, scene, its neighbourhood)`` of ``n`` simulated Karlsruhe frames with paper-like clutter."""
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(seed)
+    for pose in sample_poses(smap, n, rng, Camera(), min_visible=4):
+        yield pose, simulate_scene(smap, pose, rng, Camera(), Clutter()), LocalMap(index, pose[:2], 60.0)
+
+
 def test_nearest_marking_queries_match_the_plain_definition():
     index, _ = karlsruhe()
     rng = np.random.default_rng(3)
@@ -125,11 +133,8 @@ def test_a_batch_refines_each_pose_as_alone():
     """robust_refine's poses do not interact: refined together or one by one, the same answers."""
     from localizer.robust import noise_sigma, robust_refine
 
-    index, smap = karlsruhe()
+    pose, scene, local = next(_karlsruhe_scenes(11, 1))
     rng = np.random.default_rng(11)
-    pose = sample_poses(smap, 1, rng, Camera(), min_visible=6)[0]
-    scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
-    local = LocalMap(index, pose[:2], 60.0)
     obs = scene.observations[:, :2]
     o = Options()
     # Coarse-to-fine from up to a metre off, fine-only (from the third scale) from a few centimetres.
@@ -182,14 +187,11 @@ def _missed_reference(local: LocalMap, obs: np.ndarray, pose, o: Options, view):
 def test_negative_evidence_counts_match_the_plain_definition():
     from localizer.robust import missed_counts, view_of
 
-    index, smap = karlsruhe()
     rng = np.random.default_rng(8)
     o = Options()
     seen_points = seen_lines = 0
-    for pose in sample_poses(smap, 12, rng, Camera(), min_visible=4):
-        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+    for pose, scene, local in _karlsruhe_scenes(8, 12):
         obs = scene.observations[:, :2]
-        local = LocalMap(index, pose[:2], 60.0)
         view = view_of(obs, o)
         poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in rng.normal(0, [3.0, 3.0, 0.2], (5, 3)) + [0, 0, pose[2]]]
         pts, lines = missed_counts(local, obs, poses, o, view)
@@ -205,14 +207,11 @@ def test_positive_evidence_matches_the_plain_definition():
     anisotropic Gaussian of the residual to the closest marking, discounted on segments."""
     from localizer.robust import SCORE_FLOOR_M, bearing_sigma, data_scores, miss_costs, noise_sigma, view_of
 
-    index, smap = karlsruhe()
     rng = np.random.default_rng(9)
     for bearing_noise in (Options().bearing_noise_rad, None):
         o = Options(bearing_noise_rad=bearing_noise)
-        for pose in sample_poses(smap, 6, rng, Camera(), min_visible=4):
-            scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+        for pose, scene, local in _karlsruhe_scenes(9, 6):
             obs, w = scene.observations[:, :2], scene.observations[:, 2] / 40.0
-            local = LocalMap(index, pose[:2], 60.0)
             sig = noise_sigma(obs, o)
             view = view_of(obs, o)
             poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in rng.normal(0, [0.3, 0.3, 0.01], (3, 3)) + [0, 0, pose[2]]]
@@ -239,14 +238,10 @@ def test_fit_sums_match_the_jacobian_rows_spelled_out():
     (x and y rows for a point, the normal's row for a segment), as numpy matrix products."""
     from localizer.robust import _fit_sums, noise_sigma, pitch_lever
 
-    index, smap = karlsruhe()
-    rng = np.random.default_rng(12)
     o = Options()
     n_seg = n_pt = 0
-    for pose in sample_poses(smap, 8, rng, Camera(), min_visible=4):
-        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+    for pose, scene, local in _karlsruhe_scenes(12, 8):
         obs, w_obs = scene.observations[:, :2], scene.observations[:, 2] / 40.0
-        local = LocalMap(index, pose[:2], 60.0)
         sig = noise_sigma(obs, o)
         q_pose = (0.05, -0.03, pose[2] + 0.002)
         gate = np.maximum(o.inlier_distance_m, 3.0 * sig)
@@ -281,94 +276,66 @@ def test_fit_sums_match_the_jacobian_rows_spelled_out():
     assert n_seg > 10 and n_pt > 10  # both kinds of pairs were exercised
 
 
-def _pitch_fit_reference(local_map: LocalMap, obs_xy, sigma_obs, pose, opts: Options, iterations: int = 5):
-    """refine_with_pitch as numpy on all pairs at once (before its iterations were compiled)."""
+def _pitch_iterations_reference(pose, pairs, opts: Options, iterations: int = 5):
+    """refine_with_pitch's Gauss-Newton iterations as numpy on all pairs at once."""
     from localizer.geometry import rotation
-    from localizer.robust import PITCH_FIT_DAMPING, bearing_sigma, pitch_corrected, pitch_lever
+    from localizer.robust import PITCH_FIT_DAMPING, pitch_corrected
 
-    pose = np.array(pose, float)
-    n = len(obs_xy)
-    if n < 2:
-        return tuple(float(v) for v in pose), 0.0, math.radians(opts.pitch_sigma_deg) ** 2
-    rng_j = np.hypot(obs_xy[:, 0], obs_xy[:, 1])
-    ray_v = obs_xy / np.maximum(rng_j, 1e-9)[:, None]
-    k = pitch_lever(rng_j, opts)
-    c = opts.anneal_m[-1]
-    var_r = c * c + sigma_obs**2
-    bn = opts.bearing_noise_rad
-    var_t = c * c + (bearing_sigma(obs_xy, opts) ** 2 if bn is not None else sigma_obs**2)
-    gate = np.maximum(opts.inlier_distance_m, 3.0 * sigma_obs)
-    info_pitch = 1.0 / math.radians(opts.pitch_sigma_deg) ** 2
-    delta = 0.0
-    var = 1.0 / info_pitch
-    d, tgt, normal = local_map.closest(apply(tuple(pose), obs_xy), float(gate.max()))
-    m = np.isfinite(d) & (d <= gate)
-    if m.sum() < 2:
-        return tuple(float(v) for v in pose), 0.0, 1.0 / info_pitch
-    tgt, normal = tgt[m], normal[m]
+    obs, ray, lever, var_r, var_t, tgt, normal = pairs
     seg = normal.any(axis=1)
-    start = pose.copy()
+    info_pitch = 1.0 / math.radians(opts.pitch_sigma_deg) ** 2
+    pose = np.array(pose, float)
+    start, delta, var = pose.copy(), 0.0, 1.0 / info_pitch
     for _ in range(iterations):
-        o = pitch_corrected(obs_xy, delta, opts)
-        p = apply(tuple(pose), o)[m]
+        o = pitch_corrected(obs, delta, opts)
         R = rotation(pose[2])
-        q = (R @ o[m].T).T
-        u = (R @ ray_v[m].T).T
+        q, u = o @ R.T, ray @ R.T
         v = np.column_stack([-u[:, 1], u[:, 0]])
-        e = p - tgt
+        e = q + pose[:2] - tgt
         e[seg] = (e[seg] * normal[seg]).sum(1, keepdims=True) * normal[seg]
-        d2 = (e * e).sum(1)
-        gm = 1.0 / (1.0 + d2 / var_r[m]) ** 2
-        info = gm[:, None, None] * (np.einsum("ni,nj->nij", u, u) / var_r[m][:, None, None]
-                                    + np.einsum("ni,nj->nij", v, v) / var_t[m][:, None, None])
-        if seg.any():
-            nv = normal[seg]
-            var_n = (nv * u[seg]).sum(1) ** 2 * var_r[m][seg] + (nv * v[seg]).sum(1) ** 2 * var_t[m][seg]
-            info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv, nv) / var_n[:, None, None]
+        gm = 1.0 / (1.0 + (e * e).sum(1) / var_r) ** 2
+        info = gm[:, None, None] * (np.einsum("ni,nj->nij", u, u) / var_r[:, None, None]
+                                    + np.einsum("ni,nj->nij", v, v) / var_t[:, None, None])
+        nv = normal[seg]
+        var_n = (nv * u[seg]).sum(1) ** 2 * var_r[seg] + (nv * v[seg]).sum(1) ** 2 * var_t[seg]
+        info[seg] = gm[seg, None, None] * np.einsum("ni,nj->nij", nv, nv) / var_n[:, None, None]
         J = np.zeros((len(e), 2, 4))
-        J[:, 0, 0] = 1.0
-        J[:, 1, 1] = 1.0
-        J[:, 0, 2] = -q[:, 1]
-        J[:, 1, 2] = q[:, 0]
-        J[:, :, 3] = u * k[m][:, None]
+        J[:, 0, 0] = J[:, 1, 1] = 1.0
+        J[:, 0, 2], J[:, 1, 2] = -q[:, 1], q[:, 0]
+        J[:, :, 3] = u * lever[:, None]
         JtI = np.einsum("nki,nkl->nil", J, info)
-        H = np.einsum("nil,nlj->ij", JtI, J)
+        H = np.einsum("nil,nlj->ij", JtI, J) + np.eye(4) * 1e-9
         b = -np.einsum("nil,nl->i", JtI, e)
         H[3, 3] += info_pitch
         b[3] -= info_pitch * delta
         H[:3, :3] += PITCH_FIT_DAMPING
         b[:3] -= PITCH_FIT_DAMPING @ (pose - start)
-        try:
-            Hinv = np.linalg.inv(H + np.eye(4) * 1e-9)
-        except np.linalg.LinAlgError:
-            break
+        Hinv = np.linalg.inv(H)
         step = Hinv @ b
         var = float(Hinv[3, 3])
         pose += step[:3]
         delta += step[3]
         if np.hypot(step[0], step[1]) < opts.tolerance_m and abs(step[2]) < opts.tolerance_rad:
             break
-    return tuple(float(v) for v in pose), float(delta), var
+    return tuple(pose), delta, var
 
 
 def test_the_joint_pitch_fit_matches_its_numpy_form():
-    from localizer.robust import noise_sigma, refine_with_pitch
+    from localizer.robust import noise_sigma, pitch_pairs, refine_with_pitch
 
-    index, smap = karlsruhe()
-    rng = np.random.default_rng(13)
     o = Options()
-    moved = 0
-    for pose in sample_poses(smap, 10, rng, Camera(), min_visible=4):
-        scene = simulate_scene(smap, pose, rng, Camera(), Clutter())
+    moved = n_seg = 0
+    for pose, scene, local in _karlsruhe_scenes(13, 10):
         obs = scene.observations[:, :2]
-        local = LocalMap(index, pose[:2], 60.0)
         start = (0.1, -0.1, pose[2] + 0.003)
         got = refine_with_pitch(local, obs, noise_sigma(obs, o), start, o)
-        want = _pitch_fit_reference(local, obs, noise_sigma(obs, o), start, o)
+        pairs = pitch_pairs(local, obs, noise_sigma(obs, o), start, o)
+        want = _pitch_iterations_reference(start, pairs, o)
         assert np.allclose(got[0], want[0], rtol=0, atol=1e-9)
         assert got[1] == pytest.approx(want[1], abs=1e-12) and got[2] == pytest.approx(want[2], rel=1e-9)
         moved += math.hypot(got[0][0] - start[0], got[0][1] - start[1]) > 0.01
-    assert moved >= 5  # the fits did move the poses
+        n_seg += int(pairs[-1].any(axis=1).sum())
+    assert moved >= 5 and n_seg > 10  # the fits moved the poses, segment pairs among them
 
 
 def test_small_volume_maximum_filter_is_scipys():
