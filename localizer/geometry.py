@@ -1,4 +1,4 @@
-"""2D rigid transforms, the weighted rigid fit, and a request-local view of the map."""
+"""2D rigid transforms, the weighted rigid fit, a request-local view of the map and its compiled nearest-marking lookup."""
 
 from __future__ import annotations
 
