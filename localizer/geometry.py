@@ -1,4 +1,7 @@
-"""2D rigid transforms, the weighted rigid fit, a request-local view of the map and its compiled nearest-marking lookup."""
+"""2D rigid transforms, the weighted rigid fit, a request-local view of the map.
+
+The nearest-marking lookup over that view is compiled (numba).
+"""
 
 from __future__ import annotations
 
