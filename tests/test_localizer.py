@@ -193,7 +193,8 @@ def test_negative_evidence_counts_match_the_plain_definition():
     for pose, scene, local in _karlsruhe_scenes(8, 12):
         obs = scene.observations[:, :2]
         view = view_of(obs, o)
-        poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in rng.normal(0, [3.0, 3.0, 0.2], (5, 3)) + [0, 0, pose[2]]]
+        jitter = rng.normal(0, [3.0, 3.0, 0.2], (5, 3)) + [0, 0, pose[2]]
+        poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in jitter]
         pts, lines = missed_counts(local, obs, poses, o, view)
         for k, q in enumerate(poses):
             assert (pts[k], lines[k]) == _missed_reference(local, obs, q, o, view)
@@ -214,7 +215,8 @@ def test_positive_evidence_matches_the_plain_definition():
             obs, w = scene.observations[:, :2], scene.observations[:, 2] / 40.0
             sig = noise_sigma(obs, o)
             view = view_of(obs, o)
-            poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in rng.normal(0, [0.3, 0.3, 0.01], (3, 3)) + [0, 0, pose[2]]]
+            jitter = rng.normal(0, [0.3, 0.3, 0.01], (3, 3)) + [0, 0, pose[2]]
+            poses = [(0.0, 0.0, pose[2])] + [tuple(t) for t in jitter]
             got = data_scores(local, obs, w, sig, poses, o, view) + miss_costs(local, obs, poses, o, view)
             s = np.sqrt(SCORE_FLOOR_M**2 + sig**2)
             st = np.sqrt(SCORE_FLOOR_M**2 + bearing_sigma(obs, o) ** 2) if bearing_noise is not None else s
