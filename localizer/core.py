@@ -353,10 +353,12 @@ def localize(
 def warm_up() -> float:
     """Compile the localizer's kernels, or load them from numba's cache; seconds taken.
 
-    The nearest-marking lookup and the refinement's inner loop are compiled
-    with numba on first use (several seconds, then cached on disk next to the
-    package or in ``NUMBA_CACHE_DIR``). A server calls this once at start so
-    that no request waits for it; it localizes once on a small synthetic map.
+    The nearest-marking lookup, the refinement's iterations, the hypothesis
+    scores and the fits' sums are compiled with numba on first use (about
+    13 s on a 2-core machine, then cached on disk next to the package or in
+    ``NUMBA_CACHE_DIR``). A server calls this once at start so that no
+    request waits for it; it localizes once on a small synthetic map, which
+    runs every kernel.
     """
     import time
 

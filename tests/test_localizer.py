@@ -340,6 +340,26 @@ def test_the_joint_pitch_fit_matches_its_numpy_form():
     assert moved >= 5 and n_seg > 10  # the fits moved the poses, segment pairs among them
 
 
+def test_warm_up_compiles_what_requests_run():
+    """After localizer.warm_up(), varied requests compile nothing more (no request waits for numba)."""
+    from localizer import Frame, geometry, localize_sequence, robust, warm_up
+
+    warm_up()
+    kernels = [geometry.closest_points, robust._refine_batch, robust._positive_scores, robust._missed_batch,
+               robust._fit_sums, robust._pitch_fit]  # fmt: skip
+    compiled = [len(k.signatures) for k in kernels]
+    assert all(n >= 1 for n in compiled)
+    index, smap = karlsruhe()
+    for pose, scene, _ in _karlsruhe_scenes(21, 3):
+        lon, lat = index.frame.to_lonlat(pose[0] + 1.0, pose[1] - 1.0)
+        prior = Prior(lat, lon, float(index.frame.grid_yaw_to_heading(pose[2], lon, lat)), 3.0, 8.0)
+        for options in (Options(), Options(bearing_noise_rad=None, record_trace=True, record_candidates=True)):
+            for method in ("default", "pink2008"):
+                localize(index, scene.observations, prior, method=method, options=options)
+        localize_sequence(index, [Frame(scene.observations, (0.0, 0.0, 0.0))] * 2, prior)
+    assert [len(k.signatures) for k in kernels] == compiled
+
+
 def test_small_volume_maximum_filter_is_scipys():
     from scipy.ndimage import maximum_filter
 
