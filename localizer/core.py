@@ -51,6 +51,11 @@ PRIOR_HEADING_SIGMA_RANGE_DEG = (0.01, 180.0)
 MAX_SEARCH_CELL_M = 0.75
 
 
+#: The benchmarked options. Options validate every field when built, which a
+#: request would otherwise pay each time; they are frozen, so one is shared.
+DEFAULT_OPTIONS = Options()
+
+
 def parse_observations(
     observations, max_count: int = 500, max_range_m: float = 150.0
 ) -> np.ndarray:
@@ -179,7 +184,7 @@ def localize(
         For malformed input (NaN/inf, non-positive weights, too many
         observations, an invalid prior or method).
     """
-    options = options or Options()
+    options = options or DEFAULT_OPTIONS
     if method not in METHODS:
         raise LocalizationInputError(f"method: {method!r} is not one of {', '.join(METHODS)}")
     if not isinstance(map_index, MapIndex):

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .core import _make_pose, localize, parse_observations
+from .core import DEFAULT_OPTIONS, _make_pose, localize, parse_observations
 from .errors import LocalizationInputError
 from .frames import wrap_angle
 from .index import MapIndex
@@ -187,7 +187,7 @@ def localize_sequence(
     LocalizationInputError
         For malformed input: no frames, too many, bad observations or odometry.
     """
-    options = options or Options()
+    options = options or DEFAULT_OPTIONS
     topt = track_options or TrackOptions()
     if not isinstance(frames, Sequence) or isinstance(frames, (str, bytes)) or not frames:
         raise LocalizationInputError("frames: expected a non-empty list of frames")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from localizer import GeoFrame, MapIndex, Options
@@ -12,8 +14,12 @@ from mapbuilder.store import MarkingArrays
 MIN_PROBABILITY_RANGE = (0.5, 0.9999)
 
 
+@functools.lru_cache(maxsize=64)
 def localize_options(min_probability: float | None) -> Options | None:
-    """Options of a request that sets its own ``ok`` threshold; None: the localizer's defaults."""
+    """Options of a request that sets its own ``ok`` threshold; None: the localizer's defaults.
+
+    Cached: a fleet sends the same few thresholds, and building options validates every field.
+    """
     return None if min_probability is None else Options(ambiguity_probability=min_probability)
 
 
