@@ -196,3 +196,24 @@ def test_cli_localizes_a_drive_of_frames(stored_map, tmp_path, monkeypatch):
         assert res.exit_code == 1, res.output
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
+
+
+def test_a_first_run_says_it_is_compiling(stored_map, tmp_path):
+    """A fresh installation compiles the localizer (seconds): the first run says so, later ones do not."""
+    import os
+    import subprocess
+    import sys
+
+    pose, scene, lat, lon, heading = frame_and_prior(6)
+    path = tmp_path / "obs.json"
+    path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
+    env = {**os.environ, "LANEMAP_DATABASE_URL": stored_map, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    cmd = [sys.executable, "-m", "service.cli", "localize", "ka", "--lat", str(lat), "--lon", str(lon),
+           "--heading", str(heading), "--observations", str(path), "--position-sigma", "2"]  # fmt: skip
+    runs = [subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300) for _ in range(2)]
+    for res in runs:
+        assert res.returncode == 0, res.stderr
+        out = json.loads(res.stdout)
+        assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
+    assert runs[0].stderr.startswith("note: compiling the localizer"), runs[0].stderr
+    assert "note:" not in runs[1].stderr, runs[1].stderr

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from localizer import METHODS, LocalizationInputError, Options, Prior, localize
+from localizer import METHODS, LocalizationInputError, Options, Prior, localize, warm_up
 from service.cli_errors import fail
 from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 
@@ -18,6 +18,27 @@ from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, locali
 #: answer from one it must not act on without reading further. Bad input is 1
 #: (as for every command) and a usage error 2 (Click's).
 EXIT_CODES = {"ok": 0, "ambiguous": 3, "failed": 4}
+#: Seconds of silence before ``lanemap localize`` says that it is compiling.
+COMPILE_NOTE_AFTER_S = 2.0
+
+
+def _ready_kernels() -> None:
+    """Load the localizer's compiled kernels; on a first run, compiling them, say so.
+
+    Compiling takes about 15 s once per installation (then numba's cache
+    answers in under a second): a first run should not look hung.
+    """
+    import threading
+
+    note = threading.Timer(COMPILE_NOTE_AFTER_S, lambda: typer.echo(
+        "note: compiling the localizer (the first run after an installation; about 15 s, then cached)",
+        err=True))  # fmt: skip
+    note.daemon = True
+    note.start()
+    try:
+        warm_up()
+    finally:
+        note.cancel()
 
 
 def _read_json(path: Path):
@@ -127,6 +148,7 @@ def register(app: typer.Typer) -> None:
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
         arrays = store.marking_arrays(map_id)
+        _ready_kernels()
         try:
             index = index_from_markings(arrays, info.crs)
             prior = Prior(
