@@ -73,7 +73,9 @@ Methods
     Over a drive, :func:`localize_sequence` (``localizer/track.py``) follows
     every hypothesis through consecutive frames with the vehicle's odometry (a
     multi-hypothesis filter, the paper's future work): rivals one dash period
-    apart stop explaining the camera's view as the road changes.
+    apart stop explaining the camera's view as the road changes. A drive can
+    be streamed a few frames at a time: each call returns a
+    :class:`TrackState` that the next one continues from.
 
     Temperature, weight cap and thresholds were calibrated with
     ``benchmarks/localize_calibrate.py``; figures in ``benchmarks/RESULTS-localizer.md``.
@@ -101,7 +103,7 @@ from .core import METHODS, localize, parse_observations, warm_up
 from .errors import LocalizationInputError
 from .frames import GeoFrame, bearing_to_yaw, wrap_angle, yaw_to_bearing
 from .index import MapIndex
-from .track import Frame, SequenceResult, TrackOptions, localize_sequence
+from .track import Frame, SequenceResult, TrackOptions, TrackState, localize_sequence
 from .types import Hypothesis, Options, Pose, Prior
 
 __all__ = [
@@ -116,6 +118,7 @@ __all__ = [
     "Prior",
     "SequenceResult",
     "TrackOptions",
+    "TrackState",
     "bearing_to_yaw",
     "localize",
     "localize_sequence",

@@ -30,9 +30,13 @@ hypothesis through the frames with the vehicle's odometry:
 
 Each frame's estimate is the best track's pose, ``ok`` when that track holds
 ``Options.ambiguity_probability`` of the posterior, else ``ambiguous`` with the
-tracks as hypotheses. This is the filtering the paper names as future work,
-kept stateless: the caller sends the frames of a window (e.g. the last second
-or two) and gets the pose of each.
+tracks as hypotheses. This is the filtering the paper names as future work.
+It keeps no state between calls: the caller either sends the frames of a
+window (e.g. the last second or two) and gets the pose of each, or streams a
+drive a few frames at a time, passing back the :class:`TrackState` of the
+previous call (``SequenceResult.state``); a drive continued that way gives
+the same poses as one call over all its frames, at the cost of the new
+frames only, however long the drive.
 
 Odometry is the motion from the previous frame to this one in the previous
 vehicle frame: ``dx`` forward, ``dy`` left (metres), ``dyaw`` counter-clockwise
@@ -108,6 +112,17 @@ class TrackOptions:
     unexplained_penalty : float
         Log weight a track loses per view's worth of frames that it explains as
         all clutter.
+    max_lead : float
+        Most log units the best track may lead "none of these" by; beyond it
+        every track's weight is lowered by the excess (their probabilities
+        among themselves unchanged). Evidence adds up frame after frame, and a
+        drive streamed for minutes would otherwise build a lead no later frame
+        could undo: a track that stops matching the road (odometry gone wrong,
+        a map change) would stay sure for as many frames as it had matched.
+        With the lead capped it loses its certainty within about
+        ``max_lead / unexplained_penalty`` views of unmatched frames, and the
+        frames are searched around the GPS fix again. 30 (a posterior of
+        1 - 1e-13) is far beyond any threshold of ``ok``.
     """
 
     odometry_sigma_m: float = 0.05
@@ -121,6 +136,102 @@ class TrackOptions:
     merge_heading_deg: float = 2.0
     evidence_scale: float = 3.0
     unexplained_penalty: float = 8.0
+    max_lead: float = 30.0
+
+
+#: Most tracks a :class:`TrackState` may hold (``TrackOptions.max_tracks`` keeps fewer).
+MAX_STATE_TRACKS = 64
+
+#: Largest standard deviations a track carries (metres, radians): a prior's
+#: largest, and a heading that could be anything.
+MAX_SIGMA_M, MAX_SIGMA_YAW = 1000.0, math.pi
+#: Smallest that a state records: a track's sigma is floored before use, the
+#: GPS fix's is at least a prior's smallest (0.01 m / 0.01°).
+_MIN_STATE_SIGMA = 1e-9
+_SIGMA_LIMITS = {"sigma_m": MAX_SIGMA_M, "sigma_yaw_rad": MAX_SIGMA_YAW}
+_TRACK_KEYS = ("easting", "northing", "yaw_grid_rad", "sigma_m", "sigma_yaw_rad", "log_weight", "matched")
+_GPS_KEYS = ("easting", "northing", "yaw_grid_rad", "sigma_m", "sigma_yaw_rad")
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """Where the filter stands after a drive's last frame: continue the drive from it.
+
+    Pass it to :func:`localize_sequence` with the next frames (the first of
+    them carrying the odometry since the last frame seen) and the drive goes on
+    as if all its frames had been sent in one call. :meth:`to_dict` and
+    :meth:`from_dict` carry it through JSON unchanged (floats round-trip
+    exactly), so a stateless server can hand it to its client and back.
+
+    Attributes
+    ----------
+    crs : str
+        The map CRS the poses are in.
+    frames : int
+        Frames the drive has had so far.
+    tracks : tuple of tuple
+        ``(easting, northing, grid yaw, sigma_m, sigma_yaw_rad, log_weight,
+        matched)`` per hypothesis followed, most probable first.
+    gps : tuple
+        ``(easting, northing, grid yaw, sigma_m, sigma_yaw_rad)``: the first
+        GPS fix carried along by the odometry (searched around while no track
+        is sure).
+    """
+
+    crs: str
+    frames: int
+    tracks: tuple[tuple[float, float, float, float, float, float, bool], ...]
+    gps: tuple[float, float, float, float, float]
+
+    def to_dict(self) -> dict:
+        """JSON-safe form (the API's ``state``)."""
+        return {
+            "crs": self.crs,
+            "frames": self.frames,
+            "tracks": [dict(zip(_TRACK_KEYS, (*(float(v) for v in t[:6]), bool(t[6])))) for t in self.tracks],
+            "gps": dict(zip(_GPS_KEYS, (float(v) for v in self.gps))),
+        }
+
+    @classmethod
+    def from_dict(cls, data) -> TrackState:
+        """Read :meth:`to_dict`'s form back, checking every value.
+
+        Raises
+        ------
+        LocalizationInputError
+            Naming the first field that is missing or out of range.
+        """
+        if not isinstance(data, dict):
+            raise LocalizationInputError("state: expected an object, as returned with the previous frames")
+        crs, frames, tracks, gps = (data.get(k) for k in ("crs", "frames", "tracks", "gps"))
+        if not isinstance(crs, str) or not crs:
+            raise LocalizationInputError("state.crs: expected the map's CRS")
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+            raise LocalizationInputError("state.frames: expected a positive integer")
+        if not isinstance(tracks, list) or len(tracks) > MAX_STATE_TRACKS:
+            raise LocalizationInputError(f"state.tracks: expected a list of at most {MAX_STATE_TRACKS} tracks")
+        out = []
+        for k, t in enumerate(tracks):
+            values = _state_numbers(t, _TRACK_KEYS[:6], f"state.tracks[{k}]")
+            if not isinstance(t.get("matched"), bool):
+                raise LocalizationInputError(f"state.tracks[{k}].matched: expected true or false")
+            out.append((*values, t["matched"]))
+        return cls(crs, frames, tuple(out), _state_numbers(gps, _GPS_KEYS, "state.gps"))
+
+
+def _state_numbers(item, keys, where: str) -> tuple[float, ...]:
+    if not isinstance(item, dict):
+        raise LocalizationInputError(f"{where}: expected an object")
+    values = []
+    for key in keys:
+        v = item.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise LocalizationInputError(f"{where}.{key}: expected a finite number")
+        top = _SIGMA_LIMITS.get(key)
+        if top is not None and not 0.0 < v <= top:
+            raise LocalizationInputError(f"{where}.{key}: expected a standard deviation in (0, {top:g}]")
+        values.append(float(v))
+    return tuple(values)
 
 
 @dataclass
@@ -134,10 +245,13 @@ class SequenceResult:
         ``poses[-1]`` is the current pose.
     tracks : int
         Tracks alive after the last frame.
+    state : TrackState or None
+        Where the filter stands: pass it with the next frames to continue the drive.
     """
 
     poses: list[Pose] = field(default_factory=list)
     tracks: int = 0
+    state: TrackState | None = None
 
     @property
     def pose(self) -> Pose:
@@ -158,9 +272,10 @@ class _Track:
 def localize_sequence(
     map_index: MapIndex,
     frames: Sequence[Frame],
-    prior: Prior,
+    prior: Prior | None = None,
     options: Options | None = None,
     track_options: TrackOptions | None = None,
+    state: TrackState | None = None,
 ) -> SequenceResult:
     """Localize each frame of a sequence, following every hypothesis with odometry.
 
@@ -169,23 +284,33 @@ def localize_sequence(
     map_index : MapIndex
         The map, shared between calls.
     frames : sequence of Frame
-        Consecutive camera frames, oldest first, each with the odometry since the one before.
-    prior : Prior
-        GPS fix at the first frame, with its uncertainty.
+        Consecutive camera frames, oldest first, each with the odometry since
+        the one before (the first frame's: since the ``state``'s last frame,
+        when continuing; else ignored).
+    prior : Prior, optional
+        GPS fix at the first frame, with its uncertainty. Required to start a
+        drive; when continuing one it replaces the fix carried in ``state``
+        (a newer fix is a better place to search while no track is sure).
     options : Options, optional
         Options of the default method, used for every frame.
     track_options : TrackOptions, optional
         Odometry noise and hypothesis bookkeeping.
+    state : TrackState, optional
+        ``SequenceResult.state`` of the drive's previous frames: continue the
+        drive instead of starting one. The poses are those one call over all
+        the frames would have given.
 
     Returns
     -------
     SequenceResult
-        The pose at every frame; ``result.pose`` is the last.
+        The pose at every frame; ``result.pose`` is the last; ``result.state``
+        continues the drive.
 
     Raises
     ------
     LocalizationInputError
-        For malformed input: no frames, too many, bad observations or odometry.
+        For malformed input: no frames, too many, bad observations, odometry
+        or state, a state of another CRS, or neither a prior nor a state.
     """
     options = options or DEFAULT_OPTIONS
     topt = track_options or TrackOptions()
@@ -193,6 +318,17 @@ def localize_sequence(
         raise LocalizationInputError("frames: expected a non-empty list of frames")
     if len(frames) > MAX_FRAMES:
         raise LocalizationInputError(f"frames: {len(frames)} given, at most {MAX_FRAMES} are accepted")
+    if prior is None and state is None:
+        raise LocalizationInputError(
+            "prior: a GPS fix is needed to start a drive (or a state to continue one)")
+    if state is not None:
+        if not isinstance(state, TrackState):
+            raise LocalizationInputError("state: expected a localizer.TrackState")
+        if state.crs != map_index.crs:
+            raise LocalizationInputError(
+                f"state: its poses are in {state.crs}, this map's CRS is {map_index.crs} "
+                "(a state continues a drive on the map it came from)"
+            )
     parsed = []
     for k, f in enumerate(frames):
         if not isinstance(f, Frame):
@@ -213,35 +349,61 @@ def localize_sequence(
     frame_geo = map_index.frame
     crs = map_index.crs
     null = options.null_score
-    view = _view_depth(options)
-    gps = _Track(_grid_pose(frame_geo, prior), prior.position_sigma_m, math.radians(prior.heading_sigma_deg),
-                 null, False)  # fmt: skip
-    first = localize(map_index, parsed[0][0], prior, options=options)
-    tracks = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
-    result = SequenceResult(poses=[first])
-
-    for obs, motion in parsed[1:]:
-        # The share of new ground this frame sees: its evidence counts in that
-        # proportion (times evidence_scale), see the module docstring.
-        weight = min(1.0, topt.evidence_scale
-                     * (math.hypot(motion[0], motion[1]) / view[0] + abs(motion[2]) / view[1]))
-        children: list[_Track] = []
-        for t in tracks:
-            parent = _predict(t, motion, topt)
-            r = localize(map_index, obs, _prior_of(parent, frame_geo), options=options)
-            children.extend(_children(r, parent, parent.log_w, weight, frame_geo, -topt.unexplained_penalty))
-        gps = _predict(gps, motion, topt, floor=False)
-        prob = _posterior(tracks, null)
-        if not tracks or prob[0] < options.ambiguity_probability:
-            # No confident track: search around the GPS fix again, as the first
-            # frame did. What it finds starts from "none of these" with this
-            # frame's evidence in full (those poses explained nothing before).
-            r = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
-            children.extend(_children(r, gps, null, 1.0, frame_geo))
-        tracks = _prune(children, null, topt)
+    result = SequenceResult()
+    if state is None:
+        gps = _gps_track(frame_geo, prior, null)
+        first = localize(map_index, parsed[0][0], prior, options=options)
+        tracks = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
+        result.poses.append(first)
+        rest, seen = parsed[1:], 1
+    else:
+        tracks = [_Track(t[:3], t[3], t[4], t[5], t[6]) for t in state.tracks]
+        gps = _Track(state.gps[:3], state.gps[3], state.gps[4], null, False)
+        if prior is not None:
+            # A newer fix, at the first of these frames: carried back by its
+            # odometry, so that the step below brings it to where it was taken.
+            gps = _unpredict(_gps_track(frame_geo, prior, null), parsed[0][1])
+        rest, seen = parsed, state.frames
+    for obs, motion in rest:
+        tracks, gps = _step(map_index, tracks, gps, obs, motion, options, topt, frame_geo)
         result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
     result.tracks = len(tracks)
+    result.state = TrackState(
+        crs, seen + len(rest),
+        tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched)) for t in tracks),
+        (*(float(v) for v in gps.pose), *_state_sigmas(gps)),
+    )
     return result
+
+
+def _state_sigmas(t: _Track) -> tuple[float, float]:
+    return (float(min(max(t.sigma_m, _MIN_STATE_SIGMA), MAX_SIGMA_M)),
+            float(min(max(t.sigma_yaw, _MIN_STATE_SIGMA), MAX_SIGMA_YAW)))
+
+
+def _step(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs, motion, options: Options,
+          topt: TrackOptions, frame_geo) -> tuple[list[_Track], _Track]:
+    """One frame after the first: every track predicted by the odometry and updated by the frame."""
+    null = options.null_score
+    view = _view_depth(options)
+    # The share of new ground this frame sees: its evidence counts in that
+    # proportion (times evidence_scale), see the module docstring.
+    weight = min(1.0, topt.evidence_scale
+                 * (math.hypot(motion[0], motion[1]) / view[0] + abs(motion[2]) / view[1]))
+    children: list[_Track] = []
+    for t in tracks:
+        parent = _predict(t, motion, topt)
+        r = localize(map_index, obs, _prior_of(parent, frame_geo), options=options)
+        children.extend(_children(r, parent, parent.log_w, weight, frame_geo, -topt.unexplained_penalty))
+    gps = _predict(gps, motion, topt, floor=False)
+    prob = _posterior(tracks, null)
+    if not tracks or prob[0] < options.ambiguity_probability:
+        # No confident track: search around the GPS fix again, as the first
+        # frame did. What it finds starts from "none of these" with this
+        # frame's evidence in full (those poses explained nothing before).
+        r = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
+        children.extend(_children(r, gps, null, 1.0, frame_geo))
+    return _prune(children, null, topt), gps
 
 
 def _view_depth(options: Options) -> tuple[float, float]:
@@ -255,6 +417,12 @@ def _view_depth(options: Options) -> tuple[float, float]:
 def _grid_pose(frame_geo, prior: Prior) -> tuple[float, float, float]:
     x, y = frame_geo.to_xy(prior.lon, prior.lat)
     return float(x), float(y), float(frame_geo.heading_to_grid_yaw(prior.heading_deg, prior.lon, prior.lat))
+
+
+def _gps_track(frame_geo, prior: Prior, null: float) -> _Track:
+    """The GPS fix as a track: searched around while no track is sure, never an answer itself."""
+    return _Track(_grid_pose(frame_geo, prior), prior.position_sigma_m, math.radians(prior.heading_sigma_deg),
+                  null, False)
 
 
 def _prior_of(t: _Track, frame_geo) -> Prior:
@@ -275,8 +443,18 @@ def _predict(t: _Track, motion, topt: TrackOptions, floor: bool = True) -> _Trac
     odo = topt.odometry_sigma_m + topt.odometry_sigma_ratio * math.hypot(dx, dy)
     s_m = max(t.sigma_m, topt.min_position_sigma_m) if floor else t.sigma_m
     s_yaw = max(t.sigma_yaw, math.radians(topt.min_heading_sigma_deg)) if floor else t.sigma_yaw
-    return replace(t, pose=pose, sigma_m=math.hypot(s_m, odo),
-                   sigma_yaw=math.hypot(s_yaw, math.radians(topt.odometry_sigma_yaw_deg)), answer=None)  # fmt: skip
+    # Capped: the GPS fix's uncertainty grows frame after frame over a long drive.
+    return replace(t, pose=pose, sigma_m=min(math.hypot(s_m, odo), MAX_SIGMA_M),
+                   sigma_yaw=min(math.hypot(s_yaw, math.radians(topt.odometry_sigma_yaw_deg)), MAX_SIGMA_YAW),
+                   answer=None)  # fmt: skip
+
+
+def _unpredict(t: _Track, motion) -> _Track:
+    """The pose from which ``motion`` leads to ``t``'s (its uncertainty unchanged)."""
+    dx, dy, dyaw = motion
+    yaw = float(wrap_angle(t.pose[2] - dyaw))
+    c, s = math.cos(yaw), math.sin(yaw)
+    return replace(t, pose=(t.pose[0] - c * dx + s * dy, t.pose[1] - s * dx - c * dy, yaw))
 
 
 def _log_prior(pose, t: _Track) -> float:
@@ -332,7 +510,12 @@ def _prune(tracks: list[_Track], null: float, topt: TrackOptions) -> list[_Track
         else:
             kept.append(replace(t))
     prob = _posterior(kept, null)
-    return [t for t, p in zip(kept, prob) if p >= topt.min_track_probability][: topt.max_tracks]
+    kept = [t for t, p in zip(kept, prob) if p >= topt.min_track_probability][: topt.max_tracks]
+    excess = (kept[0].log_w - null - topt.max_lead) if kept else 0.0
+    if excess > 0:
+        for t in kept:
+            t.log_w -= excess
+    return kept
 
 
 def _posterior(tracks: list[_Track], null: float) -> np.ndarray:

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
-from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
+from localizer import LocalizationInputError, MapIndex, Options, Prior, TrackState, localize
 from localizer.simulate import Camera, Clutter, odometry, perturb, sample_trajectories, simulate_scene
-from localizer.track import MAX_FRAMES, Frame, localize_sequence
+from localizer.track import MAX_FRAMES, Frame, TrackOptions, localize_sequence
 
 from ._localizer_helpers import karlsruhe
 from .test_localizer import ORIGIN, observe, prior_at, random_map
@@ -117,3 +118,119 @@ def test_bad_sequences_are_input_errors():
         with pytest.raises(LocalizationInputError, match=None) as exc:
             localize_sequence(index, frames, prior)
         assert needle in str(exc.value), (needle, str(exc.value))
+
+
+def test_a_drive_streamed_in_parts_gives_the_poses_of_one_call():
+    """Frames sent a few at a time, the state carried through JSON, answer as one call over all of them."""
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(21)
+    drives = sample_trajectories(smap, 4, 12, 1.5, rng, Camera(), min_visible=4)
+    statuses = set()
+    for drive in drives:
+        scenes = [simulate_scene(smap, tuple(p), rng, Camera(), Clutter()) for p in drive]
+        motions = [(0.0, 0.0, 0.0)] + [odometry(drive[k - 1], drive[k]) for k in range(1, len(drive))]
+        prior = prior_at(index, perturb(drive[0], rng.uniform(8, 10), rng.uniform(-15, 15), rng), 6.5, 9.0)
+        frames = [Frame(s.observations, m) for s, m in zip(scenes, motions)]
+        whole = localize_sequence(index, frames, prior)
+        streamed, state = [], None
+        for a, b in ((0, 1), (1, 2), (2, 7), (7, 12)):
+            part = localize_sequence(index, frames[a:b], prior if state is None else None, state=state)
+            assert part.state.frames == b and len(part.poses) == b - a
+            streamed += part.poses
+            state = TrackState.from_dict(json.loads(json.dumps(part.state.to_dict())))
+        assert [p.to_dict() for p in streamed] == [p.to_dict() for p in whole.poses]
+        assert state == whole.state and part.tracks == whole.tracks == len(state.tracks)
+        statuses.update(p.status for p in whole.poses)
+    # The drives went through doubt (several tracks carried in the state) to sure answers.
+    assert {"ok", "ambiguous"} <= statuses
+
+
+def test_a_continued_drive_searches_around_a_newer_gps_fix():
+    """While no track is sure, the frames are searched around the fix; a newer one replaces the carried one."""
+    rng = np.random.default_rng(6)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+    p0 = (ORIGIN[0], ORIGIN[1], 0.3)
+    p1 = carry(p0, [(1.5, 0.0, 0.0)])
+    # A first frame that sees nothing, under a fix 40 m off and sure of itself: no track.
+    wrong = prior_at(index, carry(p0, [(40.0, 0.0, 0.0)]), 2.0, 3.0)
+    start = localize_sequence(index, [Frame(np.zeros((0, 3)))], wrong)
+    assert start.tracks == 0 and start.pose.status == "failed"
+    frame = [Frame(observe(xy, p1).observations, (1.5, 0.0, 0.0))]
+    stale = localize_sequence(index, frame, state=start.state)
+    newer = prior_at(index, perturb(p1, 2.0, 5.0, rng), 3.0, 8.0)
+    fresh = localize_sequence(index, frame, newer, state=start.state)
+    assert graded(stale.pose, p1)[1] > 5.0
+    status, err = graded(fresh.pose, p1)
+    assert status == "ok" and err < 0.2 and fresh.state.frames == 2
+
+
+def test_bad_states_are_input_errors():
+    index, _ = karlsruhe()
+    frame = [Frame([{"x": 10.0, "y": 1.0}], (1.5, 0.0, 0.0))]
+    good = localize_sequence(index, frame, Prior(lat=49.0, lon=8.43, heading_deg=90.0)).state.to_dict()
+    track = {"easting": 457000.0, "northing": 5428000.0, "yaw_grid_rad": 0.1, "sigma_m": 0.3,
+             "sigma_yaw_rad": 0.02, "log_weight": 12.5, "matched": True}
+    good = {**good, "tracks": [track]}
+    assert TrackState.from_dict(good).tracks[0] == (457000.0, 5428000.0, 0.1, 0.3, 0.02, 12.5, True)
+    cases = [
+        ([1, 2], "state: expected an object"),
+        ({**good, "crs": ""}, "state.crs"),
+        ({**good, "frames": 0}, "state.frames"),
+        ({**good, "frames": True}, "state.frames"),
+        ({**good, "tracks": [track] * 65}, "at most 64"),
+        ({**good, "tracks": [{**track, "sigma_m": 0.0}]}, "state.tracks[0].sigma_m"),
+        ({**good, "tracks": [{**track, "sigma_yaw_rad": 4.0}]}, "state.tracks[0].sigma_yaw_rad"),
+        ({**good, "tracks": [{**track, "log_weight": float("nan")}]}, "state.tracks[0].log_weight"),
+        ({**good, "tracks": [{**track, "matched": 1}]}, "state.tracks[0].matched"),
+        ({**good, "gps": {**good["gps"], "easting": "east"}}, "state.gps.easting"),
+        ({**good, "gps": None}, "state.gps"),
+    ]
+    for data, needle in cases:
+        with pytest.raises(LocalizationInputError) as exc:
+            TrackState.from_dict(data)
+        assert needle in str(exc.value), (needle, str(exc.value))
+    with pytest.raises(LocalizationInputError, match="EPSG:32632"):
+        localize_sequence(index, frame, state=TrackState.from_dict({**good, "crs": "EPSG:32632"}))
+    with pytest.raises(LocalizationInputError, match="GPS fix is needed"):
+        localize_sequence(index, frame)
+
+
+def test_a_state_stays_valid_however_far_the_odometry_carries_the_fix():
+    """The GPS fix's uncertainty grows with the odometry, up to a prior's largest: the state can always go back."""
+    index, _ = karlsruhe()
+    blind = [Frame(np.zeros((0, 3)), (100.0, 0.0, 0.0))] * 3
+    part = localize_sequence(index, blind, Prior(lat=49.0, lon=8.43, heading_deg=90.0, position_sigma_m=999.999,
+                                                 heading_sigma_deg=179.0))  # fmt: skip
+    assert part.state.gps[3] == 1000.0 and part.state.gps[4] == pytest.approx(math.radians(179.0), abs=0.01)
+    again = localize_sequence(index, blind, state=TrackState.from_dict(json.loads(json.dumps(part.state.to_dict()))))
+    assert again.state.gps[3] == 1000.0 and again.state.frames == 6
+
+
+def test_a_streamed_drive_recovers_when_its_track_stops_matching():
+    """A vehicle moved where its odometry does not say: the sure track fades and the GPS fix is searched again.
+
+    Evidence adds up frame after frame; without ``max_lead`` a drive streamed
+    for a while builds a lead over "none of these" that takes as many frames
+    to undo, and the filter stays sure of the wrong place.
+    """
+    rng = np.random.default_rng(7)
+    xy, w = random_map(rng, n=8000, half=200.0)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+    right_after = {}
+    for lead in (TrackOptions().max_lead, math.inf):
+        pose, state, right = (ORIGIN[0] - 60.0, ORIGIN[1], 0.0), None, []
+        for k in range(30):
+            if k:  # the odometry says 1.5 m forward; at frame 8 the vehicle also went 10 m to the left
+                pose = carry(pose, [(1.5, 10.0 if k == 8 else 0.0, 0.0)])
+            fix = prior_at(index, perturb(pose, 1.0, 3.0, rng), 3.0, 8.0)
+            part = localize_sequence(index, [Frame(observe(xy, pose).observations, (1.5, 0.0, 0.0))], fix,
+                                     state=state, track_options=TrackOptions(max_lead=lead))  # fmt: skip
+            state = part.state
+            status, err = graded(part.pose, pose)
+            right.append(status == "ok" and err < 0.5)
+        assert all(right[:8]), right
+        right_after[lead] = right[8:]
+    capped = right_after[TrackOptions().max_lead]
+    assert all(capped[5:]), capped  # back to sure and right within five frames, and staying so
+    assert not any(right_after[math.inf][:15])  # uncapped: still not right fifteen frames on
