@@ -4,7 +4,8 @@ A simulated camera frame and a drive of eight frames on the Karlsruhe
 Lanelet2 map as ``lanemap from-lanelet2`` lays it out (the demo map), with a
 GPS fix 2 m and 5° off, in the bodies ``POST /collections/{mapId}/localize``
 and ``.../localize/sequence`` take; ``lanemap localize --observations`` and
-``--frames`` read the same files. ``truth.json`` holds the true poses (the
+``--frames`` read the same files; ``drive-start.json`` and ``drive-next.json``
+split the drive in two, for a drive streamed with its state. ``truth.json`` holds the true poses (the
 drive's last frame) for the tests that keep the README's examples working.
 
 Usage: ``.venv/bin/python scripts/make_examples.py`` (needs ``../shared/data``).
@@ -72,9 +73,13 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "frame.json").write_text(_dump({"gps": _gps(index, fix), "observations": frames[0]["observations"]}))
     (OUT / "drive.json").write_text(_dump({"gps": _gps(index, fix), "frames": frames}))
+    # The same drive in two requests: the first seven frames, then the eighth
+    # continuing from the state the first answer returns (--state / "state").
+    (OUT / "drive-start.json").write_text(_dump({"gps": _gps(index, fix), "frames": frames[:7]}))
+    (OUT / "drive-next.json").write_text(_dump({"frames": frames[7:]}))
     (OUT / "truth.json").write_text(_dump({"frame": _truth(index, drive[0]), "drive_last": _truth(index, drive[-1])}))
     print(f"wrote {OUT}/frame.json ({len(frames[0]['observations'])} observations), drive.json "
-          f"({len(frames)} frames), truth.json; GPS fix {_gps(index, fix)}")
+          f"({len(frames)} frames), drive-start.json, drive-next.json, truth.json; GPS fix {_gps(index, fix)}")
 
 
 if __name__ == "__main__":

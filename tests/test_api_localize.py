@@ -249,17 +249,7 @@ def test_a_drive_is_localized_frame_by_frame(api, kmap):
     # marking 400, a pose 1 m along the road explains the view as well: the
     # answers are rightly ambiguous there.)
     map_id, feats = kmap
-    yaw = along_lane(feats, 250)
-    step = 1.5
-    frames, truth = [], []
-    for k in range(5):
-        off = (1.0 + k * step * math.cos(yaw), 0.5 + k * step * math.sin(yaw))
-        p, lon, lat, heading, obs = scene(feats, 250, yaw, offset=off)
-        frame = {"observations": obs}
-        if k:
-            frame["motion"] = {"dx": step, "dy": 0.0, "dyaw_deg": 0.0}
-        frames.append(frame)
-        truth.append((p, heading))
+    frames, truth = drive_frames(feats, 5)
     p0, h0 = truth[0]
     body = {"gps": {**gps_near(p0, h0), "position_sigma_m": 8.0}, "frames": frames}
     r = httpx.post(f"{api.base_url}/collections/{map_id}/localize/sequence", json=body, timeout=60)
@@ -272,6 +262,70 @@ def test_a_drive_is_localized_frame_by_frame(api, kmap):
         assert math.hypot(pose["easting"] - p[0], pose["northing"] - p[1]) < 0.3
         assert abs((pose["heading_deg"] - heading + 180) % 360 - 180) < 0.5
         assert np.array(pose["covariance"]).shape == (3, 3)
+
+
+def drive_frames(feats, n: int, step: float = 1.5):
+    """``n`` frames ``step`` metres apart along the lane of marking 250, with their true poses."""
+    yaw = along_lane(feats, 250)
+    frames, truth = [], []
+    for k in range(n):
+        off = (1.0 + k * step * math.cos(yaw), 0.5 + k * step * math.sin(yaw))
+        p, lon, lat, heading, obs = scene(feats, 250, yaw, offset=off)
+        frame = {"observations": obs}
+        if k:
+            frame["motion"] = {"dx": step, "dy": 0.0, "dyaw_deg": 0.0}
+        frames.append(frame)
+        truth.append((p, heading))
+    return frames, truth
+
+
+def test_a_drive_streamed_frame_by_frame_answers_as_one_request(api, kmap):
+    """Each request carries one frame and the previous answer's state: the poses of the whole drive's request."""
+    map_id, feats = kmap
+    url = f"{api.base_url}/collections/{map_id}/localize/sequence"
+    frames, truth = drive_frames(feats, 6)
+    # A prior wide and far enough off that the first frames are in doubt.
+    gps = {**gps_near(truth[0][0], truth[0][1], dx=6.0, dy=-4.0), "position_sigma_m": 8.0}
+    whole = httpx.post(url, json={"gps": gps, "frames": frames}, timeout=60)
+    assert whole.status_code == 200, whole.text
+    streamed, state = [], None
+    for k, frame in enumerate(frames):
+        body = {"frames": [frame]}
+        if state is None:
+            body["gps"] = gps
+        else:
+            body["state"] = state
+        r = httpx.post(url, json=body, timeout=60)
+        assert r.status_code == 200, r.text
+        out = r.json()
+        assert out["state"]["frames"] == k + 1 and out["state"]["crs"] == CRS
+        streamed += out["poses"]
+        state = out["state"]
+    assert streamed == whole.json()["poses"]
+    assert state == whole.json()["state"]
+    last, (p, _) = streamed[-1], truth[-1]
+    assert last["status"] == "ok" and math.hypot(last["easting"] - p[0], last["northing"] - p[1]) < 0.3
+
+
+def test_bad_drive_states_are_named(api, kmap):
+    map_id, feats = kmap
+    url = f"{api.base_url}/collections/{map_id}/localize/sequence"
+    frames, truth = drive_frames(feats, 2)
+    state = httpx.post(url, json={"gps": gps_near(*truth[0]), "frames": frames[:1]}, timeout=60).json()["state"]
+    cases = [
+        ({"frames": frames[1:]}, "gps"),  # neither a fix nor a state
+        ({"frames": [frames[0]], "state": state}, "frames[0].motion"),  # continuing needs the odometry
+        ({"frames": frames[1:], "state": {**state, "crs": "EPSG:32632"}}, "EPSG:32632"),
+        ({"frames": frames[1:], "state": {**state, "gps": {**state["gps"], "sigma_m": 0}}}, "sigma_m"),
+        ({"frames": frames[1:], "state": {**state, "frames": 0}}, "frames"),
+        ({"frames": frames[1:], "state": {**state, "extra": 1}}, "extra"),
+    ]
+    for body, words in cases:
+        assert_problem(httpx.post(url, json=body, timeout=60), 422, words)
+    # The same state continues the drive, with or without a newer GPS fix.
+    for extra in ({}, {"gps": gps_near(*truth[1])}):
+        r = httpx.post(url, json={"frames": frames[1:], "state": state, **extra}, timeout=60)
+        assert r.status_code == 200 and r.json()["state"]["frames"] == 2, r.text
 
 
 def test_answers_follow_the_documented_schema(api, kmap):

@@ -36,23 +36,34 @@ def stored_map(tmp_path_factory):
     return karlsruhe_store(tmp_path_factory.mktemp("examples"))
 
 
-def test_the_readme_localize_commands_answer_as_documented(stored_map, monkeypatch):
+def test_the_readme_localize_commands_answer_as_documented(stored_map, monkeypatch, tmp_path):
     monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
     monkeypatch.chdir(REPO)
     lines = [ln for ln in README.splitlines() if ln.startswith("lanemap localize ka ")]
-    assert len(lines) == 2, lines
+    assert len(lines) == 4, lines
+    outs = []
     for line in lines:
         argv = shlex.split(line.split("#")[0])[1:]
+        if "--state" in argv:  # the drive's state goes to a scratch folder, not the checkout
+            k = argv.index("--state") + 1
+            argv[k] = str(tmp_path / argv[k])
         res = CliRunner().invoke(app, argv)
         assert res.exit_code == 0, (line, res.output)
         out = json.loads(res.stdout)
+        outs.append(out)
         if "--frames" in argv:
             assert all(p["status"] == "ok" for p in out["poses"]), out
-            answer, truth = out["poses"][-1], TRUTH["drive_last"]
+            answer = out["poses"][-1]
         else:
-            answer, truth = out, TRUTH["frame"]
+            answer = out
+        if "drive-start" in line:  # its seventh frame: checked below against the whole drive's
+            continue
+        truth = TRUTH["frame"] if "frame.json" in line else TRUTH["drive_last"]
         assert answer["status"] == "ok"
         assert _off(answer, truth) < 0.3 and _heading_off(answer, truth) < 1.0, (line, answer)
+    # Streamed in two parts with the state between them: the poses of the whole drive.
+    assert outs[2]["poses"] + outs[3]["poses"] == outs[1]["poses"]
+    assert outs[3]["state"]["frames"] == 8
 
 
 def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F811
@@ -77,6 +88,21 @@ def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F8
     drive = httpx.post(f"{url}/sequence", content=(REPO / "docs/examples/drive.json").read_bytes(),
                        headers={"Content-Type": "application/json"}, timeout=60).json()
     assert len(drive["poses"]) == 8 and drive["poses"][-1]["status"] == "ok", drive
+    # The streaming example: its state is the one the drive's first seven frames end with, and
+    # the eighth frame sent with it answers as the whole drive does.
+    start = httpx.post(f"{url}/sequence", content=(REPO / "docs/examples/drive-start.json").read_bytes(),
+                       headers={"Content-Type": "application/json"}, timeout=60).json()
+    streaming = section[section.index("**Streaming a drive.**"):]
+    documented_state = json.loads(re.search(r'"state": (\{.*?\}\}),\n  "frames"', streaming, re.S).group(1))
+    assert start["state"]["frames"] == documented_state["frames"] == 7
+    for got, doc in zip(start["state"]["tracks"] + [start["state"]["gps"]],
+                        documented_state["tracks"] + [documented_state["gps"]]):  # fmt: skip
+        assert got.keys() == doc.keys() and all(got[k] == pytest.approx(doc[k], abs=1e-6) for k in got), (got, doc)
+    nxt = json.loads((REPO / "docs/examples/drive-next.json").read_text())
+    last = httpx.post(f"{url}/sequence", json={**nxt, "state": start["state"]}, timeout=60).json()
+    assert start["poses"] + last["poses"] == drive["poses"]
+    assert re.search(r"`ok` at (\S+),\s+(\S+),", streaming).groups() == (
+        f"{last['poses'][-1]['lat']:.7f}", f"{last['poses'][-1]['lon']:.7f}")
     assert _off(drive["poses"][-1], TRUTH["drive_last"]) < 0.3
     # What /docs offers to try on the demo map answers too.
     from service.routers.localize import LocalizeIn, SequenceIn

@@ -151,13 +151,13 @@ def test_cli_unknown_map_and_missing_file(stored_map, tmp_path, monkeypatch, cap
         assert len(err) == 1 and err[0].startswith("error: ") and needle in err[0], err
 
 
-def test_cli_localizes_a_drive_of_frames(stored_map, tmp_path, monkeypatch):
+def simulated_drive(seed: int, n: int):
+    """A drive of ``n`` frames as the CLI reads them, its true poses, and a GPS fix near its start."""
     from localizer.simulate import odometry, sample_trajectories
 
-    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
     _, smap = karlsruhe()
-    rng = np.random.default_rng(2)
-    drive = sample_trajectories(smap, 1, 6, 1.5, rng, min_visible=6)[0]
+    rng = np.random.default_rng(seed)
+    drive = sample_trajectories(smap, 1, n, 1.5, rng, min_visible=6)[0]
     frames = []
     for k, p in enumerate(drive):
         scene = simulate_scene(smap, tuple(p), rng, Camera(), Clutter())
@@ -166,11 +166,17 @@ def test_cli_localizes_a_drive_of_frames(stored_map, tmp_path, monkeypatch):
             dx, dy, dyaw = odometry(drive[k - 1], p)
             f["motion"] = {"dx": dx, "dy": dy, "dyaw_deg": math.degrees(dyaw)}
         frames.append(f)
-    path = tmp_path / "drive.json"
-    path.write_text(json.dumps({"frames": frames}))
     frame = GeoFrame("EPSG:25832")
     lon, lat = frame.to_lonlat(drive[0][0] + 1.0, drive[0][1] - 0.5)
     heading = float(frame.grid_yaw_to_heading(drive[0][2] + math.radians(4), lon, lat))
+    return frames, drive, lat, lon, heading
+
+
+def test_cli_localizes_a_drive_of_frames(stored_map, tmp_path, monkeypatch):
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    frames, drive, lat, lon, heading = simulated_drive(2, 6)
+    path = tmp_path / "drive.json"
+    path.write_text(json.dumps({"frames": frames}))
     res = CliRunner().invoke(app, [
         "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
         "--frames", str(path), "--position-sigma", "2", "--heading-sigma", "8",
@@ -217,3 +223,47 @@ def test_a_first_run_says_it_is_compiling(stored_map, tmp_path):
         assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
     assert runs[0].stderr.startswith("note: compiling the localizer"), runs[0].stderr
     assert "note:" not in runs[1].stderr, runs[1].stderr
+
+
+def test_cli_streams_a_drive_through_a_state_file(stored_map, tmp_path, monkeypatch):
+    """--state: a drive sent in parts gives the poses of one call; the file is written whole, or not at all."""
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    frames, drive, lat, lon, heading = simulated_drive(3, 6)
+    gps = ["--lat", str(lat), "--lon", str(lon), "--heading", str(heading), "--position-sigma", "2"]
+
+    def run(part, *extra):
+        path = tmp_path / "part.json"
+        path.write_text(json.dumps({"frames": part}))
+        return CliRunner().invoke(app, ["localize", "ka", "--frames", str(path), *extra])
+
+    whole = run(frames, *gps)
+    assert whole.exit_code == 0, whole.output
+    state = tmp_path / "drive.state.json"
+    first = run(frames[:2], *gps, "--state", str(state))
+    assert first.exit_code == 0, first.output
+    assert json.loads(state.read_text()) == json.loads(first.stdout)["state"]
+    rest = run(frames[2:], "--state", str(state))  # no GPS options: the state continues the drive
+    assert rest.exit_code == 0, rest.output
+    streamed = json.loads(first.stdout)["poses"] + json.loads(rest.stdout)["poses"]
+    assert streamed == json.loads(whole.stdout)["poses"]
+    assert json.loads(state.read_text())["frames"] == 6
+    assert math.hypot(streamed[-1]["easting"] - drive[-1][0], streamed[-1]["northing"] - drive[-1][1]) < 0.5
+
+    kept = state.read_text()
+    for part, extra, needle in [
+        (frames[2:], [], "frames[0].motion"),  # continuing: the first frame needs the odometry
+        (frames[3:], ["--lat", str(lat)], "together"),
+        (frames[3:], ["--observations", "x.json"], "either --observations"),
+    ]:
+        if not extra:
+            part = [{"observations": part[0]["observations"]}] + part[1:]
+        res = run(part, "--state", str(state), *extra)
+        assert res.exit_code == 1, res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
+        assert state.read_text() == kept  # a refused call leaves the drive's state as it was
+    res = run(frames[:1], "--state", str(tmp_path / "new.json"))
+    assert res.exit_code == 1 and "does not exist yet" in res.stderr
+    state.write_text('{"crs": "EPSG:25832", "frames": 0}')
+    res = run(frames[3:], "--state", str(state))
+    assert res.exit_code == 1 and "not a drive's state" in res.stderr and "state.frames" in res.stderr

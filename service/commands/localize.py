@@ -62,12 +62,35 @@ def load_observations(path: Path):
     return data
 
 
-def load_frames(path: Path):
+def load_state(path: Path):
+    """A drive's :class:`localizer.TrackState` from the JSON file ``--state`` wrote."""
+    from localizer import TrackState
+
+    try:
+        return TrackState.from_dict(_read_json(path))
+    except LocalizationInputError as exc:
+        fail(f"{path}: not a drive's state: {exc}")
+
+
+def save_state(path: Path, state: dict) -> None:
+    """Write ``state`` to ``path`` whole or not at all (a temporary file renamed over it)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(json.dumps(state, indent=1, allow_nan=False) + "\n")
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        fail(f"cannot write the drive's state to {path}: {exc.strerror or exc}")
+
+
+def load_frames(path: Path, continuing: bool = False):
     """Frames from a JSON file: ``{"frames": [{"observations": [...], "motion": {...}}, ...]}``.
 
     ``motion`` is the odometry since the previous frame in the previous vehicle
     frame: ``dx`` metres forward, ``dy`` metres left, ``dyaw_deg`` degrees
-    counter-clockwise (a left turn is positive); the first frame's is ignored.
+    counter-clockwise (a left turn is positive); the first frame's is ignored,
+    unless the frames ``continuing`` a drive (then it is the odometry since the
+    drive's last frame, and required).
     """
     from localizer.track import Frame
 
@@ -80,7 +103,7 @@ def load_frames(path: Path):
         if not isinstance(f, dict) or not isinstance(f.get("observations"), list):
             fail(f"{path}: frames[{k}] needs an 'observations' list")
         m = f.get("motion") or {}
-        if not isinstance(m, dict) or (k > 0 and not {"dx", "dy"} <= set(m)):
+        if not isinstance(m, dict) or ((k > 0 or continuing) and not {"dx", "dy"} <= set(m)):
             fail(f"{path}: frames[{k}].motion needs 'dx' and 'dy' (metres) and optionally 'dyaw_deg'")
         try:
             motion = (float(m.get("dx", 0.0)), float(m.get("dy", 0.0)), np.radians(float(m.get("dyaw_deg", 0.0))))
@@ -94,10 +117,10 @@ def register(app: typer.Typer) -> None:
     @app.command("localize")
     def localize_cmd(
         map_id: str = typer.Argument(..., metavar="MAP", help="Map id."),
-        lat: float = typer.Option(..., "--lat", help="GPS latitude, degrees (WGS84)."),
-        lon: float = typer.Option(..., "--lon", help="GPS longitude, degrees (WGS84)."),
-        heading: float = typer.Option(
-            ..., "--heading", help="GPS heading, degrees clockwise from true north."
+        lat: float | None = typer.Option(None, "--lat", help="GPS latitude, degrees (WGS84)."),
+        lon: float | None = typer.Option(None, "--lon", help="GPS longitude, degrees (WGS84)."),
+        heading: float | None = typer.Option(
+            None, "--heading", help="GPS heading, degrees clockwise from true north."
         ),
         observations: Path = typer.Option(
             None, "--observations", help="JSON file: {\"observations\": [{\"x\", \"y\", \"weight\"}]} "
@@ -107,6 +130,11 @@ def register(app: typer.Typer) -> None:
             None, "--frames", help="JSON file of consecutive frames with odometry, oldest first: "
             "{\"frames\": [{\"observations\": [...], \"motion\": {\"dx\", \"dy\", \"dyaw_deg\"}}]}; "
             "the GPS fix is the first frame's. Prints the pose of every frame.",
+        ),
+        state_file: Path = typer.Option(
+            None, "--state", help="With --frames: a file holding where the drive's filter stands. If it "
+            "exists, the frames continue that drive (the first frame's motion is the odometry since its last "
+            "frame; the GPS options are then optional, a newer fix); the new state is written to it.",
         ),
         method: str = typer.Option("default", "--method", help=f"One of: {', '.join(METHODS)}."),
         position_sigma: float = typer.Option(5.0, "--position-sigma", help="GPS position sigma, metres."),
@@ -124,13 +152,23 @@ def register(app: typer.Typer) -> None:
         the last frame decides), 1 on bad input.
 
         With --frames, a drive of several frames is localized with the
-        multi-hypothesis filter of localizer.track (default method only).
+        multi-hypothesis filter of localizer.track (default method only);
+        with --state, a long drive is sent a few frames at a time.
         """
         from mapbuilder.store import Store
 
         if (observations is None) == (frames is None):
             fail("give either --observations (one frame) or --frames (a sequence)")
-        seq = load_frames(frames) if frames is not None else None
+        if state_file is not None and frames is None:
+            fail("--state continues a drive: it works with --frames only")
+        state = load_state(state_file) if state_file is not None and state_file.exists() else None
+        gps_given = [v is not None for v in (lat, lon, heading)]
+        if any(gps_given) and not all(gps_given):
+            fail("give --lat, --lon and --heading together")
+        if not all(gps_given) and state is None:
+            fail("give the GPS fix: --lat, --lon and --heading"
+                 + (f" (the drive's state file {state_file} does not exist yet)" if state_file else ""))
+        seq = load_frames(frames, continuing=state is not None) if frames is not None else None
         obs = load_observations(observations) if observations is not None else None
         if method not in METHODS:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -151,15 +189,18 @@ def register(app: typer.Typer) -> None:
         _ready_kernels()
         try:
             index = index_from_markings(arrays, info.crs)
-            prior = Prior(
+            prior = None if lat is None else Prior(
                 lat=lat, lon=lon, heading_deg=heading,
                 position_sigma_m=position_sigma, heading_sigma_deg=heading_sigma,
             )
             if seq is not None:
                 from localizer.track import localize_sequence
 
-                result = localize_sequence(index, seq, prior, options=options)
-                out = {"poses": [p.to_dict() for p in result.poses], "tracks": result.tracks}
+                result = localize_sequence(index, seq, prior, options=options, state=state)
+                out = {"poses": [p.to_dict() for p in result.poses], "tracks": result.tracks,
+                       "state": result.state.to_dict()}
+                if state_file is not None:
+                    save_state(state_file, out["state"])
             else:
                 out = localize(index, obs, prior, method=method, options=options).to_dict()
         except LocalizationInputError as exc:

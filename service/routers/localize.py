@@ -96,7 +96,40 @@ class MotionIn(BaseModel):
 class FrameIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     observations: list[ObservationIn] = Field(..., max_length=10_000)
-    motion: MotionIn | None = Field(None, description="Odometry from the previous frame; required but for the first")
+    motion: MotionIn | None = Field(
+        None, description="Odometry from the previous frame (with `state`: from the previous answer's last "
+                          "frame); required but for a drive's first frame")
+
+
+class TrackIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    easting: float = Field(..., description="Metres in the map's CRS")
+    northing: float = Field(..., description="Metres in the map's CRS")
+    yaw_grid_rad: float = Field(..., description="Radians counter-clockwise from the CRS's +x axis")
+    sigma_m: float = Field(..., gt=0, le=1000, description="Position sigma, metres")
+    sigma_yaw_rad: float = Field(..., gt=0, le=math.pi, description="Heading sigma, radians")
+    log_weight: float = Field(..., description="Unnormalised log posterior of the hypothesis")
+    matched: bool = Field(..., description="Whether any frame matched along it")
+
+
+class GpsTrackIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    easting: float
+    northing: float
+    yaw_grid_rad: float
+    sigma_m: float = Field(..., gt=0, le=1000)
+    sigma_yaw_rad: float = Field(..., gt=0, le=math.pi)
+
+
+class StateIn(BaseModel):
+    """Where a drive's filter stands after its last frame (``SequenceOut.state``): send it back unchanged."""
+
+    model_config = ConfigDict(extra="forbid")
+    crs: str = Field(..., min_length=1, max_length=200, description="The map CRS of the poses")
+    frames: int = Field(..., ge=1, description="Frames the drive has had so far")
+    tracks: list[TrackIn] = Field(..., max_length=64,
+                                  description="The hypotheses followed, most probable first")
+    gps: GpsTrackIn = Field(..., description="The GPS fix carried along by the odometry")
 
 
 class SequenceIn(BaseModel):
@@ -120,8 +153,13 @@ class SequenceIn(BaseModel):
             }
         },
     )  # fmt: skip
-    gps: GpsIn = Field(..., description="GPS fix at the first frame")
+    gps: GpsIn | None = Field(None, description="GPS fix at the first frame; required unless `state` is sent "
+                                                 "(then a newer fix, optional)")
     frames: list[FrameIn] = Field(..., min_length=1, max_length=50, description="Consecutive frames, oldest first")
+    state: StateIn | None = Field(
+        None, description="The `state` of the drive's previous answer: continue the drive (the first "
+                          "frame's `motion` is then the odometry since the previous answer's last frame). "
+                          "The poses are those one request with all the frames would have given.")
     min_probability: float | None = _MIN_PROBABILITY
 
 
@@ -179,6 +217,9 @@ class SequenceOut(BaseModel):
     model_config = ConfigDict(extra="forbid")
     poses: list[PoseOut] = Field(..., description="The answer at every frame, from the frames up to it")
     tracks: int = Field(..., ge=0, description="Hypotheses still followed after the last frame")
+    state: StateIn | None = Field(
+        None, description="Send it with the next frames to continue the drive; null when the frames could "
+                          "not be localized")
 
 
 def map_index(ctx: Context, map_id: str):
@@ -225,9 +266,12 @@ async def localize_drive(
     """
     for k, f in enumerate(body.frames):
         _check_count(ctx, len(f.observations), f"frames[{k}].observations")
-        if k and f.motion is None:
+        if (k or body.state is not None) and f.motion is None:
             raise Problem(422, f"frames[{k}].motion: the odometry since the previous frame is required",
                           "missing-motion")  # fmt: skip
+    if body.gps is None and body.state is None:
+        raise Problem(422, "gps: a GPS fix is needed to start a drive (or the previous answer's state to "
+                      "continue one)", "missing-gps")  # fmt: skip
     return await _admit(ctx, _localize_drive, mapId, body)
 
 
@@ -277,7 +321,7 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
 
 def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float) -> JSONResponse:
     """The CPU-bound part of a drive's localization, run in a worker thread."""
-    from localizer import Frame, localize_sequence
+    from localizer import Frame, TrackState, localize_sequence
 
     t0 = time.perf_counter()
     index = map_index(ctx, map_id)
@@ -287,16 +331,18 @@ def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float
               (0.0, 0.0, 0.0) if f.motion is None else (f.motion.dx, f.motion.dy, math.radians(f.motion.dyaw_deg)))
         for f in body.frames
     ]  # fmt: skip
+    state = TrackState.from_dict(body.state.model_dump()) if body.state is not None else None
     try:
-        result = localize_sequence(index, frames, _prior(body.gps),
-                                   options=localize_options(body.min_probability))  # fmt: skip
+        result = localize_sequence(index, frames, _prior(body.gps) if body.gps is not None else None,
+                                   options=localize_options(body.min_probability), state=state)  # fmt: skip
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("drive localization on %s failed numerically: %r", map_id, exc)
         failed = {"status": "failed", "crs": index.crs, "hypotheses": [],
                   "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
-        return JSONResponse({"poses": [failed] * len(frames), "tracks": 0},
+        return JSONResponse({"poses": [failed] * len(frames), "tracks": 0, "state": None},
                             headers=_server_timing(admitted, t0, t1))  # fmt: skip
-    out = {"poses": [_pose_json(p) for p in result.poses], "tracks": result.tracks}
+    out = {"poses": [_pose_json(p) for p in result.poses], "tracks": result.tracks,
+           "state": result.state.to_dict()}
     return JSONResponse(out, headers=_server_timing(admitted, t0, t1))
 
 
