@@ -198,7 +198,6 @@ def localize(
     px, py = frame.to_xy(prior.lon, prior.lat)
     if not (math.isfinite(px) and math.isfinite(py)):
         raise LocalizationInputError("prior: lat/lon cannot be projected to the map CRS")
-    yaw0 = float(frame.heading_to_grid_yaw(prior.heading_deg, prior.lon, prior.lat))
     sigma_p = float(prior.position_sigma_m)
     sigma_yaw = math.radians(prior.heading_sigma_deg)
     obs_xy = obs[:, :2]
@@ -221,6 +220,11 @@ def localize(
             crs=crs,
             reason=f"no map markings within {reach:.0f} m of the prior",
         )
+    # Only now: far outside the CRS's area (where a map never is) the meridian
+    # convergence is undefined.
+    yaw0 = float(frame.heading_to_grid_yaw(prior.heading_deg, prior.lon, prior.lat))
+    if not math.isfinite(yaw0):
+        raise LocalizationInputError("prior: the heading cannot be converted to the map CRS at this position")
     prior_pose = (0.0, 0.0, yaw0)
     prior_info = np.diag([1 / sigma_p**2, 1 / sigma_p**2, 1 / sigma_yaw**2])
     w_data = data_weights(gamma)

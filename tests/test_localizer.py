@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
@@ -919,6 +920,13 @@ def test_failed_when_the_prior_is_far_from_the_map():
     r = localize(index, obs, far)
     assert r.status == "failed" and "no map markings" in r.reason
     assert json.loads(json.dumps(r.to_dict(), allow_nan=False))["reason"] == r.reason
+    # On the other side of the globe, where the UTM zone's meridian convergence
+    # is undefined: the same answer, and no numpy warning on the way.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for method in ("default", "pink2008"):
+            r = localize(index, obs, Prior(lat=0.0, lon=180.0, heading_deg=0.0), method=method)
+            assert r.status == "failed" and "no map markings" in r.reason
 
 
 def test_an_empty_map_fails_with_a_reason():
