@@ -263,6 +263,8 @@ async def localize_drive(
 
     A single frame on a straight road with repeating dashes is often
     ``ambiguous``; over a drive the rivals stop explaining what the camera sees.
+    A drive can be streamed: send the answer's ``state`` back with the next
+    frames, and the poses are those of one request with all the frames.
     """
     for k, f in enumerate(body.frames):
         _check_count(ctx, len(f.observations), f"frames[{k}].observations")
