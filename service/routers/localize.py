@@ -101,7 +101,9 @@ class FrameIn(BaseModel):
                           "frame); required but for a drive's first frame")
 
 
-class TrackIn(BaseModel):
+class DriveTrack(BaseModel):
+    """One hypothesis a drive's filter follows (map CRS, grid yaw)."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     easting: float = Field(..., description="Metres in the map's CRS")
     northing: float = Field(..., description="Metres in the map's CRS")
@@ -112,7 +114,9 @@ class TrackIn(BaseModel):
     matched: bool = Field(..., description="Whether any frame matched along it")
 
 
-class GpsTrackIn(BaseModel):
+class DriveGps(BaseModel):
+    """The drive's GPS fix carried along by the odometry (map CRS, grid yaw)."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     easting: float
     northing: float
@@ -121,15 +125,15 @@ class GpsTrackIn(BaseModel):
     sigma_yaw_rad: float = Field(..., gt=0, le=math.pi)
 
 
-class StateIn(BaseModel):
+class DriveState(BaseModel):
     """Where a drive's filter stands after its last frame (``SequenceOut.state``): send it back unchanged."""
 
     model_config = ConfigDict(extra="forbid")
     crs: str = Field(..., min_length=1, max_length=200, description="The map CRS of the poses")
-    frames: int = Field(..., ge=1, description="Frames the drive has had so far")
-    tracks: list[TrackIn] = Field(..., max_length=64,
-                                  description="The hypotheses followed, most probable first")
-    gps: GpsTrackIn = Field(..., description="The GPS fix carried along by the odometry")
+    frames: int = Field(..., ge=1, le=2**53, description="Frames the drive has had so far")
+    tracks: list[DriveTrack] = Field(..., max_length=64,
+                                     description="The hypotheses followed, most probable first")
+    gps: DriveGps = Field(..., description="The GPS fix carried along by the odometry")
 
 
 class SequenceIn(BaseModel):
@@ -156,7 +160,7 @@ class SequenceIn(BaseModel):
     gps: GpsIn | None = Field(None, description="GPS fix at the first frame; required unless `state` is sent "
                                                  "(then a newer fix, optional)")
     frames: list[FrameIn] = Field(..., min_length=1, max_length=50, description="Consecutive frames, oldest first")
-    state: StateIn | None = Field(
+    state: DriveState | None = Field(
         None, description="The `state` of the drive's previous answer: continue the drive (the first "
                           "frame's `motion` is then the odometry since the previous answer's last frame). "
                           "The poses are those one request with all the frames would have given.")
@@ -217,7 +221,7 @@ class SequenceOut(BaseModel):
     model_config = ConfigDict(extra="forbid")
     poses: list[PoseOut] = Field(..., description="The answer at every frame, from the frames up to it")
     tracks: int = Field(..., ge=0, description="Hypotheses still followed after the last frame")
-    state: StateIn | None = Field(
+    state: DriveState | None = Field(
         None, description="Send it with the next frames to continue the drive; null when the frames could "
                           "not be localized")
 
