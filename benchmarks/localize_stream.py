@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _localizer_helpers import karlsruhe  # noqa: E402
-from localize_track import SCENARIOS, carry, grade, noisy, prior_at  # noqa: E402
+from localize_track import SCENARIOS, carry, grade, noisy, plot_success, prior_at  # noqa: E402
 
 from localizer.simulate import Camera, odometry, perturb, sample_trajectories, simulate_scene  # noqa: E402
 from localizer.track import Frame, localize_sequence  # noqa: E402
@@ -110,26 +110,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     print("\n".join(rows))
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    OUT.mkdir(parents=True, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for label, c in curves.items():
-        ax.plot(np.arange(1, args.frames + 1), 100 * c, marker="o", ms=3, label=label)
-    ax.set_xlabel(f"frame ({args.step} m apart)")
-    ax.set_ylabel("success 0.5 m / 1° [%]")
-    ax.set_ylim(0, 100)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title("a drive streamed with its state, against a window resent per request")
-    fig.tight_layout()
     png = OUT / "localize_stream.png"
-    fig.savefig(png, dpi=110)
+    plot_success(curves, args.step, "a drive streamed with its state, against a window resent per request", png,
+                 ms=3)
     print(f"plot: {png}")
-
 
 if __name__ == "__main__":
     main()

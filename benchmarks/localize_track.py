@@ -147,26 +147,31 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     print("\n".join(rows))
 
+    png = OUT / f"localize_track{args.tag}.png"
+    plot_success(curves, args.step, "localize_sequence: success after each frame", png)
+    print(f"plot: {png}")
+
+
+def plot_success(curves: dict, step: float, title: str, png: Path, **style) -> None:
+    """Success after each frame (one line per entry of ``curves``), saved to ``png``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    OUT.mkdir(parents=True, exist_ok=True)
+    png.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, c in curves.items():
-        ax.plot(np.arange(1, args.frames + 1), 100 * c, marker="o", label=name)
-    ax.set_xlabel(f"frame ({args.step} m apart)")
+        ax.plot(np.arange(1, len(c) + 1), 100 * c, marker="o", label=name, **style)
+    ax.set_xlabel(f"frame ({step} m apart)")
     ax.set_ylabel("success 0.5 m / 1° [%]")
     ax.set_ylim(0, 100)
     ax.grid(alpha=0.3)
-    ax.legend()
-    ax.set_title("localize_sequence: success after each frame")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
     fig.tight_layout()
-    png = OUT / f"localize_track{args.tag}.png"
     fig.savefig(png, dpi=110)
-    print(f"plot: {png}")
-
+    plt.close(fig)
 
 if __name__ == "__main__":
     main()

@@ -24,6 +24,12 @@ def carry(pose, motions):
     return x, y, yaw
 
 
+def scattered(rng, **kw):
+    """A map of markings scattered without pattern (``random_map``) and its index."""
+    xy, w = random_map(rng, **kw)
+    return xy, MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+
+
 def graded(pose, truth):
     if pose.easting is None:
         return pose.status, math.inf
@@ -65,8 +71,7 @@ def test_a_drive_resolves_what_single_frames_cannot():
 
 def test_odometry_is_iso8855_and_carries_the_pose_through_blind_frames():
     rng = np.random.default_rng(4)
-    xy, w = random_map(rng)
-    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+    xy, index = scattered(rng)
     pose = (ORIGIN[0] + 3.0, ORIGIN[1] - 2.0, math.pi / 2)  # facing grid north
     first = observe(xy, pose).observations
     # Forward 2 m, 1 m to the left, turning left by 0.1 rad each frame; the camera is blind.
@@ -90,8 +95,7 @@ def test_odometry_is_iso8855_and_carries_the_pose_through_blind_frames():
 
 def test_a_first_frame_without_markings_is_caught_up_later():
     rng = np.random.default_rng(5)
-    xy, w = random_map(rng)
-    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+    xy, index = scattered(rng)
     p0 = (ORIGIN[0], ORIGIN[1], 0.3)
     p1 = carry(p0, [(1.5, 0.0, 0.0)])
     frames = [Frame(np.zeros((0, 3))), Frame(observe(xy, p1).observations, (1.5, 0.0, 0.0))]
@@ -148,8 +152,7 @@ def test_a_drive_streamed_in_parts_gives_the_poses_of_one_call():
 def test_a_continued_drive_searches_around_a_newer_gps_fix():
     """While no track is sure, the frames are searched around the fix; a newer one replaces the carried one."""
     rng = np.random.default_rng(6)
-    xy, w = random_map(rng)
-    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+    xy, index = scattered(rng)
     p0 = (ORIGIN[0], ORIGIN[1], 0.3)
     p1 = carry(p0, [(1.5, 0.0, 0.0)])
     # A first frame that sees nothing, under a fix 40 m off and sure of itself: no track.
@@ -215,8 +218,7 @@ def test_a_streamed_drive_recovers_when_its_track_stops_matching():
     to undo, and the filter stays sure of the wrong place.
     """
     rng = np.random.default_rng(7)
-    xy, w = random_map(rng, n=8000, half=200.0)
-    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, "EPSG:25832")
+    xy, index = scattered(rng, n=8000, half=200.0)
     right_after = {}
     for lead in (TrackOptions().max_lead, math.inf):
         pose, state, right = (ORIGIN[0] - 60.0, ORIGIN[1], 0.0), None, []
