@@ -6,6 +6,8 @@ import json
 import math
 import re
 import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import httpx
@@ -101,6 +103,13 @@ def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F8
     nxt = json.loads((REPO / "docs/examples/drive-next.json").read_text())
     last = httpx.post(f"{url}/sequence", json={**nxt, "state": start["state"]}, timeout=60).json()
     assert start["poses"] + last["poses"] == drive["poses"]
+    # The example client streams drive.json frame by frame to the same answers.
+    out = subprocess.run([sys.executable, str(REPO / "docs/examples/stream_drive.py"), api.base_url, map_id,
+                          str(REPO / "docs/examples/drive.json")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    assert len(lines) == 8 and all(f"p={p['probability']:.4f} lat={p['lat']:.7f}" in line
+                                   for line, p in zip(lines, drive["poses"])), (lines, drive["poses"])
     assert re.search(r"`ok` at (\S+),\s+(\S+),", streaming).groups() == (
         f"{last['poses'][-1]['lat']:.7f}", f"{last['poses'][-1]['lon']:.7f}")
     assert _off(drive["poses"][-1], TRUTH["drive_last"]) < 0.3

@@ -1,0 +1,60 @@
+"""Stream a drive to a lanemap server one frame at a time, as a vehicle would.
+
+Each request carries one camera frame (with the odometry since the frame
+before) and the ``state`` of the previous answer; the first carries the GPS
+fix instead. The server keeps nothing between requests, and the poses are
+those one request with all the frames would give.
+
+Usage (the demo server of the README, from the repository root):
+
+    python docs/examples/stream_drive.py http://127.0.0.1:8000 karlsruhe docs/examples/drive.json
+
+Prints one line per frame: status, probability, latitude, longitude, heading.
+Needs ``httpx`` (installed with lanemap).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import httpx
+
+
+def stream(base_url: str, map_id: str, drive: dict, token: str | None = None) -> list[dict]:
+    """Send ``drive``'s frames one per request; the answer at every frame."""
+    url = f"{base_url}/collections/{map_id}/localize/sequence"
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    poses, state = [], None
+    with httpx.Client(headers=headers, timeout=30) as client:
+        for frame in drive["frames"]:
+            body = {"frames": [frame]}
+            if state is None:
+                body["gps"] = drive["gps"]  # the drive starts at this fix
+            else:
+                body["state"] = state  # exactly as the previous answer gave it
+            r = client.post(url, json=body)
+            if r.status_code != 200:  # a problem+json body says why
+                raise SystemExit(f"error: {r.status_code} {r.json().get('detail', r.text)}")
+            answer = r.json()
+            state = answer["state"]
+            poses.append(answer["poses"][-1])
+    return poses
+
+
+def main() -> None:
+    if len(sys.argv) != 4:
+        raise SystemExit("usage: stream_drive.py BASE_URL MAP_ID DRIVE.json")
+    base_url, map_id, path = sys.argv[1:]
+    with open(path) as f:
+        drive = json.load(f)
+    for k, p in enumerate(stream(base_url.rstrip("/"), map_id, drive)):
+        if p["status"] == "failed":
+            print(f"frame {k}: failed ({p.get('reason')})")
+        else:
+            print(f"frame {k}: {p['status']} p={p['probability']:.4f} "
+                  f"lat={p['lat']:.7f} lon={p['lon']:.7f} heading={p['heading_deg']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
