@@ -104,7 +104,15 @@ def _local_maxima(volume: np.ndarray, half: int, top_k: int):
             found &= volume >= np.partition(flat, flat.size - top_k)[flat.size - top_k]
         return np.nonzero(found)
     k = min(top_k, flat.size)
-    idx = np.argpartition(-flat, k - 1)[:k] if k < flat.size else np.arange(flat.size)
+    if k < flat.size:
+        # The k-th best value, then the cells above it: an argpartition of a
+        # 20 m prior's volume (tens of millions of cells) would allocate a full
+        # int64 index array, twice the volume's own memory.
+        kth = np.partition(flat, flat.size - k)[flat.size - k]
+        idx = np.flatnonzero(flat > kth)
+        idx = np.concatenate([idx, np.flatnonzero(flat == kth)[: k - idx.size]])
+    else:
+        idx = np.arange(flat.size)
     idx = idx[np.isfinite(flat[idx])]
     a, i, j = np.unravel_index(idx, volume.shape)
     padded = np.pad(volume, half, mode="edge")

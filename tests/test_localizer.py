@@ -375,6 +375,26 @@ def test_small_volume_maximum_filter_is_scipys():
 
 
 
+def test_local_maxima_of_a_large_volume_are_the_best_cells_that_no_neighbour_beats():
+    """A wide prior's volume: the local maxima (scipy's filter) among its ``top_k`` best finite cells."""
+    from scipy.ndimage import maximum_filter
+
+    from localizer.search import _local_maxima
+
+    rng = np.random.default_rng(1)
+    for shape, top_k in [((40, 61, 61), 4000), ((9, 121, 121), 500), ((60, 25, 25), 40)]:
+        # Smooth enough to have few maxima per neighbourhood, as a score volume.
+        v = np.cumsum(np.cumsum(rng.normal(size=shape), 1), 2).astype(np.float32)
+        v[:, :5, :5] = -np.inf  # outside the search disc
+        for half in (1, 2):
+            assert v.size > 3 * top_k
+            got = set(zip(*(a.tolist() for a in _local_maxima(v, half, top_k))))
+            peak = maximum_filter(v, size=2 * half + 1, mode="nearest")
+            best = np.sort(v.ravel())[::-1][top_k - 1]  # the top_k-th largest value
+            want = set(zip(*(a.tolist() for a in np.nonzero((v == peak) & np.isfinite(v) & (v >= best)))))
+            assert got == want and want
+
+
 def test_wide_search_scores_the_same_volume_either_way(monkeypatch):
     """A wide prior's volume summed per observation equals the one-matmul sum."""
     import localizer.search as search
