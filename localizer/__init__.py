@@ -21,7 +21,10 @@ Methods
        observation, the log-likelihood ratio of "marking" versus "clutter";
        built per request from the KD-tree neighbourhood, so no global field is
        precomputed), the GPS prior is added as a Gaussian log-density, and the
-       best local maxima of the volume become candidates.
+       best local maxima of the volume become candidates. The best 100 of them
+       (``Options.coarse_pool``) are first charged their negative evidence
+       (step 3's missed markings): the correlation rewards clutter's matches
+       too and knows nothing of markings a pose puts in view unseen.
     2. Each candidate is refined by IRLS with a Geman-McClure kernel whose
        scale is annealed from 0.8 m to 0.15 m (observation noise grows with
        range², so each observation's kernel is widened by its own noise); a

@@ -22,6 +22,7 @@ from .robust import (
     data_weights,
     fit_statistics,
     log_prior,
+    miss_costs,
     missed_counts,
     noise_sigma,
     pitch_corrected,
@@ -243,12 +244,15 @@ def localize(
     else:
         top = np.argsort(-w_data, kind="stable")[: options.max_search_observations]
         cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, MAX_SEARCH_CELL_M))
+        n_refine = options.candidates + options.extra_candidates
         cands = correlative_search(
             local, obs_xy[top], w_data[top], prior_pose, radius,
             min(options.search_sigmas * sigma_yaw, math.pi), sigma_p, sigma_yaw, cell,
-            options.outlier_density, options.candidates + options.extra_candidates, options.temperature,
+            options.outlier_density, max(n_refine, options.coarse_pool), options.temperature,
         )
         view = view_of(obs_xy, options)
+        if options.coarse_pool:
+            cands = _with_negative_evidence(local, obs_xy, cands, options, view)[:n_refine]
         if cands:
             # Candidates far below the best cannot become competitive.
             floor = cands[0].score - options.candidate_margin
@@ -410,6 +414,21 @@ class _Ranked:
     best_pose: tuple[float, float, float]
     best_fit: Any
     need: int  # matched observations the answer needs: min_inliers, or the fallback's
+
+
+def _with_negative_evidence(local: LocalMap, obs_xy, cands: list[Candidate], options: Options,
+                            view) -> list[Candidate]:
+    """Coarse candidates charged the markings they put in view that nobody saw, best first.
+
+    The same charge as the hypotheses' scores (:func:`miss_costs`, divided by
+    the temperature), so a coarse optimum that matches clutter while
+    predicting unseen dashes yields its place to one that explains the view.
+    """
+    if not cands:
+        return cands
+    cost = miss_costs(local, obs_xy, [(c.x, c.y, c.yaw) for c in cands], options, view) / options.temperature
+    charged = [replace(c, score=c.score - float(m)) for c, m in zip(cands, cost)]
+    return sorted(charged, key=lambda c: -c.score)
 
 
 def _neighbour_starts(pose, options: Options) -> list[Candidate]:

@@ -428,11 +428,15 @@ def _missed_batch(P, E, solid, axis, obs, rmin, rmax, tan_half, explain, along_m
                 continue
             found = 0
             best = np.inf
+            point = not solid[e]
             for j in range(N):
                 ox, oy = obs[j, 0] - vx, obs[j, 1] - vy
                 d2 = ox * ox + oy * oy
                 best = min(best, d2)
-                if d2 < al2:
+                if point:
+                    if best < ex2:
+                        break  # explained; only a solid line's neighbours are needed
+                elif d2 < al2:
                     found = keep_nearest(near_d, near_i, found, n_near, d2, j)
             if best < ex2:
                 continue

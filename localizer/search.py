@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .geometry import LocalMap
 
@@ -261,16 +262,32 @@ def correlative_search(
     # Inside the disc of the search radius only.
     volume[:, (tx[None, :] ** 2 + tx[:, None] ** 2) > radius**2] = -np.inf
     a, i, j = _local_maxima(volume, PEAK_HALF, PEAK_TOP_K)
-    order = np.argsort(-volume[a, i, j])
-    out: list[Candidate] = []
-    for o in order:
-        cand = Candidate(px + tx[j[o]], py + tx[i[o]], float(yaws[a[o]]), float(volume[a[o], i[o], j[o]]))
-        if any(
-            math.hypot(cand.x - c.x, cand.y - c.y) < SEP_M and abs(cand.yaw - c.yaw) < math.radians(SEP_DEG)
-            for c in out
-        ):
-            continue
-        out.append(cand)
-        if len(out) >= n_candidates:
+    order = np.argsort(-volume[a, i, j], kind="stable")
+    a, i, j = a[order], i[order], j[order]
+    cx, cy, cyaw = px + tx[j], py + tx[i], yaws[a]
+    keep = _separated(cx, cy, cyaw, SEP_M, math.radians(SEP_DEG), n_candidates)
+    return [Candidate(float(cx[k]), float(cy[k]), float(cyaw[k]), float(volume[a[k], i[k], j[k]])) for k in keep]
+
+
+@njit(cache=True, nogil=True)
+def _separated(x, y, yaw, sep_m, sep_rad, limit):
+    """Indices of the optima (best first) kept when each closer than ``sep_m`` and ``sep_rad`` to a kept one is dropped.
+
+    At most ``limit``; a greedy non-maximum suppression over candidates already
+    sorted best first.
+    """
+    keep = np.empty(min(limit, x.size), np.int64)
+    n = 0
+    for k in range(x.size):
+        if n >= limit:
             break
-    return out
+        near = False
+        for q in range(n):
+            m = keep[q]
+            if math.hypot(x[k] - x[m], y[k] - y[m]) < sep_m and abs(yaw[k] - yaw[m]) < sep_rad:
+                near = True
+                break
+        if not near:
+            keep[n] = k
+            n += 1
+    return keep[:n]

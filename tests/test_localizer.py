@@ -650,6 +650,47 @@ def test_negative_evidence_resolves_the_period_where_a_dashed_line_ends():
     assert period_back(r) > 0.1
 
 
+def test_coarse_optima_are_charged_the_markings_they_put_in_view_unseen():
+    # Refining a single coarse optimum: the correlation's best one, one period
+    # back (nearest the prior), explains the observed dashes as well as the
+    # truth and wins on the prior; but it puts the lines' last dashes in view,
+    # where nobody saw one.
+    xy = ending_dash_rows()
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 40.0, ORIGIN[1] + 1.7, 0.0)
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    prior = prior_at(index, (pose[0] - 9.0, pose[1], 0.0))
+    one = Options(candidates=1, extra_candidates=0)
+
+    def first_searched(result):
+        return result.diagnostics["search"][0][0] - pose[0]
+
+    blind = localize(index, scene.observations, prior, options=replace(one, coarse_pool=0))
+    assert first_searched(blind) == pytest.approx(-9.0, abs=0.5)
+    assert errors(blind, pose)[0] > 8.0  # only the period-back basin was refined
+    charged = localize(index, scene.observations, prior, options=replace(one, coarse_pool=50))
+    assert abs(first_searched(charged)) < 0.5
+    assert errors(charged, pose)[0] < 0.2
+
+
+def test_coarse_optima_are_separated_as_a_greedy_suppression():
+    from localizer.search import _separated
+
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0, 6, 400), rng.uniform(0, 6, 400)
+    yaw = rng.uniform(-0.2, 0.2, 400)
+    for limit in (1, 25, 400):
+        want: list[int] = []
+        for k in range(400):
+            if len(want) < limit and not any(
+                math.hypot(x[k] - x[m], y[k] - y[m]) < 1.0 and abs(yaw[k] - yaw[m]) < math.radians(2.5)
+                for m in want
+            ):
+                want.append(k)
+        assert _separated(x, y, yaw, 1.0, math.radians(2.5), limit).tolist() == want
+    assert len(want) > 25  # the limit was reached
+
+
 def test_a_solid_line_predicted_in_view_but_not_seen_counts_against_a_pose():
     from localizer.geometry import LocalMap
     from localizer.robust import missed_counts, view_of
