@@ -10,7 +10,10 @@
   tight 1 m / 9° prior, a GPS-like 1.5 m / 2° one and the widest prior of
   ``localize_paper.py`` (14 m / 17°, the fix 20 m / ±30° off); and the load test's own
   frames (``benchmarks/load_localize.py``: a wider camera, 24–40 observations,
-  GPS-like prior).
+  GPS-like prior);
+* the costliest request the API accepts (any heading, a 1 km position sigma,
+  500 observations out to 148 m), within the coarse search's budget and
+  without it.
 
 All localize rows reuse one MapIndex (built once per map, as the service does).
 Each call is timed in CPU time (``time.process_time``, what throughput on a
@@ -27,6 +30,7 @@ import math
 import os
 import sys
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +46,7 @@ from localizer import MapIndex, Options, Prior, localize  # noqa: E402
 from localizer.geometry import LocalMap  # noqa: E402
 from localizer.pink2008 import pink2008_icp  # noqa: E402
 from localizer.robust import data_weights, noise_sigma, robust_refine  # noqa: E402
-from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene  # noqa: E402
+from localizer.simulate import Camera, Clutter, SceneMap, perturb, sample_poses, simulate_scene  # noqa: E402
 
 ORIGIN = np.array([458000.0, 5428000.0])
 
@@ -161,6 +165,31 @@ def main() -> None:
         rows.append(line(
             f"localize {method}, load-test frames (200 × 2, "
             f"{np.median([len(o) for o, _ in frames]):.0f} obs median), prior 1.5 m/2°", ms))
+    # The costliest request the API accepts: any heading, a 1 km position sigma
+    # (the 45 m search radius), 500 observations out to 148 m of a wide camera.
+    # The coarse search's budget (Options.max_search_cells / max_search_work)
+    # bounds it; the unbounded row shows what it would cost without.
+    wrng = np.random.default_rng(21)
+    wxy = ORIGIN + wrng.uniform(-200.0, 200.0, (3_600, 2))
+    windex = MapIndex.from_arrays(wxy[:, 0], wxy[:, 1], wrng.uniform(20, 200, 3_600), "EPSG:25832")
+    wpose = (ORIGIN[0] + 6.0, ORIGIN[1] - 3.0, 1.1)
+    wide = Camera(min_range_m=4.0, max_range_m=148.0, half_fov_deg=60.0)
+    wobs = simulate_scene(SceneMap(marking_xy=wxy, marking_kind=np.full(len(wxy), "dash", object)),
+                          wpose, wrng, wide, Clutter()).observations
+    wobs = wobs[np.hypot(wobs[:, 0], wobs[:, 1]) < 149.0]  # the range noise reaches past the camera's
+    wobs = wobs[wrng.permutation(len(wobs))[:500]]
+    lon, lat = windex.frame.to_lonlat(ORIGIN[0], ORIGIN[1])
+    wprior = Prior(lat, lon, 0.0, 1000.0, 180.0)
+    unbounded = Options(max_search_cells=10**12, max_search_work=10**15)
+    for label, o in (("within the search budget", opts), ("unbounded search", unbounded)):
+        ms = timeit(lambda: localize(windex, wobs, wprior, options=o), 5)
+        tracemalloc.start()
+        localize(windex, wobs, wprior, options=o)
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+        tracemalloc.stop()
+        rows.append(line(f"localize default, API limits: {len(wobs)} obs to "
+                         f"{np.hypot(wobs[:, 0], wobs[:, 1]).max():.0f} m, any heading, 1 km sigma, {label} "
+                         f"(peak {peak:.0f} MiB allocated)", ms))
     print(f"load average {load0:.2f} at the start, {os.getloadavg()[0]:.2f} at the end, "
           f"{os.cpu_count()} cores")
     print("\n".join(rows))

@@ -30,7 +30,7 @@ from .robust import (
     robust_refine,
     view_of,
 )
-from .search import Candidate, correlative_search
+from .search import Candidate, correlative_search, search_observations
 from .types import Hypothesis, Options, Pose, Prior
 
 log = logging.getLogger(__name__)
@@ -242,12 +242,15 @@ def localize(
         diagnostics = {}
         need = options.min_inliers
     else:
-        top = np.argsort(-w_data, kind="stable")[: options.max_search_observations]
         cell = options.search_cell_m or float(np.clip(radius / 30.0, 0.5, MAX_SEARCH_CELL_M))
+        yaw_half_range = min(options.search_sigmas * sigma_yaw, math.pi)
+        top = search_observations(
+            obs_xy, np.argsort(-w_data, kind="stable")[: options.max_search_observations], radius,
+            yaw_half_range, cell, options.max_search_cells, options.max_search_work,
+        )
         n_refine = options.candidates + options.extra_candidates
         cands = correlative_search(
-            local, obs_xy[top], w_data[top], prior_pose, radius,
-            min(options.search_sigmas * sigma_yaw, math.pi), sigma_p, sigma_yaw, cell,
+            local, obs_xy[top], w_data[top], prior_pose, radius, yaw_half_range, sigma_p, sigma_yaw, cell,
             options.outlier_density, max(n_refine, options.coarse_pool), options.temperature,
         )
         view = view_of(obs_xy, options)

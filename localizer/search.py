@@ -37,6 +37,72 @@ SEP_M, SEP_DEG = 1.0, 2.5
 LARGE_WINDOW_CELLS = 8000
 CHUNK_CELLS = 100_000
 
+#: Bounds of the heading step, radians: fine enough for the farthest
+#: observation to move about a cell per step, never finer than 0.25°, never
+#: coarser than 3°.
+MIN_HEADING_STEP = math.radians(0.25)
+MAX_HEADING_STEP = math.radians(3.0)
+
+
+def heading_step(cell: float, rho: float) -> float:
+    """Heading step of the search, radians, for ``cell`` metres and observations out to ``rho`` metres."""
+    return min(max(cell / max(rho, 1.0), MIN_HEADING_STEP), MAX_HEADING_STEP)
+
+
+def search_observations(
+    obs_xy: np.ndarray,
+    order: np.ndarray,
+    radius: float,
+    yaw_half_range: float,
+    cell: float,
+    max_cells: int,
+    max_work: int,
+) -> np.ndarray:
+    """The observations the coarse search correlates, within its budget.
+
+    Parameters
+    ----------
+    obs_xy : ndarray (N, 2)
+        Vehicle-frame observations, metres.
+    order : ndarray of int
+        Candidates for the search, best first (highest weight).
+    radius, yaw_half_range, cell : float
+        The search's translation radius (m), heading half range (rad) and cell (m).
+    max_cells : int
+        Most cells of the heading × translation volume. Far observations need a
+        fine heading step; those beyond the range whose step keeps the volume
+        within this are left out (never the nearest eight).
+    max_work : int
+        Most volume cells × observations summed; beyond it, only the best
+        ``max_work // cells`` observations of ``order`` are kept (at least eight).
+
+    Returns
+    -------
+    ndarray of int
+        The kept entries of ``order``, in its order. Observations left out of
+        the coarse search still count in the refinement and the scores.
+    """
+    order = np.asarray(order)
+    if order.size == 0:
+        return order
+    n = 2 * int(math.ceil(radius / cell)) + 1
+    rng = np.hypot(obs_xy[order, 0], obs_xy[order, 1])
+
+    def volume(rho: float) -> int:
+        return (2 * int(math.ceil(yaw_half_range / heading_step(cell, rho))) + 1) * n * n
+
+    least = min(8, order.size)
+    if volume(float(rng.max())) > max_cells:
+        # The step that fills the budget, and the range at which it moves an
+        # observation by a cell.
+        step = 2.0 * yaw_half_range * n * n / max(max_cells - n * n, 1)
+        reach = max(cell / step, float(np.sort(rng)[least - 1]))
+        order, rng = order[rng <= reach], rng[rng <= reach]
+    cells = volume(float(rng.max()))
+    most = max(least, max_work // cells)
+    return order[:most]
+
+
 @dataclass(frozen=True)
 class Candidate:
     x: float
@@ -206,7 +272,7 @@ def correlative_search(
     x0 = px - half * cell - margin
     y0 = py - half * cell - margin
     m = int(math.ceil(2 * margin / cell)) + n + 1
-    step = min(max(cell / max(rho, 1.0), math.radians(0.25)), math.radians(3.0))
+    step = heading_step(cell, rho)
     k = int(math.ceil(yaw_half_range / step))
     yaws = pyaw + step * np.arange(-k, k + 1)
     tx = (np.arange(n) - half) * cell  # offsets from the prior position

@@ -200,6 +200,20 @@ class Options:
         radius, between 0.5 and 0.75 m.
     max_search_observations : int
         The coarse search uses at most this many observations (highest weight first).
+    max_search_cells, max_search_work : int
+        The coarse search's budget: the most cells of its heading × translation
+        volume (float32, 4 bytes each), and the most cells × observations it
+        sums. A far observation needs a fine heading step: a request within
+        the API's limits (any heading, the 45 m radius, 500 observations out to
+        148 m) would need 18 million cells and 2·10⁹ sums, about 1 s of CPU
+        and 160 MiB. Beyond the first budget the farthest observations are
+        left out of the coarse search, beyond the second those of lowest
+        weight; the nearest or best eight always stay, and every observation
+        still counts in the refinement and the scores. (Only a
+        ``search_cell_m`` finer than the default's can make the translation
+        grid alone, at the coarsest heading step of 3°, exceed the first.)
+        The defaults leave every scene of the benchmarks untouched: the
+        widest, 20 m / ±30°, needs under a million cells and 4·10⁷ sums.
     candidates : int
         Coarse optima that are refined (at most).
     extra_candidates, extra_search_probability : int, float
@@ -331,6 +345,8 @@ class Options:
     min_search_radius_m: float = 3.0
     search_cell_m: float | None = None
     max_search_observations: int = 120
+    max_search_cells: int = 4_000_000
+    max_search_work: int = 200_000_000
     candidates: int = 20
     extra_candidates: int = 20
     extra_search_probability: float = 0.999
@@ -468,7 +484,8 @@ _OPTIONAL_RANGES = (
 
 #: ``(field, least)`` of the options that count something.
 _OPTION_COUNTS = (("max_iterations", 1), ("iterations_per_scale", 1),
-                  ("max_search_observations", 1), ("candidates", 1),
+                  ("max_search_observations", 1), ("max_search_cells", 1), ("max_search_work", 1),
+                  ("candidates", 1),
                   ("extra_candidates", 0), ("coarse_pool", 0), ("max_hypotheses", 1), ("min_inliers", 1),
                   ("fallback_min_inliers", 1), ("max_observations", 1))
 

@@ -417,6 +417,54 @@ def test_wide_search_scores_the_same_volume_either_way(monkeypatch):
         assert a.score == pytest.approx(b.score, abs=1e-3)
 
 
+def test_the_coarse_search_keeps_far_observations_and_its_sums_within_budget():
+    from localizer.search import heading_step, search_observations
+
+    rng = np.random.default_rng(2)
+    r, b = rng.uniform(4.0, 148.0, 500), rng.uniform(-1.0, 1.0, 500)
+    obs = np.column_stack([r * np.cos(b), r * np.sin(b)])
+    order = rng.permutation(500)[:120]
+    n2 = (2 * math.ceil(45.0 / 0.75) + 1) ** 2
+
+    def cells(kept):
+        step = heading_step(0.75, float(r[kept].max()))
+        return (2 * math.ceil(math.pi / step) + 1) * n2
+
+    assert cells(order) > 15_000_000  # any heading, 45 m: the unbounded volume
+    kept = search_observations(obs, order, 45.0, math.pi, 0.75, 4_000_000, 10**12)
+    assert cells(kept) <= 4_000_000 and len(kept) >= 8
+    # The farthest are left out, in the order given.
+    assert r[kept].max() < r[np.setdiff1d(order, kept)].min()
+    assert kept.tolist() == [k for k in order.tolist() if k in set(kept.tolist())]
+    # Beyond the sums' budget the first of the order (the highest weights) stay.
+    few = search_observations(obs, order, 45.0, math.pi, 0.75, 4_000_000, 20 * cells(kept))
+    assert few.tolist() == kept[:20].tolist()
+    assert len(search_observations(obs, order, 45.0, math.pi, 0.75, 4_000_000, 1)) == 8
+    # The benchmarks' widest prior (14 m / 17°: 42 m, ±51°), 40 observations to 25 m: untouched.
+    near = np.flatnonzero(r <= 25.0)[:40]
+    assert search_observations(obs, near, 42.0, math.radians(51), 0.75, 4_000_000, 200_000_000).tolist() \
+        == near.tolist()
+
+
+def test_a_request_at_the_api_limits_is_answered_within_the_search_budget():
+    # Any heading, a 1 km position sigma, 500 observations out to 148 m of a
+    # wide camera: the coarse search leaves the far ones out, the answer uses all.
+    rng = np.random.default_rng(21)
+    xy, w = random_map(rng, n=3_600, half=200.0)  # about 500 markings in view
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0] + 6.0, ORIGIN[1] - 3.0, 1.1)
+    wide = Camera(min_range_m=4.0, max_range_m=148.0, half_fov_deg=60.0, pitch_sigma_deg=0.0,
+                  range_noise_m=0.02, range_noise_coeff=0.0, bearing_noise_rad=0.0, miss_probability=0.0)
+    obs = observe(xy, pose, wide, rng).observations
+    obs = obs[rng.permutation(len(obs))[:500]]
+    assert len(obs) == 500 and np.hypot(obs[:, 0], obs[:, 1]).max() > 140.0
+    r = localize(index, obs, prior_at(index, (ORIGIN[0], ORIGIN[1], 0.0), 1000.0, 180.0))
+    assert r.status == "ok"
+    e, h = errors(r, pose)
+    assert e < 0.1 and h < 0.1
+    assert r.inliers > 400  # the far observations count in the answer
+
+
 def test_weighted_rigid_fit_recovers_transform_and_ignores_zero_weights():
     rng = np.random.default_rng(1)
     src = rng.normal(0, 10, (20, 2))
