@@ -206,7 +206,7 @@ class Options:
         sums. A far observation needs a fine heading step: a request within
         the API's limits (any heading, the 45 m radius, 500 observations out to
         148 m) would need 18 million cells and 2·10⁹ sums, about 1 s of CPU
-        and 160 MiB. Beyond the first budget the farthest observations are
+        and 120–160 MiB. Beyond the first budget the farthest observations are
         left out of the coarse search, beyond the second those of lowest
         weight; the nearest or best eight always stay, and every observation
         still counts in the refinement and the scores. (Only a
