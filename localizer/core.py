@@ -248,6 +248,8 @@ def localize(
             obs_xy, np.argsort(-w_data, kind="stable")[: options.max_search_observations], radius,
             yaw_half_range, cell, options.max_search_cells, options.max_search_work,
         )
+        if len(top) < min(len(obs_xy), options.max_search_observations):
+            log.debug("coarse search within its budget: %d of %d observations", len(top), len(obs_xy))
         n_refine = options.candidates + options.extra_candidates
         cands = correlative_search(
             local, obs_xy[top], w_data[top], prior_pose, radius, yaw_half_range, sigma_p, sigma_yaw, cell,
@@ -313,7 +315,7 @@ def localize(
                 trace.append(pose)  # the joint fit with the pitch is the last step
         hyps = [(k[1].pose, float(p)) for k, p in zip(kept, prob)]
         log_scores = [float(v) for v in scores]
-        diagnostics = {"search": all_search}
+        diagnostics = {"search": all_search, "search_observations": len(top)}
         if options.record_candidates:
             n_pt, n_sol = missed_counts(local, obs_xy, kept_poses, options, view)
             pos = data_scores(local, obs_xy, w_data, sig, kept_poses,

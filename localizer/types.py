@@ -111,7 +111,10 @@ class Pose:
     trace : list of (easting, northing, yaw_grid_rad)
         Pose after each iteration (only when the options ask for it).
     diagnostics : dict
-        Method internals (the scored candidates of the default method); not part of the API.
+        Method internals, not part of the API: the default method's coarse
+        candidates (``search``), how many observations its coarse search
+        correlated (``search_observations``, fewer than given where it kept
+        within its budget) and, when asked, the scored hypotheses.
     log_score : float or None
         Default method: the returned pose's unnormalised log posterior, the
         log-likelihood ratio of its matches against "every observation is

@@ -463,6 +463,7 @@ def test_a_request_at_the_api_limits_is_answered_within_the_search_budget():
     e, h = errors(r, pose)
     assert e < 0.1 and h < 0.1
     assert r.inliers > 400  # the far observations count in the answer
+    assert 8 <= r.diagnostics["search_observations"] < 120  # the coarse search kept within its budget
 
 
 def test_weighted_rigid_fit_recovers_transform_and_ignores_zero_weights():
