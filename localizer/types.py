@@ -226,8 +226,9 @@ class Options:
         clutter or a wide prior crowded the truth out of the first ones; an
         answer beyond doubt costs nothing more). 0 disables it.
     coarse_pool : int
-        The best coarse optima (at most this many) are charged their negative
-        evidence (see ``miss_probability``) before the best ``candidates`` +
+        This many of the best coarse optima (at least ``candidates`` +
+        ``extra_candidates``) are charged their negative evidence (see
+        ``miss_probability``) before the best ``candidates`` +
         ``extra_candidates`` of them are refined. The correlation rewards
         every match, clutter's too, and knows nothing of markings a pose puts
         in view that nobody saw; on the benchmark's 20 m / ±30° scenes the
