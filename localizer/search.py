@@ -340,7 +340,8 @@ def _separated(x, y, yaw, sep_m, sep_rad, limit):
     """Indices of the optima (best first) kept when each closer than ``sep_m`` and ``sep_rad`` to a kept one is dropped.
 
     At most ``limit``; a greedy non-maximum suppression over candidates already
-    sorted best first.
+    sorted best first. Headings are compared across ±π (a search over every
+    heading meets itself there).
     """
     keep = np.empty(min(limit, x.size), np.int64)
     n = 0
@@ -350,7 +351,8 @@ def _separated(x, y, yaw, sep_m, sep_rad, limit):
         near = False
         for q in range(n):
             m = keep[q]
-            if math.hypot(x[k] - x[m], y[k] - y[m]) < sep_m and abs(yaw[k] - yaw[m]) < sep_rad:
+            turn = abs((yaw[k] - yaw[m] + math.pi) % (2.0 * math.pi) - math.pi)
+            if math.hypot(x[k] - x[m], y[k] - y[m]) < sep_m and turn < sep_rad:
                 near = True
                 break
         if not near:

@@ -728,16 +728,25 @@ def test_coarse_optima_are_separated_as_a_greedy_suppression():
     rng = np.random.default_rng(3)
     x, y = rng.uniform(0, 6, 400), rng.uniform(0, 6, 400)
     yaw = rng.uniform(-0.2, 0.2, 400)
+    yaw[::2] += math.pi  # half of them near ±π, where headings wrap
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+
+    def turn(a, b):
+        return abs(math.remainder(a - b, 2 * math.pi))
+
     for limit in (1, 25, 400):
         want: list[int] = []
         for k in range(400):
             if len(want) < limit and not any(
-                math.hypot(x[k] - x[m], y[k] - y[m]) < 1.0 and abs(yaw[k] - yaw[m]) < math.radians(2.5)
+                math.hypot(x[k] - x[m], y[k] - y[m]) < 1.0 and turn(yaw[k], yaw[m]) < math.radians(2.5)
                 for m in want
             ):
                 want.append(k)
         assert _separated(x, y, yaw, 1.0, math.radians(2.5), limit).tolist() == want
     assert len(want) > 25  # the limit was reached
+    # Two optima a degree apart across ±π are one.
+    assert _separated(np.zeros(2), np.zeros(2), np.array([math.pi - 0.01, -math.pi + 0.01]), 1.0,
+                      math.radians(2.5), 10).tolist() == [0]
 
 
 def test_a_solid_line_predicted_in_view_but_not_seen_counts_against_a_pose():
