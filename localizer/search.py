@@ -49,6 +49,14 @@ def heading_step(cell: float, rho: float) -> float:
     return min(max(cell / max(rho, 1.0), MIN_HEADING_STEP), MAX_HEADING_STEP)
 
 
+def grid_half_sizes(radius: float, yaw_half_range: float, cell: float, rho: float) -> tuple[int, int]:
+    """Half sizes ``(translation, heading)`` of the search grid, in steps.
+
+    The volume has ``2 h + 1`` headings of ``(2 t + 1)²`` translations.
+    """
+    return int(math.ceil(radius / cell)), int(math.ceil(yaw_half_range / heading_step(cell, rho)))
+
+
 def search_observations(
     obs_xy: np.ndarray,
     order: np.ndarray,
@@ -85,11 +93,13 @@ def search_observations(
     order = np.asarray(order)
     if order.size == 0:
         return order
-    n = 2 * int(math.ceil(radius / cell)) + 1
     rng = np.hypot(obs_xy[order, 0], obs_xy[order, 1])
 
     def volume(rho: float) -> int:
-        return (2 * int(math.ceil(yaw_half_range / heading_step(cell, rho))) + 1) * n * n
+        t, h = grid_half_sizes(radius, yaw_half_range, cell, rho)
+        return (2 * h + 1) * (2 * t + 1) ** 2
+
+    n = 2 * grid_half_sizes(radius, yaw_half_range, cell, 1.0)[0] + 1
 
     least = min(8, order.size)
     if volume(float(rng.max())) > max_cells:
@@ -266,14 +276,13 @@ def correlative_search(
     px, py, pyaw = prior_pose
     rho = float(np.max(np.hypot(obs_xy[:, 0], obs_xy[:, 1]))) if len(obs_xy) else 1.0
     kernel = max(cell, 0.3)
-    n = 2 * int(math.ceil(radius / cell)) + 1
-    half = (n - 1) // 2
+    half, k = grid_half_sizes(radius, yaw_half_range, cell, rho)
+    n = 2 * half + 1
     margin = rho + 3.0 * kernel + cell
     x0 = px - half * cell - margin
     y0 = py - half * cell - margin
     m = int(math.ceil(2 * margin / cell)) + n + 1
     step = heading_step(cell, rho)
-    k = int(math.ceil(yaw_half_range / step))
     yaws = pyaw + step * np.arange(-k, k + 1)
     tx = (np.arange(n) - half) * cell  # offsets from the prior position
     prior_t = -0.5 * (tx[None, :] ** 2 + tx[:, None] ** 2) / sigma_p**2
