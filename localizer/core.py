@@ -460,6 +460,13 @@ def _score_options(o: Options, n_clutter: int) -> Options:
     return replace(o, outlier_density=o.outlier_density * max(1.0, n_clutter / o.clutter_reference))
 
 
+# A refinement that turned its start by more than this has travelled (and may
+# have been dragged off), and one that turned it more than the second is also
+# restarted at its own heading from the start's position (_refine_candidates).
+_TURN_RAD = math.radians(1.5)
+_RESTART_TURN_RAD = _TURN_RAD
+
+
 def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = False) -> list:
     """Refine coarse candidates; ``(score, RefineResult, candidate, schedule)`` per candidate.
 
@@ -490,8 +497,22 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
     # would end where the fine-only one does.
     moved = [k for k, (c, r) in enumerate(zip(cands, coarse))
              if math.hypot(r.pose[0] - c.x, r.pose[1] - c.y) > 0.5
-             or abs(wrap_angle(r.pose[2] - c.yaw)) > math.radians(1.5)]
+             or abs(wrap_angle(r.pose[2] - c.yaw)) > _TURN_RAD]
     fine = {k: both_runs[n_c + k] for k in moved}
+    # A refinement dragged off by clutter while it turned has often found the
+    # heading and lost the position: the coarse start had it the other way
+    # round. Restart fine-only from the start's position at the refined heading
+    # and keep that instead when it explains the observations better.
+    turned = [k for k in moved if abs(wrap_angle(coarse[k].pose[2] - cands[k].yaw)) > _RESTART_TURN_RAD]
+    if turned:
+        restarts = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig,
+                                 [(cands[k].x, cands[k].y, coarse[k].pose[2]) for k in turned],
+                                 fine_options)
+        scores = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig,
+                             [r.pose for r in restarts] + [fine[k].pose for k in turned], o, sc.view)
+        for i, k in enumerate(turned):
+            if scores[i] > scores[len(turned) + i]:
+                fine[k] = restarts[i]
     both = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig,
                        [r.pose for r in coarse] + [fine[k].pose for k in moved], o, sc.view)
     fine_score = dict(zip(moved, both[n_c:]))
