@@ -461,8 +461,8 @@ def _score_options(o: Options, n_clutter: int) -> Options:
 
 
 # A refinement that turned its start by more than this has travelled (and may
-# have been dragged off), and one that turned it more than the second is also
-# restarted at its own heading from the start's position (_refine_candidates).
+# have been dragged off; _refine_candidates). The restart at the refined
+# heading uses the same bound under its own name, so it can be switched off.
 _TURN_RAD = math.radians(1.5)
 _RESTART_TURN_RAD = _TURN_RAD
 
@@ -498,27 +498,24 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
     moved = [k for k, (c, r) in enumerate(zip(cands, coarse))
              if math.hypot(r.pose[0] - c.x, r.pose[1] - c.y) > 0.5
              or abs(wrap_angle(r.pose[2] - c.yaw)) > _TURN_RAD]
-    fine = {k: both_runs[n_c + k] for k in moved}
     # A refinement dragged off by clutter while it turned has often found the
     # heading and lost the position: the coarse start had it the other way
-    # round. Restart fine-only from the start's position at the refined heading
-    # and keep that instead when it explains the observations better.
+    # round. Those also restart fine-only from the start's position at the
+    # refined heading. Every pose is scored once, in one batch.
     turned = [k for k in moved if abs(wrap_angle(coarse[k].pose[2] - cands[k].yaw)) > _RESTART_TURN_RAD]
-    if turned:
-        restarts = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig,
-                                 [(cands[k].x, cands[k].y, coarse[k].pose[2]) for k in turned],
-                                 fine_options)
-        scores = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig,
-                             [r.pose for r in restarts] + [fine[k].pose for k in turned], o, sc.view)
-        for i, k in enumerate(turned):
-            if scores[i] > scores[len(turned) + i]:
-                fine[k] = restarts[i]
-    both = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig,
-                       [r.pose for r in coarse] + [fine[k].pose for k in moved], o, sc.view)
-    fine_score = dict(zip(moved, both[n_c:]))
+    restarts = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig,
+                             [(cands[k].x, cands[k].y, coarse[k].pose[2]) for k in turned],
+                             fine_options) if turned else []
+    alternatives = [(k, both_runs[n_c + k]) for k in moved] + list(zip(turned, restarts))
+    scores = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig,
+                         [r.pose for r in coarse] + [r.pose for _, r in alternatives], o, sc.view)
+    fine, fine_score = {}, {}
+    for (k, r), s in zip(alternatives, scores[n_c:]):
+        if s > fine_score.get(k, -math.inf):
+            fine[k], fine_score[k] = r, s
     refined = []
     for k, cand in enumerate(cands):
-        a, sa = coarse[k], both[k]
+        a, sa = coarse[k], scores[k]
         b, sb = fine.get(k), fine_score.get(k, -math.inf)
         r, s, sched = (a, sa, o) if sa >= sb else (b, sb, fine_options)
         score = s / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw)
