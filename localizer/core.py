@@ -19,6 +19,7 @@ from .pink2008 import pink2008_icp
 from .robust import (
     count_inliers,
     data_scores,
+    crowd_weights,
     data_weights,
     fit_statistics,
     log_prior,
@@ -229,6 +230,8 @@ def localize(
     prior_pose = (0.0, 0.0, yaw0)
     prior_info = np.diag([1 / sigma_p**2, 1 / sigma_p**2, 1 / sigma_yaw**2])
     w_data = data_weights(gamma)
+    if method != "pink2008" and options.crowd_radius_m is not None:
+        w_data = crowd_weights(obs_xy, w_data, options.crowd_radius_m)
     sig = noise_sigma(obs_xy, options)
 
     if method == "pink2008":

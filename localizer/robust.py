@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
+from scipy.spatial import cKDTree
 
 from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, keep_nearest, nearest_marking, rotation
 from .types import Options
@@ -44,6 +45,47 @@ def data_weights(gamma: np.ndarray) -> np.ndarray:
     """
     med = float(np.median(gamma)) if gamma.size else 1.0
     return np.minimum(gamma / max(med, 1e-12), 1.5)
+
+
+def crowd_weights(obs_xy: np.ndarray, w: np.ndarray, radius_m: float) -> np.ndarray:
+    """Share the weight of observations that crowd together, keeping the frame's total.
+
+    Each weight is divided by the observation's Gaussian count of neighbours,
+    ``n_j = sum_k exp(-d_jk² / 2 R²)`` (itself included), and the result is
+    scaled so that the weights still sum to ``sum(w)``.
+
+    Parameters
+    ----------
+    obs_xy : (N, 2) ndarray
+        Observations in the vehicle frame, metres.
+    w : (N,) ndarray
+        Their data weights (see :func:`data_weights`).
+    radius_m : float
+        The kernel's width R, metres.
+
+    Returns
+    -------
+    (N,) ndarray
+        The shared weights.
+
+    Notes
+    -----
+    Clusters a few decimetres apart (the edges of a preceding vehicle, a curb,
+    a marking split by the clustering) are not independent evidence, yet each
+    counts as much as an isolated dash. A rival pose that lays three of them on
+    markings then scores like one that matches three separate markings; on the
+    benchmark's near scenes such rivals, turned 10-30°, made the answer
+    ambiguous. Sharing their weight lets the spread-out matches decide.
+    """
+    n = np.ones(len(obs_xy))
+    if len(obs_xy) > 1:
+        pairs = cKDTree(obs_xy).query_pairs(4.0 * radius_m, output_type="ndarray")
+        if len(pairs):
+            d2 = np.sum((obs_xy[pairs[:, 0]] - obs_xy[pairs[:, 1]]) ** 2, axis=1)
+            k = np.exp(-d2 / (2.0 * radius_m**2))
+            n += np.bincount(pairs[:, 0], k, len(obs_xy)) + np.bincount(pairs[:, 1], k, len(obs_xy))
+    shared = w / n
+    return shared * (float(np.sum(w)) / max(float(np.sum(shared)), 1e-300))
 
 
 @dataclass

@@ -15,6 +15,7 @@ import pytest
 from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
 from localizer.geometry import LocalMap, apply, weighted_rigid_fit
 from localizer.pink2008 import pink2008_icp
+from localizer.robust import crowd_weights
 from localizer.simulate import NONE, Camera, Clutter, SceneMap, perturb, sample_poses, simulate_scene
 
 from ._localizer_helpers import karlsruhe
@@ -584,14 +585,58 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     assert index.crs == data["crs"]
     pose, prior = data["true_pose"], Prior(**data["prior"])
     obs = np.array(data["observations"])
+    # Shared crowd weights alone rescue this scene too; the restart is tested without them.
+    opts = Options(crowd_radius_m=None)
     monkeypatch.setattr(localizer.core, "_RESTART_TURN_RAD", math.inf)
-    without = localize(index, obs, prior)
+    without = localize(index, obs, prior, options=opts)
     assert without.status == "ok" and errors(without, pose)[0] > 1.0  # confidently wrong
     monkeypatch.undo()
-    r = localize(index, obs, prior)
+    r = localize(index, obs, prior, options=opts)
     e, h = errors(r, pose)
     assert r.status == "ok" and e < 0.25 and h < 1.0
     assert r.log_score > without.log_score
+
+
+def test_crowded_observations_share_their_weight():
+    rng = np.random.default_rng(3)
+    isolated = np.array([[5.0, -8.0], [20.0, 8.0]])
+    crowd = np.array([12.0, 0.5]) + rng.normal(0.0, 0.25, (5, 2))  # a preceding vehicle's edges
+    xy = np.vstack([isolated, crowd])
+    w = np.ones(len(xy))
+    shared = crowd_weights(xy, w, 1.5)
+    assert math.isclose(shared.sum(), w.sum())
+    # Five clusters within half a metre count about as much as one marking.
+    assert shared[2:].sum() < 1.5 * shared[0]
+    assert math.isclose(shared[0], shared[1], rel_tol=1e-6)
+    # Far apart, nothing is shared; observations are not reordered.
+    apart = np.column_stack([np.arange(7) * 20.0, np.zeros(7)])
+    np.testing.assert_allclose(crowd_weights(apart, np.arange(1.0, 8.0), 1.5), np.arange(1.0, 8.0))
+    assert crowd_weights(xy[:1], w[:1], 1.5).tolist() == [1.0]
+
+
+def test_a_preceding_vehicle_does_not_outweigh_the_markings():
+    # A benchmark scene of 13 observations: six dashes, two curb edges and five
+    # clusters of a preceding vehicle carrying half the frame's pixel weight. A
+    # rival turned 30° lays the vehicle's clusters on markings; with every
+    # cluster counted as independent evidence, the answer is only ambiguous.
+    data = json.loads((Path(__file__).parent / "data" / "crowded_vehicle.json").read_text())
+    index, _ = karlsruhe()
+    assert index.crs == data["crs"]
+    pose, prior = data["true_pose"], Prior(**data["prior"])
+    obs = np.array(data["observations"])
+    assert data["labels"].count("vehicle") == 5
+    alone = localize(index, obs, prior, options=Options(crowd_radius_m=None))
+    assert alone.status == "ambiguous"
+    r = localize(index, obs, prior)
+    e, h = errors(r, pose)
+    assert r.status == "ok" and e < 0.25 and h < 1.0
+    assert r.probability > alone.probability
+
+
+def test_crowd_radius_is_validated():
+    for bad in (0.0, -1.0, math.nan, "1"):
+        with pytest.raises(LocalizationInputError, match="crowd_radius_m"):
+            Options(crowd_radius_m=bad)
 
 
 def test_pink2008_recovers_karlsruhe_scenes_from_small_errors():
