@@ -15,6 +15,10 @@ Methods
     iterated from the GPS prior until the pose stops moving. Local: it
     converges to the nearest optimum.
 ``default``
+    0. Each observation weighs its pixel count relative to the frame's median
+       (capped at 1.5), shared with the observations within about 1.5 m
+       (``Options.crowd_radius_m``): a preceding vehicle's clusters or a
+       marking split in several are one piece of evidence, not several.
     1. A global correlative search over heading × translation covering ±3σ of
        the prior (radius clamped to 3-45 m): per heading, the observations are
        correlated with a likelihood raster of the map around the prior (per
