@@ -5,12 +5,10 @@ The nearest-marking lookup over that view is compiled (numba).
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from .index import MapIndex
 
@@ -101,6 +99,7 @@ class LocalMap:
 
     def __init__(self, index: MapIndex, origin, radius: float):
         self.origin = np.asarray(origin, float)
+        self._index = index
         sel = index.near(self.origin, radius)
         self.indices = sel
         self.xy = index.xy[sel] - self.origin
@@ -127,18 +126,22 @@ class LocalMap:
     def __len__(self) -> int:
         return int(self.xy.shape[0])
 
-    @functools.cached_property
-    def tree(self) -> cKDTree | None:
-        """KD-tree of the centroids (the paper's nearest-centroid pairing)."""
-        return cKDTree(self.xy) if len(self) else None
-
     def nearest_centroid(self, p: np.ndarray, max_dist: float):
-        """Nearest centroid of each point: ``(distance, index)``, inf/-1 beyond ``max_dist``."""
-        if self.tree is None:
-            return np.full(len(p), np.inf), np.full(len(p), -1)
-        d, i = self.tree.query(p, distance_upper_bound=max_dist)
-        i = np.where(np.isfinite(d), i, -1)
-        return d, i
+        """Nearest map centroid of each point (the paper's pairing): ``(distance, target)``.
+
+        Queries the map's own KD-tree (built once per map), so the pairing may
+        reach markings just outside this neighbourhood. ``target`` holds the
+        centroid in local coordinates; distance inf and target NaN beyond
+        ``max_dist``.
+        """
+        p = np.asarray(p, float).reshape(-1, 2)
+        d = np.full(len(p), np.inf)
+        target = np.full((len(p), 2), np.nan)
+        if len(self._index):
+            d, i = self._index.tree.query(p + self.origin, distance_upper_bound=max_dist)
+            hit = np.isfinite(d)
+            target[hit] = self._index.xy[i[hit]] - self.origin
+        return d, target
 
     def closest_c(self, p: np.ndarray, max_dist: float, full: bool = True):
         """:meth:`closest` of complex points ``p`` (x + iy, (N,)).

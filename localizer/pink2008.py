@@ -61,13 +61,13 @@ def pink2008_icp(
     d = np.full(len(obs_xy), np.inf)
     for it in range(1, options.max_iterations + 1):
         p = apply(pose, obs_xy)
-        d, idx = local_map.nearest_centroid(p, options.max_pair_distance_m)
-        m = idx >= 0
+        d, target = local_map.nearest_centroid(p, options.max_pair_distance_m)
+        m = np.isfinite(d)
         if m.sum() < 2:
             it -= 1
             break
         w = gamma[m] / np.maximum(d[m], options.epsilon_m)
-        dtheta, dt = weighted_rigid_fit(p[m], local_map.xy[idx[m]], w)
+        dtheta, dt = weighted_rigid_fit(p[m], target[m], w)
         new = compose(dtheta, dt, pose)
         step = math.hypot(new[0] - pose[0], new[1] - pose[1])
         pose = new
