@@ -46,7 +46,12 @@ class ServiceSettings(BaseSettings):
     items_default_limit, items_max_limit : int
         Page sizes of ``/collections/{mapId}/items``.
     max_observations : int
-        Most observations one localization request may carry.
+        Most observations one localization request (or one frame of a drive)
+        may carry.
+    max_drive_observations : int
+        Most observations one drive request may carry over all its frames: a
+        frame costs up to about 0.2 s of CPU where nothing matches, so this
+        bounds what one request can take of a worker's localization thread.
     localize_max_pending : int
         Localizations one server process takes on at once, running or waiting
         for a thread; beyond that it answers 503 with ``Retry-After`` at once
@@ -76,6 +81,7 @@ class ServiceSettings(BaseSettings):
     items_default_limit: int = 100
     items_max_limit: int = 10_000
     max_observations: int = 500
+    max_drive_observations: int = Field(5_000, ge=1)
     localize_max_pending: int = Field(8, ge=0)
     build_workers: int = 1
     dask_scheduler: str = ""

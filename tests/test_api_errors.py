@@ -30,7 +30,7 @@ def strict(tmp_path_factory):
         f"sqlite:///{tmp / 'db.sqlite'}", tmp / "data",
         env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_MAX_BODY_BYTES": "20000",
              "LANEMAP_MAX_UPLOAD_BYTES": "100000", "LANEMAP_CORS_ORIGINS": "http://editor.example",
-             "LANEMAP_MAX_OBSERVATIONS": "50"},
+             "LANEMAP_MAX_OBSERVATIONS": "50", "LANEMAP_MAX_DRIVE_OBSERVATIONS": "120"},
     )  # fmt: skip
     yield server
     server.stop()
@@ -112,6 +112,13 @@ def test_limits_read_tokens_and_cors(strict):
     r = c.post(f"/collections/{map_id}/localize", json={"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0},
                                                          "observations": obs}, headers=strict.auth)  # fmt: skip
     assert_problem(r, 422, "at most 50")
+    # a drive's frames are each within the frame limit, together beyond the drive's
+    frames = [{"observations": obs[:40], "motion": {"dx": 1.5, "dy": 0.0, "dyaw_deg": 0.0}} for _ in range(4)]
+    drive = {"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0}, "frames": frames}
+    r = c.post(f"/collections/{map_id}/localize/sequence", json=drive, headers=strict.auth)
+    assert_problem(r, 422, "160 observations over 4 frames, at most 120")
+    r = c.post(f"/collections/{map_id}/localize/sequence", json={**drive, "frames": frames[:3]}, headers=strict.auth)
+    assert r.status_code == 200 and len(r.json()["poses"]) == 3
     pre = c.options(f"/collections/{map_id}/items", headers={
         "Origin": "http://editor.example", "Access-Control-Request-Method": "POST",
         "Access-Control-Request-Headers": "authorization,content-type"})  # fmt: skip

@@ -268,13 +268,19 @@ async def localize_drive(
     A single frame on a straight road with repeating dashes is often
     ``ambiguous``; over a drive the rivals stop explaining what the camera sees.
     A drive can be streamed: send the answer's ``state`` back with the next
-    frames, and the poses are those of one request with all the frames.
+    frames, and the poses are those of one request with all the frames. One
+    request carries at most ``LANEMAP_MAX_DRIVE_OBSERVATIONS`` observations
+    over all its frames (5,000 by default); a longer drive is streamed.
     """
     for k, f in enumerate(body.frames):
         _check_count(ctx, len(f.observations), f"frames[{k}].observations")
         if (k or body.state is not None) and f.motion is None:
             raise Problem(422, f"frames[{k}].motion: the odometry since the previous frame is required",
                           "missing-motion")  # fmt: skip
+    total, cap = sum(len(f.observations) for f in body.frames), ctx.settings.max_drive_observations
+    if total > cap:
+        raise Problem(422, f"frames: {total} observations over {len(body.frames)} frames, at most {cap} accepted "
+                      "per drive request; send the drive in smaller pieces with its state", "too-many-observations")
     if body.gps is None and body.state is None:
         raise Problem(422, "gps: a GPS fix is needed to start a drive (or the previous answer's state to "
                       "continue one)", "missing-gps")  # fmt: skip
