@@ -50,9 +50,10 @@ Methods
        near it (on a solid line: none on the line within a clustering period
        along it either) costs ``log(1/p_miss)``. A pose one dash period off explains the
        observed dashes as well, but near the end of a dashed line, a stop line
-       or a change of line type it predicts markings nobody saw. Scores are
-       divided by a temperature for correlated errors and the GPS prior is
-       added; poses matching fewer than ``min_inliers`` (3) observations do
+       or a change of line type it predicts markings nobody saw. Scores may
+       be divided by a temperature (``Options.temperature``, 1: the shared
+       weights of step 0 already keep correlated clusters from counting
+       twice) and the GPS prior is added; poses matching fewer than ``min_inliers`` (3) observations do
        not compete while any pose matches that many (else poses matching
        ``fallback_min_inliers``, 2, compete), and a "none of these"
        hypothesis (all clutter) takes its share.

@@ -300,7 +300,10 @@ class Options:
         pose (a marking just outside may be seen, one just inside missed).
     temperature : float
         Scores are divided by this before turning them into probabilities;
-        > 1 accounts for correlated observation errors.
+        > 1 would discount observations whose errors are correlated. 1 since
+        the crowd weights (``crowd_radius_m``) share the weight of clustered
+        observations: re-fitted then by the log-loss of the answers'
+        probability (``benchmarks/localize_calibrate.py``; 1.35 before).
     ambiguity_probability : float
         ``ok`` needs the best hypothesis to hold at least this posterior probability.
     null_score : float
@@ -381,7 +384,7 @@ class Options:
     view_half_fov_deg: float | None = 30.0
     view_margin_m: float = 1.0
     view_margin_deg: float = 2.0
-    temperature: float = 1.35
+    temperature: float = 1.0
     ambiguity_probability: float = 0.95
     null_score: float = -1.0
     max_hypotheses: int = 8

@@ -618,7 +618,9 @@ def test_a_preceding_vehicle_does_not_outweigh_the_markings():
     # A benchmark scene of 13 observations: six dashes, two curb edges and five
     # clusters of a preceding vehicle carrying half the frame's pixel weight. A
     # rival turned 30° lays the vehicle's clusters on markings; with every
-    # cluster counted as independent evidence, the answer is only ambiguous.
+    # cluster counted as independent evidence, it keeps a real share of the
+    # posterior (4.6 %; 7 % and the answer ambiguous under the temperature of
+    # 1.35 the fixture was taken with).
     data = json.loads((Path(__file__).parent / "data" / "crowded_vehicle.json").read_text())
     index, _ = karlsruhe()
     assert index.crs == data["crs"]
@@ -626,11 +628,10 @@ def test_a_preceding_vehicle_does_not_outweigh_the_markings():
     obs = np.array(data["observations"])
     assert data["labels"].count("vehicle") == 5
     alone = localize(index, obs, prior, options=Options(crowd_radius_m=None))
-    assert alone.status == "ambiguous"
     r = localize(index, obs, prior)
     e, h = errors(r, pose)
     assert r.status == "ok" and e < 0.25 and h < 1.0
-    assert r.probability > alone.probability
+    assert 1.0 - r.probability < (1.0 - alone.probability) / 5.0
 
 
 def test_crowd_radius_is_validated():
