@@ -53,7 +53,8 @@ Methods
        or a change of line type it predicts markings nobody saw. Scores may
        be divided by a temperature (``Options.temperature``, 1: the shared
        weights of step 0 already keep correlated clusters from counting
-       twice) and the GPS prior is added; poses matching fewer than ``min_inliers`` (3) observations do
+       twice) and the GPS prior is added; poses matching fewer than
+       ``min_inliers`` (3) observations do
        not compete while any pose matches that many (else poses matching
        ``fallback_min_inliers``, 2, compete), and a "none of these"
        hypothesis (all clutter) takes its share.
