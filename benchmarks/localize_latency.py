@@ -49,6 +49,7 @@ from localizer.geometry import LocalMap  # noqa: E402
 from localizer.pink2008 import pink2008_icp  # noqa: E402
 from localizer.robust import data_weights, noise_sigma, robust_refine  # noqa: E402
 from localizer.simulate import Camera, Clutter, SceneMap, perturb, sample_poses, simulate_scene  # noqa: E402
+from service.settings import ServiceSettings  # noqa: E402  (the drive limit the API enforces)
 
 ORIGIN = np.array([458000.0, 5428000.0])
 
@@ -192,8 +193,6 @@ def main() -> None:
         rows.append(line(f"localize default, API limits: {len(wobs)} obs to "
                          f"{np.hypot(wobs[:, 0], wobs[:, 1]).max():.0f} m, any heading, 1 km sigma, {label} "
                          f"(peak {peak:.0f} MiB allocated)", ms))
-    from service.settings import ServiceSettings
-
     n_frames = ServiceSettings().max_drive_observations // 500
     crng = np.random.default_rng(22)
     clutter = []
