@@ -9,7 +9,9 @@ costs one frame and the filter remembers the whole drive). Both clients run
 here on the same drives of ``--frames`` frames ``--step`` metres apart along
 Karlsruhe centrelines, with the scenes, odometry noise and GPS errors of
 ``localize_track.py``; the GPS fix is the first frame's, carried along by the
-odometry (the windowed client starts each window from it).
+odometry (the windowed client starts each window from it, its position
+sigma grown by the heading error's lever, as ``localize_track.py``'s single
+frames).
 
 Printed per client: CPU time per request (p50 / p99), the success rate (``ok``
 within 0.5 m / 1°) and confidently wrong rate (``ok``, more than 1 m off) over
@@ -36,7 +38,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _localizer_helpers import karlsruhe  # noqa: E402
-from localize_track import SCENARIOS, carry, grade, noisy, plot_success, prior_at  # noqa: E402
+from localize_track import SCENARIOS, carried_prior, grade, noisy, plot_success, prior_at  # noqa: E402
 
 from localizer.simulate import Camera, odometry, perturb, sample_trajectories, simulate_scene  # noqa: E402
 from localizer.track import Frame, localize_sequence  # noqa: E402
@@ -81,8 +83,8 @@ def main() -> None:
                 a = max(0, k + 1 - args.window)
                 window = [Frame(frames[a].observations)] + frames[a + 1:k + 1]
                 t0 = time.process_time()
-                r = localize_sequence(index, window, prior_at(index.frame, carry(start, motions[1:a + 1]),
-                                                              sig_m, sig_deg))  # fmt: skip
+                r = localize_sequence(index, window, carried_prior(index.frame, start, motions[1:a + 1],
+                                                                   sig_m, sig_deg))  # fmt: skip
                 cpu[f"window of {args.window}"].append(1000 * (time.process_time() - t0))
                 windowed.append(r.pose)
             whole = localize_sequence(index, frames, prior).poses

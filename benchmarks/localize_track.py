@@ -17,10 +17,13 @@ Compared at the last frame, on the same scenes:
   single-frame noise floor of ``localize_paper.py``).
 
 Success: status ``ok`` within 0.5 m and 1°; confidently wrong: ``ok`` off by
-more than 1 m. Also the success rate after each frame (a PNG) and the time per
-frame.
+more than 1 m. Also the success rate after each frame (a PNG), the time per
+frame, and the log-loss of the sequence's probability over frames 2 to the
+last (the answer right within 1 m and 2°; ``--evidence-scale`` sets
+:attr:`localizer.track.TrackOptions.evidence_scale`, chosen by it on seed 7).
 
-Run: ``.venv/bin/python benchmarks/localize_track.py [--runs 200] [--frames 10] [--seed 0] [--only 8-10m --tag _20]``
+Run: ``.venv/bin/python benchmarks/localize_track.py [--runs 200] [--frames 10] [--seed 0] [--only 8-10m --tag _20]
+[--evidence-scale 6]``
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from localizer.simulate import (  # noqa: E402
     sample_trajectories,
     simulate_scene,
 )
-from localizer.track import Frame, localize_sequence  # noqa: E402
+from localizer.track import Frame, TrackOptions, localize_sequence  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out"
 
@@ -81,6 +84,24 @@ def carry(pose, motions) -> tuple[float, float, float]:
     return x, y, yaw
 
 
+def carried_prior(frame, start, motions, sig_m: float, sig_deg: float) -> Prior:
+    """The GPS fix at ``start`` carried by ``motions``, as a single frame's prior.
+
+    A heading error of ``sig_deg`` turns into a position error of
+    ``distance x sig_deg`` at the end of the drive; the position sigma grows by
+    it (in quadrature; a single frame's prior is isotropic), the heading sigma
+    stays.
+    """
+    driven = sum(math.hypot(dx, dy) for dx, dy, _ in motions)
+    return prior_at(frame, carry(start, motions), math.hypot(sig_m, driven * math.radians(sig_deg)), sig_deg)
+
+
+def log_loss_term(p: float, right: bool) -> float:
+    """``-log`` of the probability given to what happened (``p`` clipped to [1e-6, 1 - 1e-6])."""
+    p = min(max(p, 1e-6), 1 - 1e-6)
+    return -math.log(p if right else 1 - p)
+
+
 def grade(p, truth) -> tuple[str, float, float]:
     if p.easting is None:
         return p.status, math.inf, math.inf
@@ -101,12 +122,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", default="", help="run only the scenarios whose name contains this")
     ap.add_argument("--tag", default="", help="suffix of the plot's file name")
+    ap.add_argument("--evidence-scale", type=float, default=TrackOptions().evidence_scale,
+                    help="TrackOptions.evidence_scale of the sequence")
     args = ap.parse_args()
     index, smap = karlsruhe()
     cam = Camera()
     drives = sample_trajectories(smap, args.runs, args.frames, args.step, np.random.default_rng(args.seed), cam,
                                  min_visible=4)
-    rows, curves = [], {}
+    topt = TrackOptions(evidence_scale=args.evidence_scale)
+    rows, curves, log_loss = [], {}, []
     for name, dist, hdg, sig_m, sig_deg, clutter in SCENARIOS:
         if args.only not in name:
             continue
@@ -118,19 +142,22 @@ def main() -> None:
                                            for k in range(1, len(drive))]
             start = perturb(drive[0], rng.uniform(*dist), rng.uniform(-hdg, hdg), rng)
             prior = prior_at(index.frame, start, sig_m, sig_deg)
-            last_prior = prior_at(index.frame, carry(start, motions[1:]), sig_m, sig_deg)
+            last_prior = carried_prior(index.frame, start, motions[1:], sig_m, sig_deg)
             single.append(grade(localize(index, scenes[-1].observations, last_prior), drive[-1]))
             last = scenes[-1]
             o = oracle_pose(last, cam.range_noise_m + cam.range_noise_coeff * np.sum(last.observations[:, :2] ** 2, 1))
             oracle.append(("failed", math.inf, math.inf) if o is None else
                           ("ok", math.hypot(o[0] - drive[-1][0], o[1] - drive[-1][1]), heading_err_deg(o[2], drive[-1][2])))
             t0 = time.perf_counter()
-            r = localize_sequence(index, [Frame(s.observations, m) for s, m in zip(scenes, motions)], prior)
+            r = localize_sequence(index, [Frame(s.observations, m) for s, m in zip(scenes, motions)], prior,
+                                  track_options=topt)
             ms.append(1000 * (time.perf_counter() - t0) / len(drive))
             seq.append(grade(r.pose, drive[-1]))
             for k, p in enumerate(r.poses):
                 st, e, h = grade(p, drive[k])
                 per_frame[k] += st == "ok" and e <= 0.5 and h <= 1.0
+                if k > 0 and p.probability is not None:
+                    log_loss.append(log_loss_term(p.probability, e <= 1.0 and h <= 2.0))
         curves[name] = per_frame / len(drives)
         for method, res in (("oracle", oracle), ("single frame", single), ("sequence", seq)):
             st = np.array([r[0] for r in res])
@@ -146,6 +173,8 @@ def main() -> None:
     print("| scenario | method | success 0.5 m/1° | confidently wrong | ambiguous | failed | ms per frame p50 / p99 |")
     print("|---|---|---|---|---|---|---|")
     print("\n".join(rows))
+    print(f"sequence, frames 2-{args.frames}: log-loss of the answer's probability (right within 1 m / 2°) "
+          f"{np.mean(log_loss):.4f} over {len(log_loss)} answers (evidence_scale {args.evidence_scale:g})")
 
     png = OUT / f"localize_track{args.tag}.png"
     plot_success(curves, args.step, "localize_sequence: success after each frame", png)
