@@ -25,7 +25,9 @@ Methods
        observation, the log-likelihood ratio of "marking" versus "clutter";
        built per request from the KD-tree neighbourhood, so no global field is
        precomputed), the GPS prior is added as a Gaussian log-density, and the
-       best local maxima of the volume become candidates. The best 100 of them
+       best local maxima of the volume become candidates. The prior's position
+       term is isotropic (``Prior.position_sigma_m``) or an error ellipse
+       (``Prior.position_ellipse``); the search covers ±3σ of its major axis. The best 100 of them
        (``Options.coarse_pool``) are first charged their negative evidence
        (step 3's missed markings): the correlation rewards clutter's matches
        too and knows nothing of markings a pose puts in view unseen.
@@ -112,11 +114,12 @@ from .core import METHODS, localize, parse_observations, warm_up
 from .errors import LocalizationInputError
 from .frames import GeoFrame, bearing_to_yaw, wrap_angle, yaw_to_bearing
 from .index import MapIndex
-from .track import Frame, SequenceResult, TrackOptions, TrackState, localize_sequence
-from .types import Hypothesis, Options, Pose, Prior
+from .track import Frame, SequenceResult, TrackOptions, TrackState, carry_prior, localize_sequence
+from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 __all__ = [
     "METHODS",
+    "ErrorEllipse",
     "GeoFrame",
     "Hypothesis",
     "LocalizationInputError",
@@ -129,6 +132,7 @@ __all__ = [
     "TrackOptions",
     "TrackState",
     "bearing_to_yaw",
+    "carry_prior",
     "localize",
     "localize_sequence",
     "parse_observations",

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from .errors import LocalizationInputError
-from .frames import wrap_angle
+from .frames import GeoFrame, wrap_angle
 from .geometry import LocalMap, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
@@ -32,7 +32,7 @@ from .robust import (
     view_of,
 )
 from .search import Candidate, correlative_search, search_observations
-from .types import Hypothesis, Options, Pose, Prior
+from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 log = logging.getLogger(__name__)
 
@@ -142,11 +142,47 @@ def _check_prior(prior: Prior) -> None:
             f"prior.position_sigma_m: {prior.position_sigma_m!r} is outside [{lo:g}, {hi:g}] m "
             "(a GPS fix is never exact, and a sigma of kilometres says nothing)"
         )
+    if prior.position_ellipse is not None:
+        _check_ellipse(prior.position_ellipse)
     lo, hi = PRIOR_HEADING_SIGMA_RANGE_DEG
     if not lo <= prior.heading_sigma_deg <= hi:
         raise LocalizationInputError(
             f"prior.heading_sigma_deg: {prior.heading_sigma_deg!r} is outside [{lo:g}, {hi:g}] degrees"
         )
+
+
+def _check_ellipse(e) -> None:
+    if not isinstance(e, ErrorEllipse):
+        raise LocalizationInputError("prior.position_ellipse: expected a localizer.ErrorEllipse")
+    for name in ("sigma_major_m", "sigma_minor_m", "orientation_deg"):
+        v = getattr(e, name)
+        if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v):
+            raise LocalizationInputError(f"prior.position_ellipse.{name}: must be a finite number, got {v!r}")
+    lo, hi = PRIOR_POSITION_SIGMA_RANGE_M
+    for name in ("sigma_major_m", "sigma_minor_m"):
+        v = getattr(e, name)
+        if not lo <= v <= hi:
+            raise LocalizationInputError(
+                f"prior.position_ellipse.{name}: {v!r} is outside [{lo:g}, {hi:g}] m")
+    if e.sigma_minor_m > e.sigma_major_m:
+        raise LocalizationInputError(
+            f"prior.position_ellipse: sigma_minor_m {e.sigma_minor_m!r} is larger than "
+            f"sigma_major_m {e.sigma_major_m!r}")
+
+
+def position_covariance(prior: Prior, frame: GeoFrame) -> np.ndarray:
+    """The prior's 2x2 position covariance in the map CRS's axes, m².
+
+    An error ellipse's orientation is a true bearing; it is turned into the
+    grid by the meridian convergence at the fix, like a heading.
+    """
+    e = prior.position_ellipse
+    if e is None:
+        return np.eye(2) * float(prior.position_sigma_m) ** 2
+    a = float(frame.heading_to_grid_yaw(e.orientation_deg, prior.lon, prior.lat))
+    u = np.array([math.cos(a), math.sin(a)])
+    v = np.array([-u[1], u[0]])
+    return e.sigma_major_m**2 * np.outer(u, u) + e.sigma_minor_m**2 * np.outer(v, v)
 
 
 def localize(
@@ -200,7 +236,9 @@ def localize(
     px, py = frame.to_xy(prior.lon, prior.lat)
     if not (math.isfinite(px) and math.isfinite(py)):
         raise LocalizationInputError("prior: lat/lon cannot be projected to the map CRS")
-    sigma_p = float(prior.position_sigma_m)
+    # the widest direction of the position prior sets the search's reach
+    sigma_p = float(prior.position_sigma_m if prior.position_ellipse is None
+                    else prior.position_ellipse.sigma_major_m)
     sigma_yaw = math.radians(prior.heading_sigma_deg)
     obs_xy = obs[:, :2]
     gamma = obs[:, 2]
@@ -228,7 +266,10 @@ def localize(
     if not math.isfinite(yaw0):
         raise LocalizationInputError("prior: the heading cannot be converted to the map CRS at this position")
     prior_pose = (0.0, 0.0, yaw0)
-    prior_info = np.diag([1 / sigma_p**2, 1 / sigma_p**2, 1 / sigma_yaw**2])
+    pos_info = np.linalg.inv(position_covariance(prior, frame))
+    prior_info = np.zeros((3, 3))
+    prior_info[:2, :2] = pos_info
+    prior_info[2, 2] = 1 / sigma_yaw**2
     w_data = data_weights(gamma)
     if method != "pink2008" and options.crowd_radius_m is not None:
         w_data = crowd_weights(obs_xy, w_data, options.crowd_radius_m)
@@ -255,7 +296,7 @@ def localize(
             log.debug("coarse search within its budget: %d of %d observations", len(top), len(obs_xy))
         n_refine = options.candidates + options.extra_candidates
         cands = correlative_search(
-            local, obs_xy[top], w_data[top], prior_pose, radius, yaw_half_range, sigma_p, sigma_yaw, cell,
+            local, obs_xy[top], w_data[top], prior_pose, radius, yaw_half_range, pos_info, sigma_yaw, cell,
             options.outlier_density, max(n_refine, options.coarse_pool), options.temperature,
         )
         view = view_of(obs_xy, options)
@@ -272,7 +313,7 @@ def localize(
         if first and not any(math.hypot(c.x, c.y) < 0.5 and abs(wrap_angle(c.yaw - yaw0)) < math.radians(1.0)
                              for c in first):
             first.append(Candidate(0.0, 0.0, yaw0, -math.inf))
-        scene = _Scene(local, obs_xy, w_data, sig, options, view, prior_pose, sigma_p, sigma_yaw, prior_info)
+        scene = _Scene(local, obs_xy, w_data, sig, options, view, prior_pose, pos_info, sigma_yaw, prior_info)
         refined = _refine_candidates(scene, first)
         if not refined:
             return Pose(status="failed", crs=crs, reason="the global search found no candidate")
@@ -325,7 +366,7 @@ def localize(
                               replace(score_options, miss_probability=1.0, solid_miss_probability=1.0), view)
             diagnostics["candidates"] = [
                 {"pose": (k[1].pose[0] + px, k[1].pose[1] + py, k[1].pose[2]), "score": k[0],
-                 "prior": log_prior(k[1].pose, prior_pose, sigma_p, sigma_yaw),
+                 "prior": log_prior(k[1].pose, prior_pose, pos_info, sigma_yaw),
                  "positive": float(pos[i]), "missed_points": int(n_pt[i]),
                  "missed_solid": int(n_sol[i]),
                  "search": (k[2].x + px, k[2].y + py, k[2].yaw, k[2].score)}
@@ -408,7 +449,7 @@ class _Scene:
     options: Options
     view: tuple[float, float, float]
     prior_pose: tuple[float, float, float]
-    sigma_p: float
+    pos_info: np.ndarray  # 2x2 inverse covariance of the prior position, 1/m²
     sigma_yaw: float
     prior_info: np.ndarray
 
@@ -484,7 +525,7 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
     if fine_only:
         runs = robust_refine(sc.local, sc.obs_xy, sc.w_data, sc.sig, inits, fine_options)
         data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [r.pose for r in runs], o, sc.view)
-        return [(float(d) / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw),
+        return [(float(d) / o.temperature + log_prior(r.pose, sc.prior_pose, sc.pos_info, sc.sigma_yaw),
                  r, c, fine_options) for d, r, c in zip(data, runs, cands)]
     # The coarse-to-fine schedule can be dragged off a right candidate by heavy
     # clutter; a fine-only refinement from the same start cannot go far. Keep
@@ -521,7 +562,7 @@ def _refine_candidates(sc: _Scene, cands: list[Candidate], fine_only: bool = Fal
         a, sa = coarse[k], scores[k]
         b, sb = fine.get(k), fine_score.get(k, -math.inf)
         r, s, sched = (a, sa, o) if sa >= sb else (b, sb, fine_options)
-        score = s / o.temperature + log_prior(r.pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw)
+        score = s / o.temperature + log_prior(r.pose, sc.prior_pose, sc.pos_info, sc.sigma_yaw)
         refined.append((score, r, cand, sched))
     return refined
 
@@ -554,7 +595,7 @@ def _rank_hypotheses(sc: _Scene, refined: list) -> _Ranked:
     if score_options.outlier_density != o.outlier_density:
         data = data_scores(sc.local, sc.obs_xy, sc.w_data, sc.sig, [k[1].pose for k in kept],
                            score_options, sc.view)
-        kept = [(float(d) / o.temperature + log_prior(k[1].pose, sc.prior_pose, sc.sigma_p, sc.sigma_yaw),)
+        kept = [(float(d) / o.temperature + log_prior(k[1].pose, sc.prior_pose, sc.pos_info, sc.sigma_yaw),)
                 + tuple(k[1:]) for d, k in zip(data, kept)]
         kept.sort(key=lambda t: -t[0])
     scores = np.array([k[0] for k in kept])

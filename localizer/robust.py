@@ -290,11 +290,20 @@ def _solve3(H, b):
     return x[0], x[1], x[2]
 
 
-def log_prior(pose, prior_pose, sigma_p: float, sigma_yaw: float) -> float:
+def log_prior(pose, prior_pose, pos_info, sigma_yaw: float) -> float:
+    """Gaussian log-density of a pose under the prior, up to a constant.
+
+    ``pos_info`` is the position's information (2x2 inverse covariance,
+    1/m²) or, for an isotropic prior, its standard deviation in metres.
+    """
     dx = pose[0] - prior_pose[0]
     dy = pose[1] - prior_pose[1]
     dyaw = (pose[2] - prior_pose[2] + math.pi) % (2 * math.pi) - math.pi
-    return -0.5 * ((dx * dx + dy * dy) / sigma_p**2 + (dyaw / sigma_yaw) ** 2)
+    if np.ndim(pos_info) == 0:
+        q = (dx * dx + dy * dy) / float(pos_info) ** 2
+    else:
+        q = pos_info[0, 0] * dx * dx + 2.0 * pos_info[0, 1] * dx * dy + pos_info[1, 1] * dy * dy
+    return -0.5 * (float(q) + (dyaw / sigma_yaw) ** 2)
 
 
 def view_of(obs_xy: np.ndarray, options: Options) -> tuple[float, float, float]:

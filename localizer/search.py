@@ -248,7 +248,7 @@ def correlative_search(
     prior_pose: tuple[float, float, float],
     radius: float,
     yaw_half_range: float,
-    sigma_p: float,
+    pos_info: np.ndarray | float,
     sigma_yaw: float,
     cell: float,
     outlier_density: float,
@@ -267,8 +267,11 @@ def correlative_search(
         Prior in local map coordinates.
     radius, yaw_half_range : float
         Translation radius (m) and heading half range (rad) of the search.
-    sigma_p, sigma_yaw : float
-        Prior standard deviations (m, rad).
+    pos_info : (2, 2) ndarray or float
+        The prior position's information (inverse covariance, 1/m², map
+        axes), or its isotropic standard deviation (m).
+    sigma_yaw : float
+        The prior heading's standard deviation (rad).
     cell : float
         Translation step and raster cell, metres; the heading step follows
         from it and the farthest observation.
@@ -285,7 +288,11 @@ def correlative_search(
     step = heading_step(cell, rho)
     yaws = pyaw + step * np.arange(-k, k + 1)
     tx = (np.arange(n) - half) * cell  # offsets from the prior position
-    prior_t = -0.5 * (tx[None, :] ** 2 + tx[:, None] ** 2) / sigma_p**2
+    if np.ndim(pos_info) == 0:
+        pos_info = np.eye(2) / float(pos_info) ** 2
+    # rows are y offsets, columns x offsets
+    prior_t = -0.5 * (pos_info[0, 0] * tx[None, :] ** 2 + 2.0 * pos_info[0, 1] * tx[None, :] * tx[:, None]
+                      + pos_info[1, 1] * tx[:, None] ** 2)
     wf = (w_obs / temperature).astype(np.float32)
     cos, sin = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
     qx = cos * obs_xy[None, :, 0] - sin * obs_xy[None, :, 1] + px - half * cell

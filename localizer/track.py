@@ -22,7 +22,10 @@ hypothesis through the frames with the vehicle's odometry:
    at its prediction as "this frame is all clutter", at a small cost;
 3. while no track is confident, the frame is also searched around the GPS fix
    (carried along by the odometry), so a pose the first frame missed can still
-   start a track;
+   start a track. The fix carries a full covariance: an error in its heading
+   moves it across the direction driven, the same error at every frame, so
+   its error ellipse grows across the road and hardly along it
+   (:func:`carry_prior` does the same for a single frame's prior);
 4. tracks ending within ``merge_distance_m`` / ``merge_heading_deg`` of each
    other are merged, the weakest are dropped; "none of these" (the first
    frame's ``Options.null_score``: every observation clutter) takes its share
@@ -51,11 +54,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .core import DEFAULT_OPTIONS, _make_pose, localize, parse_observations
+from .core import DEFAULT_OPTIONS, _check_prior, _make_pose, localize, parse_observations, position_covariance
 from .errors import LocalizationInputError
 from .frames import wrap_angle
 from .index import MapIndex
-from .types import Hypothesis, Options, Pose, Prior
+from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 #: Most frames one call accepts (a window of a few seconds at 10 Hz).
 MAX_FRAMES = 50
@@ -179,21 +182,30 @@ class TrackState:
     gps : tuple
         ``(easting, northing, grid yaw, sigma_m, sigma_yaw_rad)``: the first
         GPS fix carried along by the odometry (searched around while no track
-        is sure).
+        is sure); ``sigma_m`` is its error ellipse's major axis.
+    gps_covariance : tuple of tuple, optional
+        The carried fix's 3x3 covariance of (easting, northing, grid yaw), m
+        and rad: its uncertainty grows across the road as the odometry carries
+        a heading error along. A state without it (from before it was kept)
+        starts one from the sigmas.
     """
 
     crs: str
     frames: int
     tracks: tuple[tuple[float, float, float, float, float, float, bool], ...]
     gps: tuple[float, float, float, float, float]
+    gps_covariance: tuple[tuple[float, float, float], ...] | None = None
 
     def to_dict(self) -> dict:
         """JSON-safe form (the API's ``state``)."""
+        gps = dict(zip(_GPS_KEYS, (float(v) for v in self.gps)))
+        if self.gps_covariance is not None:
+            gps["covariance"] = [[float(v) for v in row] for row in self.gps_covariance]
         return {
             "crs": self.crs,
             "frames": self.frames,
             "tracks": [dict(zip(_TRACK_KEYS, (*(float(v) for v in t[:6]), bool(t[6])))) for t in self.tracks],
-            "gps": dict(zip(_GPS_KEYS, (float(v) for v in self.gps))),
+            "gps": gps,
         }
 
     @classmethod
@@ -220,7 +232,29 @@ class TrackState:
             if not isinstance(t.get("matched"), bool):
                 raise LocalizationInputError(f"state.tracks[{k}].matched: expected true or false")
             out.append((*values, t["matched"]))
-        return cls(crs, frames, tuple(out), _state_numbers(gps, _GPS_KEYS, "state.gps"))
+        gps_values = _state_numbers(gps, _GPS_KEYS, "state.gps")
+        cov = gps.get("covariance")
+        return cls(crs, frames, tuple(out), gps_values, None if cov is None else _state_covariance(cov))
+
+
+def _state_covariance(cov) -> tuple[tuple[float, float, float], ...]:
+    where = "state.gps.covariance"
+    if (not isinstance(cov, list) or len(cov) != 3
+            or not all(isinstance(row, list) and len(row) == 3 for row in cov)):
+        raise LocalizationInputError(f"{where}: expected a 3x3 matrix (easting, northing, grid yaw)")
+    for row in cov:
+        for v in row:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise LocalizationInputError(f"{where}: expected finite numbers")
+    a = np.array(cov, float)
+    if not np.array_equal(a, a.T):
+        raise LocalizationInputError(f"{where}: expected a symmetric matrix")
+    limits = (MAX_SIGMA_M**2, MAX_SIGMA_M**2, MAX_SIGMA_YAW**2)
+    if not all(0.0 < a[k, k] <= limits[k] * (1 + 1e-9) for k in range(3)):
+        raise LocalizationInputError(f"{where}: a variance is not positive or beyond a prior's largest")
+    if np.linalg.eigvalsh(a)[0] < -1e-9 * float(np.max(np.diag(a))):
+        raise LocalizationInputError(f"{where}: expected a positive semi-definite matrix")
+    return tuple(tuple(float(v) for v in row) for row in a)
 
 
 def _state_numbers(item, keys, where: str) -> tuple[float, ...]:
@@ -271,6 +305,9 @@ class _Track:
     log_w: float
     matched: bool  # has any frame matched along this track
     answer: Pose | None = None  # this frame's match (None: the track is a prediction)
+    # (east, north, grid yaw) covariance; only the GPS fix carries one (its
+    # sigmas above then follow from it)
+    cov: np.ndarray | None = None
 
 
 def localize_sequence(
@@ -362,7 +399,9 @@ def localize_sequence(
         rest, seen = parsed[1:], 1
     else:
         tracks = [_Track(t[:3], t[3], t[4], t[5], t[6]) for t in state.tracks]
-        gps = _Track(state.gps[:3], state.gps[3], state.gps[4], null, False)
+        cov = (np.array(state.gps_covariance, float) if state.gps_covariance is not None
+               else np.diag([state.gps[3] ** 2, state.gps[3] ** 2, state.gps[4] ** 2]))
+        gps = _with_cov(_Track(state.gps[:3], state.gps[3], state.gps[4], null, False), cov)
         if prior is not None:
             # A newer fix, at the first of these frames: carried back by its
             # odometry, so that the step below brings it to where it was taken.
@@ -376,8 +415,39 @@ def localize_sequence(
         crs, seen + len(rest),
         tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched)) for t in tracks),
         (*(float(v) for v in gps.pose), *_state_sigmas(gps)),
+        tuple(tuple(float(v) for v in row) for row in gps.cov),
     )
     return result
+
+
+def carry_prior(map_index: MapIndex, prior: Prior, motions: Sequence[tuple[float, float, float]],
+                track_options: TrackOptions | None = None) -> Prior:
+    """A GPS fix carried along by odometry, as the prior of a later frame.
+
+    The fix moves as :func:`localize_sequence` moves its own: by each motion
+    ``(dx, dy, dyaw)`` (metres forward, metres left, radians counter-clockwise,
+    in the vehicle frame before it), its uncertainty propagated through the
+    motion with the odometry noise of ``track_options``. A heading error
+    carried along moves the fix across the direction driven, so the result's
+    ``position_ellipse`` grows across the road and hardly along it.
+
+    Raises
+    ------
+    LocalizationInputError
+        For a malformed prior or motion.
+    """
+    _check_prior(prior)
+    topt = track_options or TrackOptions()
+    t = _gps_track(map_index.frame, prior, 0.0)
+    for k, m in enumerate(motions):
+        try:
+            m = tuple(float(v) for v in m)
+        except (TypeError, ValueError) as exc:
+            raise LocalizationInputError(f"motions[{k}]: expected three numbers") from exc
+        if len(m) != 3 or not all(math.isfinite(v) for v in m):
+            raise LocalizationInputError(f"motions[{k}]: expected three finite numbers (dx, dy, dyaw)")
+        t = _predict(t, m, topt, floor=False)
+    return _prior_of(t, map_index.frame)
 
 
 def _state_sigmas(t: _Track) -> tuple[float, float]:
@@ -425,8 +495,36 @@ def _grid_pose(frame_geo, prior: Prior) -> tuple[float, float, float]:
 
 def _gps_track(frame_geo, prior: Prior, null: float) -> _Track:
     """The GPS fix as a track: searched around while no track is sure, never an answer itself."""
-    return _Track(_grid_pose(frame_geo, prior), prior.position_sigma_m, math.radians(prior.heading_sigma_deg),
-                  null, False)
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = position_covariance(prior, frame_geo)
+    cov[2, 2] = math.radians(prior.heading_sigma_deg) ** 2
+    return _with_cov(_Track(_grid_pose(frame_geo, prior), 0.0, 0.0, null, False), cov)
+
+
+def _with_cov(t: _Track, cov: np.ndarray) -> _Track:
+    """``t`` with covariance ``cov``, its scalar sigmas set from it (capped, see MAX_SIGMA_M)."""
+    cov = 0.5 * (cov + cov.T)
+    sigma_m = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
+    if sigma_m > MAX_SIGMA_M:
+        # shrink the position part (and its correlation with the heading) to the cap
+        f = MAX_SIGMA_M / sigma_m
+        cov = cov * np.array([[f * f, f * f, f], [f * f, f * f, f], [f, f, 1.0]])
+        sigma_m = MAX_SIGMA_M
+    sigma_yaw = math.sqrt(max(cov[2, 2], 0.0))
+    if sigma_yaw > MAX_SIGMA_YAW:
+        g = MAX_SIGMA_YAW / sigma_yaw
+        cov = cov * np.array([[1.0, 1.0, g], [1.0, 1.0, g], [g, g, g * g]])
+        sigma_yaw = MAX_SIGMA_YAW
+    return replace(t, sigma_m=sigma_m, sigma_yaw=sigma_yaw, cov=cov)
+
+
+def _ellipse(cov2: np.ndarray, frame_geo, lon: float, lat: float) -> ErrorEllipse:
+    """The error ellipse of a 2x2 grid-axes covariance at (lon, lat), as a prior takes it."""
+    val, vec = np.linalg.eigh(0.5 * (cov2 + cov2.T))
+    yaw = math.atan2(vec[1, 1], vec[0, 1])  # the major axis, a grid direction
+    major = float(np.clip(math.sqrt(max(val[1], 0.0)), 0.01, 1000.0))
+    minor = float(np.clip(math.sqrt(max(val[0], 0.0)), 0.01, major))
+    return ErrorEllipse(major, minor, float(frame_geo.grid_yaw_to_heading(yaw, lon, lat)) % 360.0)
 
 
 def _prior_of(t: _Track, frame_geo) -> Prior:
@@ -436,15 +534,26 @@ def _prior_of(t: _Track, frame_geo) -> Prior:
         heading_deg=float(frame_geo.grid_yaw_to_heading(t.pose[2], lon, lat)) % 360.0,
         position_sigma_m=float(np.clip(t.sigma_m, 0.01, 1000.0)),
         heading_sigma_deg=float(np.clip(math.degrees(t.sigma_yaw), 0.01, 180.0)),
+        position_ellipse=None if t.cov is None else _ellipse(t.cov[:2, :2], frame_geo, float(lon), float(lat)),
     )  # fmt: skip
 
 
 def _predict(t: _Track, motion, topt: TrackOptions, floor: bool = True) -> _Track:
-    """The track moved by the odometry, its uncertainty grown by the odometry's noise."""
+    """The track moved by the odometry, its uncertainty grown by the odometry's noise.
+
+    A track with a covariance (the GPS fix) propagates it through the motion:
+    an error in its heading moves it across the direction driven by the
+    distance times that error, and it is the same error every frame, so the
+    fix's uncertainty grows across the road, not along it.
+    """
     dx, dy, dyaw = motion
     c, s = math.cos(t.pose[2]), math.sin(t.pose[2])
     pose = (t.pose[0] + c * dx - s * dy, t.pose[1] + s * dx + c * dy, float(wrap_angle(t.pose[2] + dyaw)))
     odo = topt.odometry_sigma_m + topt.odometry_sigma_ratio * math.hypot(dx, dy)
+    if t.cov is not None:
+        jac = np.array([[1.0, 0.0, -(s * dx + c * dy)], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+        noise = np.diag([odo**2, odo**2, math.radians(topt.odometry_sigma_yaw_deg) ** 2])
+        return _with_cov(replace(t, pose=pose, answer=None), jac @ t.cov @ jac.T + noise)
     s_m = max(t.sigma_m, topt.min_position_sigma_m) if floor else t.sigma_m
     s_yaw = max(t.sigma_yaw, math.radians(topt.min_heading_sigma_deg)) if floor else t.sigma_yaw
     # Capped: the GPS fix's uncertainty grows frame after frame over a long drive.
@@ -462,8 +571,13 @@ def _unpredict(t: _Track, motion) -> _Track:
 
 
 def _log_prior(pose, t: _Track) -> float:
+    """The prior term :func:`localize` adds for ``pose`` under the prior ``_prior_of(t)``."""
     d = (pose[0] - t.pose[0], pose[1] - t.pose[1], wrap_angle(pose[2] - t.pose[2]))
-    return -0.5 * ((d[0] ** 2 + d[1] ** 2) / t.sigma_m**2 + (d[2] / t.sigma_yaw) ** 2)
+    if t.cov is None:
+        return -0.5 * ((d[0] ** 2 + d[1] ** 2) / t.sigma_m**2 + (d[2] / t.sigma_yaw) ** 2)
+    info = np.linalg.inv(t.cov[:2, :2])  # a prior's position and heading are independent
+    q = info[0, 0] * d[0] ** 2 + 2.0 * info[0, 1] * d[0] * d[1] + info[1, 1] * d[1] ** 2
+    return -0.5 * (float(q) + (d[2] / t.sigma_yaw) ** 2)
 
 
 def _children(r: Pose, parent: _Track, base: float, weight: float, frame_geo,

@@ -14,6 +14,25 @@ Status = Literal["ok", "ambiguous", "failed"]
 
 
 @dataclass(frozen=True)
+class ErrorEllipse:
+    """A position's one-sigma error ellipse, as GNSS receivers report it (NMEA GST).
+
+    Attributes
+    ----------
+    sigma_major_m, sigma_minor_m : float
+        Standard deviations along the ellipse's major and minor axes, metres
+        (``sigma_minor_m <= sigma_major_m``).
+    orientation_deg : float
+        Direction of the major axis, degrees clockwise from true north (an
+        axis: 30 and 210 are the same ellipse).
+    """
+
+    sigma_major_m: float
+    sigma_minor_m: float
+    orientation_deg: float
+
+
+@dataclass(frozen=True)
 class Prior:
     """A coarse GPS fix.
 
@@ -27,6 +46,11 @@ class Prior:
         Standard deviation of each horizontal position component, metres.
     heading_sigma_deg : float
         Standard deviation of the heading, degrees.
+    position_ellipse : ErrorEllipse, optional
+        The position's error ellipse; when given it replaces
+        ``position_sigma_m`` (a receiver in a street canyon, or a fix carried
+        along by odometry with an uncertain heading, is far less sure across
+        the road than along it, or the other way round).
     """
 
     lat: float
@@ -34,6 +58,7 @@ class Prior:
     heading_deg: float
     position_sigma_m: float = 5.0
     heading_sigma_deg: float = 10.0
+    position_ellipse: ErrorEllipse | None = None
 
 
 @dataclass(frozen=True)

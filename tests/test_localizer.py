@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
+from localizer import ErrorEllipse, LocalizationInputError, MapIndex, Options, Prior, localize
 from localizer.geometry import LocalMap, apply, weighted_rigid_fit
 from localizer.pink2008 import pink2008_icp
 from localizer.robust import crowd_weights
@@ -725,6 +725,76 @@ def test_parallel_lanes_are_ambiguous():
     north = [h.northing - pose[1] for h in r.hypotheses]
     assert any(abs(n) < 0.3 for n in north)
     assert any(abs(abs(n) - 3.5) < 0.3 for n in north)
+
+
+def test_an_error_ellipse_tight_across_the_road_picks_the_lane():
+    """A GNSS fix sure of the lane but not of the distance along: its ellipse decides what a circle cannot."""
+    xy = dash_rows(lateral=tuple(np.arange(-10, 11) * 3.5), period=9.0)  # a wide road of identical lanes
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0], ORIGIN[1] + 1.75, 0.0)  # driving east
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(6))
+    centre = (pose[0] + 1.0, pose[1] + 0.4, 0.0)
+    circle = prior_at(index, centre, 2.5, 5.0)
+    lon, lat = index.frame.to_lonlat(*centre[:2])
+    east = float(index.frame.grid_yaw_to_heading(0.0, lon, lat))  # the road's true bearing, about 90.4°
+
+    def lanes(r):
+        return sorted(round((h.northing - pose[1]) / 3.5) for h in r.hypotheses)
+
+    wide = localize(index, scene.observations, circle)
+    assert wide.status == "ambiguous" and {-1, 0, 1} <= set(lanes(wide))
+    along = localize(index, scene.observations, replace(circle, position_ellipse=ErrorEllipse(2.5, 0.5, east)))
+    assert along.status == "ok" and errors(along, pose)[0] < 0.3
+    # The same ellipse turned across the road is no help: the orientation is read as a bearing.
+    across = localize(index, scene.observations,
+                      replace(circle, position_ellipse=ErrorEllipse(2.5, 0.5, east + 90.0)))
+    assert across.status == "ambiguous" and 0 in lanes(across) and 1 in lanes(across)
+    # A round ellipse is the circle, whatever its orientation.
+    round_ = localize(index, scene.observations, replace(circle, position_ellipse=ErrorEllipse(2.5, 2.5, 33.0)))
+    assert round_.status == wide.status and round_.probability == pytest.approx(wide.probability, abs=1e-9)
+    assert (round_.easting, round_.northing) == pytest.approx((wide.easting, wide.northing), abs=1e-9)
+
+
+def test_an_error_ellipse_is_oriented_by_true_bearing_where_grid_north_differs():
+    from pyproj import Geod
+
+    from localizer import GeoFrame
+    from localizer.core import position_covariance
+
+    frame = GeoFrame("EPSG:32632")
+    lon, lat = 13.5, 60.0  # far east of the zone's central meridian: the convergence is about +3.9°
+    assert frame.convergence_deg(lon, lat) > 3.0
+    for bearing in (0.0, 30.0, 125.0):
+        prior = Prior(lat=lat, lon=lon, heading_deg=0.0, position_ellipse=ErrorEllipse(4.0, 1.0, bearing))
+        cov = position_covariance(prior, frame)
+        val, vec = np.linalg.eigh(cov)
+        assert val == pytest.approx([1.0, 16.0])
+        # 100 m along the true bearing on the ellipsoid, in the grid: the major axis
+        lon2, lat2, _ = Geod(ellps="WGS84").fwd(lon, lat, bearing, 100.0)
+        d = np.subtract(frame.to_xy(lon2, lat2), frame.to_xy(lon, lat))
+        cos = abs(float(vec[:, 1] @ d)) / np.hypot(*d)
+        assert math.degrees(math.acos(min(cos, 1.0))) < 0.02
+
+
+@pytest.mark.parametrize(
+    "ellipse, message",
+    [
+        (ErrorEllipse(1.0, 2.0, 0.0), "larger than sigma_major_m"),
+        (ErrorEllipse(float("nan"), 1.0, 0.0), "sigma_major_m: must be a finite number"),
+        (ErrorEllipse(2.0, 1.0, float("inf")), "orientation_deg: must be a finite number"),
+        (ErrorEllipse(2.0, 0.0, 10.0), "sigma_minor_m: 0.0 is outside"),
+        (ErrorEllipse(5000.0, 1.0, 10.0), "sigma_major_m: 5000.0 is outside"),
+        ((2.0, 1.0, 10.0), "expected a localizer.ErrorEllipse"),
+    ],
+)
+def test_a_malformed_error_ellipse_is_an_input_error(ellipse, message):
+    rng = np.random.default_rng(15)
+    xy, w = random_map(rng)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], w, CRS)
+    pose = (ORIGIN[0], ORIGIN[1], 0.5)
+    prior = replace(prior_at(index, pose), position_ellipse=ellipse)
+    with pytest.raises(LocalizationInputError, match=message):
+        localize(index, observe(xy, pose).observations, prior)
 
 
 def test_a_distinct_marking_resolves_the_period():

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from localizer import LocalizationInputError, MapIndex, Options, Prior, TrackState, localize
+from localizer import LocalizationInputError, MapIndex, Options, Prior, TrackState, carry_prior, localize
 from localizer.simulate import Camera, Clutter, odometry, perturb, sample_trajectories, simulate_scene
 from localizer.track import MAX_FRAMES, Frame, TrackOptions, localize_sequence
 
@@ -188,6 +188,12 @@ def test_bad_states_are_input_errors():
         ({**good, "tracks": [{**track, "matched": 1}]}, "state.tracks[0].matched"),
         ({**good, "gps": {**good["gps"], "easting": "east"}}, "state.gps.easting"),
         ({**good, "gps": None}, "state.gps"),
+        ({**good, "gps": {**good["gps"], "covariance": [[1.0, 0.0], [0.0, 1.0]]}}, "a 3x3 matrix"),
+        ({**good, "gps": {**good["gps"], "covariance": [[1, 0.5, 0], [0, 1, 0], [0, 0, 0.01]]}}, "symmetric"),
+        ({**good, "gps": {**good["gps"], "covariance": [[1, 0, 0], [0, -1, 0], [0, 0, 0.01]]}}, "not positive"),
+        ({**good, "gps": {**good["gps"], "covariance": [[1, 2, 0], [2, 1, 0], [0, 0, 0.01]]}}, "semi-definite"),
+        ({**good, "gps": {**good["gps"], "covariance": [[1, 0, 0], [0, float("nan"), 0], [0, 0, 0.01]]}},
+         "finite numbers"),
     ]
     for data, needle in cases:
         with pytest.raises(LocalizationInputError) as exc:
@@ -197,6 +203,54 @@ def test_bad_states_are_input_errors():
         localize_sequence(index, frame, state=TrackState.from_dict({**good, "crs": "EPSG:32632"}))
     with pytest.raises(LocalizationInputError, match="GPS fix is needed"):
         localize_sequence(index, frame)
+
+
+def test_a_carried_fix_grows_across_the_road_as_its_heading_error_would_move_it():
+    """carry_prior's ellipse against the spread of fixes actually carried with sampled heading errors."""
+    index, _ = karlsruhe()
+    prior = Prior(lat=49.005, lon=8.415, heading_deg=60.0, position_sigma_m=2.0, heading_sigma_deg=9.0)
+    motions = [(1.5, 0.0, math.radians(2.0))] * 12  # 18 m on a gentle left curve
+    quiet = TrackOptions(odometry_sigma_m=0.0, odometry_sigma_ratio=0.0, odometry_sigma_yaw_deg=0.0)
+    carried = carry_prior(index, prior, motions, quiet)
+    e = carried.position_ellipse
+    frame = index.frame
+    x0, y0 = frame.to_xy(prior.lon, prior.lat)
+    yaw0 = float(frame.heading_to_grid_yaw(prior.heading_deg, prior.lon, prior.lat))
+    rng = np.random.default_rng(3)
+    ends = np.array([carry((x0 + rng.normal(0, 2.0), y0 + rng.normal(0, 2.0),
+                            yaw0 + rng.normal(0, math.radians(9.0))), motions)[:2] for _ in range(20000)])
+    val, vec = np.linalg.eigh(np.cov(ends.T))
+    assert math.sqrt(val[1]) == pytest.approx(e.sigma_major_m, rel=0.05)
+    assert math.sqrt(val[0]) == pytest.approx(e.sigma_minor_m, rel=0.05)
+    lon, lat = frame.to_lonlat(*ends.mean(axis=0))
+    spread = float(frame.grid_yaw_to_heading(math.atan2(vec[1, 1], vec[0, 1]), lon, lat))
+    assert abs((spread - e.orientation_deg + 90.0) % 180.0 - 90.0) < 2.0
+    # Across the direction driven (the chord of the curve), and far wider than along it.
+    chord = float(frame.grid_yaw_to_heading(math.atan2(*(np.mean(ends, 0) - (x0, y0))[::-1]), lon, lat))
+    assert abs((e.orientation_deg - chord) % 180.0 - 90.0) < 10.0
+    assert e.sigma_major_m > 1.5 * e.sigma_minor_m and carried.heading_sigma_deg == pytest.approx(9.0)
+    # The drive's filter carries its fix the same way, and hands it on in the state.
+    blind = [Frame(np.zeros((0, 3)), m) for m in [(0.0, 0.0, 0.0)] + motions]
+    state = localize_sequence(index, blind, prior, track_options=quiet).state
+    cov = np.array(TrackState.from_dict(json.loads(json.dumps(state.to_dict()))).gps_covariance)
+    val2 = np.linalg.eigvalsh(cov[:2, :2])
+    assert np.sqrt(val2) == pytest.approx([e.sigma_minor_m, e.sigma_major_m], rel=1e-6)
+    still = carry_prior(index, prior, [])
+    assert (still.lat, still.lon, still.heading_deg) == pytest.approx((prior.lat, prior.lon, prior.heading_deg))
+    assert (still.position_ellipse.sigma_major_m, still.position_ellipse.sigma_minor_m) == pytest.approx((2.0, 2.0))
+    with pytest.raises(LocalizationInputError, match=r"motions\[1\]"):
+        carry_prior(index, prior, [(1.0, 0.0, 0.0), (1.0, float("nan"), 0.0)])
+
+
+def test_a_state_without_the_fix_covariance_still_continues_a_drive():
+    """States from before the covariance was kept: the fix starts one from its sigmas."""
+    index, _ = karlsruhe()
+    frame = [Frame([{"x": 10.0, "y": 1.0}], (1.5, 0.0, 0.0))]
+    old = localize_sequence(index, frame, Prior(lat=49.0, lon=8.43, heading_deg=90.0)).state.to_dict()
+    del old["gps"]["covariance"]
+    state = localize_sequence(index, frame, state=TrackState.from_dict(old)).state
+    assert state.frames == 2 and np.array(state.gps_covariance).shape == (3, 3)
+    assert state.gps[3] > old["gps"]["sigma_m"]
 
 
 def test_a_state_stays_valid_however_far_the_odometry_carries_the_fix():
