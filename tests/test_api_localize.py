@@ -99,6 +99,31 @@ def test_localize_recovers_the_pose(api, kmap, method):
         assert out["probability"] is None
 
 
+def test_a_gps_error_ellipse_is_taken_as_the_prior(api, kmap):
+    """The fix's ellipse (NMEA GST style) instead of one sigma; the drive's state hands on its covariance."""
+    map_id, feats = kmap
+    p, lon, lat, heading, obs = scene(feats, 250)
+    gps = gps_near(p, heading)
+    del gps["position_sigma_m"]
+    gps["position_ellipse"] = {"sigma_major_m": 6.0, "sigma_minor_m": 2.0, "orientation_deg": heading + 360.0}
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize", json={"gps": gps, "observations": obs},
+                   timeout=60)  # fmt: skip
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["status"] == "ok" and math.hypot(out["easting"] - p[0], out["northing"] - p[1]) < 0.2
+    frames, truth = drive_frames(feats, 2)
+    gps = gps_near(*truth[0])
+    del gps["position_sigma_m"]
+    gps["position_ellipse"] = {"sigma_major_m": 5.0, "sigma_minor_m": 1.0, "orientation_deg": truth[0][1]}
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize/sequence", json={"gps": gps, "frames": frames},
+                   timeout=60)  # fmt: skip
+    assert r.status_code == 200, r.text
+    cov = np.array(r.json()["state"]["gps"]["covariance"])
+    # 5 m along the heading and 1 m across it, carried 1.5 m: still far longer along the road than across
+    val = np.linalg.eigvalsh(cov[:2, :2])
+    assert math.sqrt(val[1]) == pytest.approx(5.0, abs=0.1) and 1.0 < math.sqrt(val[0]) < 1.5
+
+
 def test_index_follows_map_edits(api, kmap):
     map_id, feats = kmap
     p, lon, lat, heading, obs = scene(feats, 10)
@@ -135,6 +160,13 @@ def test_no_observations_is_a_failed_status(api, kmap):
     ({"gps": {"lat": 49, "lon": 8.4}}, 422, "gps.heading_deg"),
     ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0, "position_sigma_m": -1}}, 422, "position_sigma_m"),
     ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0, "heading_sigma_deg": 5e-324}}, 422, "heading_sigma_deg"),
+    ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0, "position_sigma_m": 3,
+              "position_ellipse": {"sigma_major_m": 3, "sigma_minor_m": 1, "orientation_deg": 0}}}, 422, "not both"),
+    ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0,
+              "position_ellipse": {"sigma_major_m": 1, "sigma_minor_m": 3, "orientation_deg": 0}}}, 422,
+     "sigma_minor_m must not exceed"),
+    ({"gps": {"lat": 49, "lon": 8.4, "heading_deg": 0,
+              "position_ellipse": {"sigma_major_m": 3, "sigma_minor_m": 1}}}, 422, "orientation_deg"),
     ({"observations": [{"x": 1e6, "y": 0}]}, 422, "observations.0.x"),
     ({"observations": [{"x": 1, "y": 0, "weight": 0}]}, 422, "weight"),
     ({"observations": [{"x": 1, "y": 0}] * 501}, 422, "at most 500"),
@@ -318,6 +350,9 @@ def test_bad_drive_states_are_named(api, kmap):
         ({"frames": frames[1:], "state": {**state, "crs": "EPSG:32632"}}, "EPSG:32632"),
         ({"frames": frames[1:], "state": {**state, "gps": {**state["gps"], "sigma_m": 0}}}, "sigma_m"),
         ({"frames": frames[1:], "state": {**state, "frames": 0}}, "frames"),
+        ({"frames": frames[1:], "state": {**state, "gps": {**state["gps"], "covariance": [[1, 0.5, 0], [0, 1, 0],
+                                                                                         [0, 0, 0.01]]}}},
+         "symmetric"),
         ({"frames": frames[1:], "state": {**state, "extra": 1}}, "extra"),
     ]
     for body, words in cases:

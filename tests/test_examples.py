@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -99,7 +100,9 @@ def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F8
     assert start["state"]["frames"] == documented_state["frames"] == 7
     for got, doc in zip(start["state"]["tracks"] + [start["state"]["gps"]],
                         documented_state["tracks"] + [documented_state["gps"]]):  # fmt: skip
-        assert got.keys() == doc.keys() and all(got[k] == pytest.approx(doc[k], abs=1e-6) for k in got), (got, doc)
+        assert got.keys() == doc.keys(), (got, doc)
+        assert all(np.asarray(got[k], float) == pytest.approx(np.asarray(doc[k], float), abs=1e-6)
+                   for k in got), (got, doc)
     nxt = json.loads((REPO / "docs/examples/drive-next.json").read_text())
     last = httpx.post(f"{url}/sequence", json={**nxt, "state": start["state"]}, timeout=60).json()
     assert start["poses"] + last["poses"] == drive["poses"]

@@ -68,6 +68,14 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     assert res.exit_code == 3, res.output
     warn = res.stderr.strip().splitlines()
     assert len(warn) == 1 and warn[0].startswith("warning: the answer is ambiguous"), warn
+    # The fix's error ellipse instead of one sigma.
+    res = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+        "--observations", str(path), "--position-ellipse", f"4, 1.5, {heading:.3f}", "--heading-sigma", "8",
+    ])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert out["status"] == "ok" and math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
     # A bare list works too, and the paper's method answers from the same prior.
     path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
     res = CliRunner().invoke(app, [
@@ -115,6 +123,9 @@ def test_cli_failed_answer_prints_the_pose_json_and_exits_4(stored_map, tmp_path
         ('[{"x": 1, "y": 2}]', ["--method", "nope"], "--method"),
         ('[{"x": 1, "y": 2}]', ["--position-sigma", "0"], "position_sigma"),
         ('[{"x": 1, "y": 2}]', ["--min-probability", "1"], "--min-probability must be between"),
+        ('[{"x": 1, "y": 2}]', ["--position-ellipse", "3,1"], "MAJOR,MINOR,ORIENTATION"),
+        ('[{"x": 1, "y": 2}]', ["--position-ellipse", "1,3,0"], "larger than sigma_major_m"),
+        ('[{"x": 1, "y": 2}]', ["--position-ellipse", "3,1,0", "--position-sigma", "2"], "not both"),
         ('[{"x": 1, "y": 2}]', ["--method", "pink2008", "--min-probability", "0.9"], "pink2008 has no"),
     ],
 )

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from localizer import METHODS, LocalizationInputError, Options, Prior, localize, warm_up
+from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
 from service.cli_errors import fail
 from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 
@@ -60,6 +60,18 @@ def load_observations(path: Path):
     if not isinstance(data, list):
         fail(f"{path}: 'observations' must be a list of {{x, y, weight}} objects")
     return data
+
+
+def parse_ellipse(text: str) -> ErrorEllipse:
+    """``MAJOR,MINOR,ORIENTATION`` (metres, metres, degrees clockwise from true north)."""
+    parts = text.replace(" ", "").split(",")
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        fail(f"--position-ellipse takes MAJOR,MINOR,ORIENTATION (three numbers), got {text!r}")
+    return ErrorEllipse(*values)
 
 
 def load_state(path: Path):
@@ -139,7 +151,13 @@ def register(app: typer.Typer) -> None:
             "frame; the GPS options are then optional, a newer fix); the new state is written to it.",
         ),
         method: str = typer.Option("default", "--method", help=f"One of: {', '.join(METHODS)}."),
-        position_sigma: float = typer.Option(5.0, "--position-sigma", help="GPS position sigma, metres."),
+        position_sigma: float | None = typer.Option(
+            None, "--position-sigma", help="GPS position sigma, metres (default 5)."),
+        position_ellipse: str | None = typer.Option(
+            None, "--position-ellipse", metavar="MAJOR,MINOR,ORIENTATION",
+            help="GPS error ellipse instead of --position-sigma: the sigmas along its major and minor axes "
+            "(metres) and the major axis's direction (degrees clockwise from true north), as NMEA GST gives them.",
+        ),
         heading_sigma: float = typer.Option(10.0, "--heading-sigma", help="GPS heading sigma, degrees."),
         min_probability: float | None = typer.Option(
             None, "--min-probability", help="Posterior probability an answer needs to be ok, "
@@ -182,6 +200,11 @@ def register(app: typer.Typer) -> None:
             lo, hi = MIN_PROBABILITY_RANGE
             if not lo <= min_probability <= hi:
                 fail(f"--min-probability must be between {lo} and {hi}, got {min_probability}")
+        ellipse = None
+        if position_ellipse is not None:
+            if position_sigma is not None:
+                fail("give --position-sigma or --position-ellipse, not both")
+            ellipse = parse_ellipse(position_ellipse)
         options = localize_options(min_probability)
         store = Store()
         info = store.get_map(map_id)
@@ -193,7 +216,8 @@ def register(app: typer.Typer) -> None:
             index = index_from_markings(arrays, info.crs)
             prior = None if lat is None else Prior(
                 lat=lat, lon=lon, heading_deg=heading,
-                position_sigma_m=position_sigma, heading_sigma_deg=heading_sigma,
+                position_sigma_m=5.0 if position_sigma is None else position_sigma,
+                heading_sigma_deg=heading_sigma, position_ellipse=ellipse,
             )
             if seq is not None:
                 from localizer.track import localize_sequence

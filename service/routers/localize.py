@@ -12,7 +12,7 @@ import numpy as np
 from fastapi import APIRouter, Depends
 from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from localizer import Options
 
@@ -56,13 +56,37 @@ _EXAMPLE_FRAME = [
 ]
 
 
+class EllipseIn(BaseModel):
+    """A one-sigma position error ellipse, as a GNSS receiver reports it (NMEA GST)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    sigma_major_m: float = Field(..., ge=0.01, le=1000, description="Sigma along the major axis, metres")
+    sigma_minor_m: float = Field(..., ge=0.01, le=1000, description="Sigma along the minor axis, metres")
+    orientation_deg: float = Field(..., ge=-360, le=720,
+                                   description="Direction of the major axis, degrees clockwise from true north")
+
+    @model_validator(mode="after")
+    def _minor_not_above_major(self):
+        if self.sigma_minor_m > self.sigma_major_m:
+            raise ValueError("sigma_minor_m must not exceed sigma_major_m")
+        return self
+
+
 class GpsIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     lat: float = Field(..., ge=-90, le=90, description="WGS84 latitude, degrees")
     lon: float = Field(..., ge=-180, le=180, description="WGS84 longitude, degrees")
     heading_deg: float = Field(..., ge=-360, le=720, description="Degrees clockwise from true north")
     position_sigma_m: float | None = Field(None, ge=0.01, le=1000, description="Per-axis position sigma, metres")
+    position_ellipse: EllipseIn | None = Field(
+        None, description="The fix's error ellipse instead of `position_sigma_m` (not both)")
     heading_sigma_deg: float | None = Field(None, ge=0.01, le=180, description="Heading sigma, degrees")
+
+    @model_validator(mode="after")
+    def _one_position_sigma(self):
+        if self.position_sigma_m is not None and self.position_ellipse is not None:
+            raise ValueError("send position_sigma_m or position_ellipse, not both")
+        return self
 
 
 class ObservationIn(BaseModel):
@@ -121,8 +145,12 @@ class DriveGps(BaseModel):
     easting: float
     northing: float
     yaw_grid_rad: float
-    sigma_m: float = Field(..., gt=0, le=1000)
+    sigma_m: float = Field(..., gt=0, le=1000, description="Major axis of the position's error ellipse, metres")
     sigma_yaw_rad: float = Field(..., gt=0, le=math.pi)
+    covariance: list[list[float]] | None = Field(
+        None, min_length=3, max_length=3,
+        description="3x3 covariance of (easting, northing, yaw_grid_rad): the fix's uncertainty grows across the "
+                    "road as the odometry carries its heading error along (absent in older states)")
 
 
 class DriveState(BaseModel):
@@ -359,11 +387,14 @@ def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float
 
 
 def _prior(g: GpsIn):
-    from localizer import Prior
+    from localizer import ErrorEllipse, Prior
 
     kw = {"lat": g.lat, "lon": g.lon, "heading_deg": g.heading_deg % 360.0}
     if g.position_sigma_m is not None:
         kw["position_sigma_m"] = g.position_sigma_m
+    if g.position_ellipse is not None:
+        e = g.position_ellipse
+        kw["position_ellipse"] = ErrorEllipse(e.sigma_major_m, e.sigma_minor_m, e.orientation_deg % 360.0)
     if g.heading_sigma_deg is not None:
         kw["heading_sigma_deg"] = g.heading_sigma_deg
     return Prior(**kw)
