@@ -645,7 +645,8 @@ def _posterior(tracks: list[_Track], null: float) -> np.ndarray:
 
 def _estimate(tracks, null, options: Options, frame_geo, crs) -> Pose:
     if not tracks:
-        return Pose(status="failed", crs=crs, reason="no frame so far matched the map")
+        return Pose(status="failed", crs=crs, reason="no pose hypothesis is left: the frames matched nothing, "
+                    "neither where the tracks were predicted nor around the GPS fix")
     best = tracks[0]
     prob = _posterior(tracks, null)
     status = "ok" if prob[0] >= options.ambiguity_probability else "ambiguous"
