@@ -83,7 +83,7 @@ def main() -> None:
                 a = max(0, k + 1 - args.window)
                 window = [Frame(frames[a].observations)] + frames[a + 1:k + 1]
                 t0 = time.process_time()
-                r = localize_sequence(index, window, carried_prior(index.frame, start, motions[1:a + 1],
+                r = localize_sequence(index, window, carried_prior(index, start, motions[1:a + 1],
                                                                    sig_m, sig_deg))  # fmt: skip
                 cpu[f"window of {args.window}"].append(1000 * (time.process_time() - t0))
                 windowed.append(r.pose)

@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from _localizer_helpers import karlsruhe  # noqa: E402
 
-from localizer import Prior, localize  # noqa: E402
+from localizer import Prior, carry_prior, localize  # noqa: E402
 from localizer.simulate import (  # noqa: E402
     HEAVY,
     Camera,
@@ -76,24 +76,14 @@ def noisy(motion, rng) -> tuple[float, float, float]:
     return (dx + rng.normal(0, 0.02 * d), dy + rng.normal(0, 0.01 * d), dyaw + math.radians(rng.normal(0, 0.1)))
 
 
-def carry(pose, motions) -> tuple[float, float, float]:
-    x, y, yaw = pose
-    for dx, dy, dyaw in motions:
-        c, s = math.cos(yaw), math.sin(yaw)
-        x, y, yaw = x + c * dx - s * dy, y + s * dx + c * dy, yaw + dyaw
-    return x, y, yaw
-
-
-def carried_prior(frame, start, motions, sig_m: float, sig_deg: float) -> Prior:
+def carried_prior(index, start, motions, sig_m: float, sig_deg: float) -> Prior:
     """The GPS fix at ``start`` carried by ``motions``, as a single frame's prior.
 
-    A heading error of ``sig_deg`` turns into a position error of
-    ``distance x sig_deg`` at the end of the drive; the position sigma grows by
-    it (in quadrature; a single frame's prior is isotropic), the heading sigma
-    stays.
+    :func:`localizer.carry_prior`, as the filter carries its fix: a heading
+    error of ``sig_deg`` moves the fix across the road by the distance driven
+    times the error, so its error ellipse grows across the road only.
     """
-    driven = sum(math.hypot(dx, dy) for dx, dy, _ in motions)
-    return prior_at(frame, carry(start, motions), math.hypot(sig_m, driven * math.radians(sig_deg)), sig_deg)
+    return carry_prior(index, prior_at(index.frame, start, sig_m, sig_deg), motions)
 
 
 def log_loss_term(p: float, right: bool) -> float:
@@ -142,7 +132,7 @@ def main() -> None:
                                            for k in range(1, len(drive))]
             start = perturb(drive[0], rng.uniform(*dist), rng.uniform(-hdg, hdg), rng)
             prior = prior_at(index.frame, start, sig_m, sig_deg)
-            last_prior = carried_prior(index.frame, start, motions[1:], sig_m, sig_deg)
+            last_prior = carried_prior(index, start, motions[1:], sig_m, sig_deg)
             single.append(grade(localize(index, scenes[-1].observations, last_prior), drive[-1]))
             last = scenes[-1]
             o = oracle_pose(last, cam.range_noise_m + cam.range_noise_coeff * np.sum(last.observations[:, :2] ** 2, 1))
