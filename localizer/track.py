@@ -436,6 +436,8 @@ def carry_prior(map_index: MapIndex, prior: Prior, motions: Sequence[tuple[float
     LocalizationInputError
         For a malformed prior or motion.
     """
+    if not isinstance(map_index, MapIndex):
+        raise LocalizationInputError("map_index: expected a localizer.MapIndex")
     _check_prior(prior)
     topt = track_options or TrackOptions()
     t = _gps_track(map_index.frame, prior, 0.0)

@@ -240,6 +240,10 @@ def test_a_carried_fix_grows_across_the_road_as_its_heading_error_would_move_it(
     assert (still.position_ellipse.sigma_major_m, still.position_ellipse.sigma_minor_m) == pytest.approx((2.0, 2.0))
     with pytest.raises(LocalizationInputError, match=r"motions\[1\]"):
         carry_prior(index, prior, [(1.0, 0.0, 0.0), (1.0, float("nan"), 0.0)])
+    with pytest.raises(LocalizationInputError, match="map_index"):
+        carry_prior(index.frame, prior, motions)
+    with pytest.raises(LocalizationInputError, match="prior.heading_sigma_deg"):
+        carry_prior(index, Prior(lat=49.005, lon=8.415, heading_deg=60.0, heading_sigma_deg=0.0), motions)
 
 
 def test_a_state_without_the_fix_covariance_still_continues_a_drive():
