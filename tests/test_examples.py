@@ -43,7 +43,7 @@ def test_the_readme_localize_commands_answer_as_documented(stored_map, monkeypat
     monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
     monkeypatch.chdir(REPO)
     lines = [ln for ln in README.splitlines() if ln.startswith("lanemap localize ka ")]
-    assert len(lines) == 4, lines
+    assert len(lines) == 5, lines
     outs = []
     for line in lines:
         argv = shlex.split(line.split("#")[0])[1:]
@@ -65,8 +65,9 @@ def test_the_readme_localize_commands_answer_as_documented(stored_map, monkeypat
         assert answer["status"] == "ok"
         assert _off(answer, truth) < 0.3 and _heading_off(answer, truth) < 1.0, (line, answer)
     # Streamed in two parts with the state between them: the poses of the whole drive.
-    assert outs[2]["poses"] + outs[3]["poses"] == outs[1]["poses"]
-    assert outs[3]["state"]["frames"] == 8
+    whole, start, rest = outs[2], outs[3], outs[4]
+    assert start["poses"] + rest["poses"] == whole["poses"]
+    assert rest["state"]["frames"] == 8
 
 
 def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F811
