@@ -19,7 +19,8 @@ hypothesis through the frames with the vehicle's odometry:
    view for many frames, so counting every frame in full would make a filter
    sure of the map's own ambiguity; scaled, each marking counts a few times
    (``TrackOptions.evidence_scale``) over its passage. The track also goes on
-   at its prediction as "this frame is all clutter", at a small cost;
+   at its prediction as "this frame is all clutter", at a cost that grows
+   with the markings the map puts in view there (none on unpainted road);
 3. while no track is confident, the frame is also searched around the GPS fix
    (carried along by the odometry), so a pose the first frame missed can still
    start a track. The fix carries a full covariance: an error in its heading
@@ -57,7 +58,9 @@ import numpy as np
 from .core import DEFAULT_OPTIONS, _check_prior, _make_pose, localize, parse_observations, position_covariance
 from .errors import LocalizationInputError
 from .frames import wrap_angle
+from .geometry import LocalMap
 from .index import MapIndex
+from .robust import missed_counts
 from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 #: Most frames one call accepts (a window of a few seconds at 10 Hz).
@@ -118,7 +121,9 @@ class TrackOptions:
         (re-fitted when ``Options.temperature`` went from 1.35 to 1).
     unexplained_penalty : float
         Log weight a track loses per view's worth of frames that it explains as
-        all clutter.
+        all clutter, times the probability that the camera would have reported
+        one of the markings the map puts in view there: nothing, through a
+        stretch without markings, where the track goes on by the odometry.
     max_lead : float
         Most log units the best track may lead "none of these" by; beyond it
         every track's weight is lowered by the excess (their probabilities
@@ -470,7 +475,11 @@ def _step(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs, motion, o
     for t in tracks:
         parent = _predict(t, motion, topt)
         r = localize(map_index, obs, _prior_of(parent, frame_geo), options=options)
-        children.extend(_children(r, parent, parent.log_w, weight, frame_geo, -topt.unexplained_penalty))
+        # "All clutter" counts against a track as far as the map says the
+        # camera should have seen something there: through a stretch without
+        # markings the track goes on by the odometry, not fading.
+        miss = -topt.unexplained_penalty * (1.0 - _p_nothing_seen(map_index, parent.pose, options))
+        children.extend(_children(r, parent, parent.log_w, weight, frame_geo, miss))
     gps = _predict(gps, motion, topt, floor=False)
     prob = _posterior(tracks, null)
     if not tracks or prob[0] < options.ambiguity_probability:
@@ -480,6 +489,25 @@ def _step(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs, motion, o
         r = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
         children.extend(_children(r, gps, null, 1.0, frame_geo))
     return _prune(children, null, topt), gps
+
+
+def _p_nothing_seen(map_index: MapIndex, pose, options: Options) -> float:
+    """Probability that the camera at ``pose`` reports none of the markings the map puts in its view.
+
+    Each expected centroid in view (a point-like marking, or a cluster every
+    few metres along a solid line; the view and misses of the negative
+    evidence, ``Options.view_*`` and ``miss_probability``) is missed
+    independently.
+    """
+    lo = options.view_min_range_m if options.view_min_range_m is not None else 4.0
+    hi = options.view_max_range_m if options.view_max_range_m is not None else 25.0
+    fov = options.view_half_fov_deg if options.view_half_fov_deg is not None else 30.0
+    local = LocalMap(map_index, (pose[0], pose[1]), hi + 1.0)
+    if len(local.expect_xy) == 0:
+        return 1.0
+    nowhere = np.array([[1e9, 1e9]])  # no observation explains anything
+    points, solid = missed_counts(local, nowhere, [(0.0, 0.0, pose[2])], options, (lo, hi, math.radians(fov)))
+    return float(options.miss_probability ** points[0] * options.solid_miss_probability ** solid[0])
 
 
 def _view_depth(options: Options) -> tuple[float, float]:

@@ -268,6 +268,36 @@ def test_a_state_stays_valid_however_far_the_odometry_carries_the_fix():
     assert again.state.gps[3] == 1000.0 and again.state.frames == 6
 
 
+def test_a_drive_keeps_its_pose_through_a_stretch_without_markings():
+    """Where the map puts nothing in view, a frame of clutter says nothing against a track.
+
+    The track goes on by the odometry, still sure, instead of fading to
+    "none of these" and a failed answer; where the map does put markings in
+    view and the camera reports none, the same frames count against it.
+    """
+    rng = np.random.default_rng(11)
+    xy, _ = random_map(rng, n=3000)
+    xy = xy[xy[:, 0] < ORIGIN[0] + 20.0]  # nothing painted east of here
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, "EPSG:25832")
+    poses = [(ORIGIN[0] - 20.0 + 1.5 * k, ORIGIN[1], 0.0) for k in range(44)]  # driving east into the gap
+
+    def frame(pose, k):
+        seen = observe(xy, pose).observations
+        clutter = np.column_stack([rng.uniform(5, 20, 3), rng.uniform(-5, 5, 3), np.full(3, 20.0)])
+        return Frame(np.vstack([seen, clutter]), (1.5, 0.0, 0.0) if k else (0.0, 0.0, 0.0))
+
+    frames = [frame(p, k) for k, p in enumerate(poses)]
+    assert sum(len(f.observations) == 3 for f in frames) >= 15  # half the drive sees only clutter
+    r = localize_sequence(index, frames, prior_at(index, perturb(poses[0], 1.0, 3.0, rng), 2.0, 5.0))
+    graded_all = [graded(p, t) for p, t in zip(r.poses, poses)]
+    assert all(status == "ok" and err < 0.3 for status, err in graded_all), graded_all
+    assert "odometry's prediction" in r.pose.reason
+    # The same clutter where the map has markings in view: the track fades.
+    blind = [Frame(f.observations[-3:], f.motion) for f in frames[:12]]
+    faded = localize_sequence(index, frames[:2] + blind[2:], prior_at(index, poses[0], 2.0, 5.0))
+    assert faded.pose.status != "ok"
+
+
 def test_a_streamed_drive_recovers_when_its_track_stops_matching():
     """A vehicle moved where its odometry does not say: the sure track fades and the GPS fix is searched again.
 
