@@ -499,23 +499,27 @@ def _p_nothing_seen(map_index: MapIndex, pose, options: Options) -> float:
     evidence, ``Options.view_*`` and ``miss_probability``) is missed
     independently.
     """
-    lo = options.view_min_range_m if options.view_min_range_m is not None else 4.0
-    hi = options.view_max_range_m if options.view_max_range_m is not None else 25.0
-    fov = options.view_half_fov_deg if options.view_half_fov_deg is not None else 30.0
-    local = LocalMap(map_index, (pose[0], pose[1]), hi + 1.0)
+    view = _camera_view(options)
+    local = LocalMap(map_index, (pose[0], pose[1]), view[1] + 1.0)
     if len(local.expect_xy) == 0:
         return 1.0
     nowhere = np.array([[1e9, 1e9]])  # no observation explains anything
-    points, solid = missed_counts(local, nowhere, [(0.0, 0.0, pose[2])], options, (lo, hi, math.radians(fov)))
+    points, solid = missed_counts(local, nowhere, [(0.0, 0.0, pose[2])], options, view)
     return float(options.miss_probability ** points[0] * options.solid_miss_probability ** solid[0])
+
+
+def _camera_view(options: Options) -> tuple[float, float, float]:
+    """The configured ground view: min range (m), max range (m), half angle (rad); defaults 4, 25 m and 30°."""
+    lo = options.view_min_range_m if options.view_min_range_m is not None else 4.0
+    hi = options.view_max_range_m if options.view_max_range_m is not None else 25.0
+    fov = options.view_half_fov_deg if options.view_half_fov_deg is not None else 30.0
+    return lo, hi, math.radians(fov)
 
 
 def _view_depth(options: Options) -> tuple[float, float]:
     """Metres of road and radians of heading after which a frame sees all-new ground."""
-    lo = options.view_min_range_m if options.view_min_range_m is not None else 4.0
-    hi = options.view_max_range_m if options.view_max_range_m is not None else 25.0
-    fov = options.view_half_fov_deg if options.view_half_fov_deg is not None else 30.0
-    return max(hi - lo, 1.0), 2.0 * math.radians(max(fov, 1.0))
+    lo, hi, half = _camera_view(options)
+    return max(hi - lo, 1.0), 2.0 * max(half, math.radians(1.0))
 
 
 def _grid_pose(frame_geo, prior: Prior) -> tuple[float, float, float]:
