@@ -27,6 +27,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,8 +35,10 @@ from tqdm import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _localizer_helpers import karlsruhe  # noqa: E402
+from localize_track import grade  # noqa: E402
 
 from localizer import ErrorEllipse, Prior, localize  # noqa: E402
 from localizer.simulate import Camera, Clutter, sample_poses, simulate_scene  # noqa: E402
@@ -45,10 +48,6 @@ SHAPES = [
     ("street canyon: 1.5 m along, 6 m across", 1.5, 6.0, 5.0),
     ("lane-level: 6 m along, 0.5 m across", 6.0, 0.5, 5.0),
 ]
-
-
-def heading_err_deg(a: float, b: float) -> float:
-    return abs(math.degrees((a - b + math.pi) % (2 * math.pi) - math.pi))
 
 
 def main() -> None:
@@ -78,20 +77,16 @@ def main() -> None:
             major, minor = max(along, across), min(along, across)
             base = Prior(lat=lat, lon=lon, heading_deg=heading % 360.0, heading_sigma_deg=hdg)
             priors = {
-                "ellipse": Prior(**{**base.__dict__, "position_ellipse": ErrorEllipse(
-                    major, minor, (road if along >= across else road + 90.0) % 360.0)}),
-                "circle, major": Prior(**{**base.__dict__, "position_sigma_m": major}),
-                "circle, rms": Prior(**{**base.__dict__, "position_sigma_m": math.sqrt((along**2 + across**2) / 2)}),
+                "ellipse": replace(base, position_ellipse=ErrorEllipse(
+                    major, minor, (road if along >= across else road + 90.0) % 360.0)),
+                "circle, major": replace(base, position_sigma_m=major),
+                "circle, rms": replace(base, position_sigma_m=math.sqrt((along**2 + across**2) / 2)),
             }
             for key, prior in priors.items():
                 t0 = time.process_time()
                 r = localize(index, scene.observations, prior)
                 times[key].append(1000 * (time.process_time() - t0))
-                if r.easting is None:
-                    results[key].append((r.status, math.inf, math.inf))
-                else:
-                    results[key].append((r.status, math.hypot(r.easting - pose[0], r.northing - pose[1]),
-                                         heading_err_deg(r.yaw_grid_rad, pose[2])))
+                results[key].append(grade(r, pose))
         for key, res in results.items():
             st = np.array([r[0] for r in res])
             e = np.array([r[1] for r in res])

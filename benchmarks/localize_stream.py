@@ -9,9 +9,9 @@ costs one frame and the filter remembers the whole drive). Both clients run
 here on the same drives of ``--frames`` frames ``--step`` metres apart along
 Karlsruhe centrelines, with the scenes, odometry noise and GPS errors of
 ``localize_track.py``; the GPS fix is the first frame's, carried along by the
-odometry (the windowed client starts each window from it, its position
-sigma grown by the heading error's lever, as ``localize_track.py``'s single
-frames).
+odometry (the windowed client starts each window from it, carried as the
+filter carries its own, :func:`localizer.carry_prior`, as
+``localize_track.py``'s single frames).
 
 Printed per client: CPU time per request (p50 / p99), the success rate (``ok``
 within 0.5 m / 1°) and confidently wrong rate (``ok``, more than 1 m off) over
