@@ -18,7 +18,9 @@ probability (``Pose.probability``) are right, as a table and a reliability
 diagram (``localize_reliability_<tag>.png``), and what accepting answers from
 other probability thresholds than ``ok``'s 0.95 would give.
 
-Run: ``.venv/bin/python benchmarks/localize_paper.py [--runs 200] [--seed 0] [--intersections] [--no-kinds]``
+Run: ``.venv/bin/python benchmarks/localize_paper.py [--runs 200] [--seed 0] [--intersections] [--no-kinds]
+[--set NAME=VALUE ...] [--tag TAG]`` (``--set`` changes a ``localizer.Options`` field of the
+default method, e.g. ``--set candidate_margin=1e9``; give such runs a ``--tag``)
 """
 
 from __future__ import annotations
@@ -78,6 +80,18 @@ SCENARIOS = [
 ]
 
 
+def option_value(text: str) -> tuple[str, object]:
+    """``NAME=VALUE`` of ``--set``: an Options field and its value as JSON (lists become tuples)."""
+    name, sep, value = text.partition("=")
+    if not sep or name not in Options.__dataclass_fields__:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with NAME a localizer.Options field: {text!r}")
+    try:
+        parsed = json.loads(value)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"{name}: VALUE is not JSON: {value!r}") from exc
+    return name, tuple(parsed) if isinstance(parsed, list) else parsed
+
+
 def heading_err_deg(a: float, b: float) -> float:
     return abs(math.degrees((a - b + math.pi) % (2 * math.pi) - math.pi))
 
@@ -117,7 +131,7 @@ def run(args) -> dict:
     index, smap = karlsruhe(kinds=not getattr(args, "no_kinds", False))
     cam = Camera()
     poses = scene_poses(args, smap, cam)
-    opts = Options(record_trace=True)
+    opts = Options(record_trace=True, **dict(getattr(args, "set", None) or ()))
     results = {}
     traces = {}
     for sc in SCENARIOS:
@@ -342,6 +356,8 @@ def main() -> None:
     ap.add_argument("--no-kinds", action="store_true",
                     help="index the map without its markings' kinds, as a map detected from imagery")
     ap.add_argument("--tag", default="")
+    ap.add_argument("--set", action="append", type=option_value, metavar="NAME=VALUE",
+                    help="a localizer.Options field (repeatable; VALUE as JSON)")
     args = ap.parse_args()
     out = run(args)
     tab = table(out["results"])
