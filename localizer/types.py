@@ -271,7 +271,7 @@ class Options:
     candidate_margin : float
         Beyond the best four, coarse optima scoring more than this below the best
         (log units) are not refined. Under heavy clutter the coarse correlation
-        rewards chance matches, and the truth's optimum was found 10–17 below the
+        rewards chance matches, and the truth's optimum was found 11–14 below the
         best in scenes that a margin of 10 left confidently wrong.
     anneal_m : tuple of float
         Robust (Geman-McClure) scales of the refinement, coarse to fine, metres.
