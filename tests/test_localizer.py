@@ -597,6 +597,30 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     assert r.log_score > without.log_score
 
 
+def test_a_truth_scoring_far_below_clutter_in_the_coarse_search_is_still_refined():
+    # A benchmark scene from 8-10 m under heavy clutter: 22 observations, 7 of
+    # them dashes. The clutter's chance matches give the coarse correlation a
+    # best optimum 13 m off; the truth's coarse optimum (0.2 m, 0.7° off)
+    # scores 14 log units below it. Skipped as hopeless by a margin of 10, the
+    # wrong pose was answered `ok`; refined, the truth outscores it.
+    data = json.loads((Path(__file__).parent / "data" / "truth_far_below_clutter.json").read_text())
+    index, _ = karlsruhe()
+    assert index.crs == data["crs"]
+    pose, prior = data["true_pose"], Prior(**data["prior"])
+    obs = np.array(data["observations"])
+    assert data["labels"].count("dash") == 7
+    narrow = localize(index, obs, prior, options=Options(candidate_margin=10.0))
+    assert narrow.status == "ok" and errors(narrow, pose)[0] > 10.0  # confidently wrong
+    r = localize(index, obs, prior)
+    e, h = errors(r, pose)
+    assert r.status != "failed" and e < 0.25 and h < 1.0
+    assert r.probability > 0.5 and r.log_score > narrow.log_score
+    # The clutter's optimum is still a rival: the answer is not beyond doubt.
+    assert r.status == "ambiguous"
+    assert any(math.hypot(hy.easting - narrow.easting, hy.northing - narrow.northing) < 0.5
+               for hy in r.hypotheses)
+
+
 def test_crowded_observations_share_their_weight():
     rng = np.random.default_rng(3)
     isolated = np.array([[5.0, -8.0], [20.0, 8.0]])
