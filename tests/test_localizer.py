@@ -45,6 +45,14 @@ def errors(result, pose):
     return e, h
 
 
+def benchmark_scene(name: str):
+    """A benchmark frame kept in ``tests/data``: the Karlsruhe index, true pose, prior, observations, labels."""
+    data = json.loads((Path(__file__).parent / "data" / name).read_text())
+    index, _ = karlsruhe()
+    assert index.crs == data["crs"]
+    return index, data["true_pose"], Prior(**data["prior"]), np.array(data["observations"]), data.get("labels", [])
+
+
 def observe(xy, pose, cam=EXACT, rng=None, clutter=NONE):
     smap = SceneMap(marking_xy=xy, marking_kind=np.full(len(xy), "dash", object))
     return simulate_scene(smap, pose, rng or np.random.default_rng(0), cam, clutter)
@@ -580,11 +588,7 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     # ends at the truth.
     import localizer.core
 
-    data = json.loads((Path(__file__).parent / "data" / "dragged_refinement.json").read_text())
-    index, _ = karlsruhe()
-    assert index.crs == data["crs"]
-    pose, prior = data["true_pose"], Prior(**data["prior"])
-    obs = np.array(data["observations"])
+    index, pose, prior, obs, _ = benchmark_scene("dragged_refinement.json")
     # Shared crowd weights alone rescue this scene too; the restart is tested without them.
     opts = Options(crowd_radius_m=None)
     monkeypatch.setattr(localizer.core, "_RESTART_TURN_RAD", math.inf)
@@ -603,12 +607,8 @@ def test_a_truth_scoring_far_below_clutter_in_the_coarse_search_is_still_refined
     # best optimum 13 m off; the truth's coarse optimum (0.2 m, 0.7° off)
     # scores 14 log units below it. Skipped as hopeless by a margin of 10, the
     # wrong pose was answered `ok`; refined, the truth outscores it.
-    data = json.loads((Path(__file__).parent / "data" / "truth_far_below_clutter.json").read_text())
-    index, _ = karlsruhe()
-    assert index.crs == data["crs"]
-    pose, prior = data["true_pose"], Prior(**data["prior"])
-    obs = np.array(data["observations"])
-    assert data["labels"].count("dash") == 7
+    index, pose, prior, obs, labels = benchmark_scene("truth_far_below_clutter.json")
+    assert labels.count("dash") == 7
     narrow = localize(index, obs, prior, options=Options(candidate_margin=10.0))
     assert narrow.status == "ok" and errors(narrow, pose)[0] > 10.0  # confidently wrong
     r = localize(index, obs, prior)
@@ -645,12 +645,8 @@ def test_a_preceding_vehicle_does_not_outweigh_the_markings():
     # cluster counted as independent evidence, it keeps a real share of the
     # posterior (4.6 %; 7 % and the answer ambiguous under the temperature of
     # 1.35 the fixture was taken with).
-    data = json.loads((Path(__file__).parent / "data" / "crowded_vehicle.json").read_text())
-    index, _ = karlsruhe()
-    assert index.crs == data["crs"]
-    pose, prior = data["true_pose"], Prior(**data["prior"])
-    obs = np.array(data["observations"])
-    assert data["labels"].count("vehicle") == 5
+    index, pose, prior, obs, labels = benchmark_scene("crowded_vehicle.json")
+    assert labels.count("vehicle") == 5
     alone = localize(index, obs, prior, options=Options(crowd_radius_m=None))
     r = localize(index, obs, prior)
     e, h = errors(r, pose)
