@@ -19,8 +19,8 @@ diagram (``localize_reliability_<tag>.png``), and what accepting answers from
 other probability thresholds than ``ok``'s 0.95 would give.
 
 Run: ``.venv/bin/python benchmarks/localize_paper.py [--runs 200] [--seed 0] [--intersections] [--no-kinds]
-[--set NAME=VALUE ...] [--tag TAG]`` (``--set`` changes a ``localizer.Options`` field of the
-default method, e.g. ``--set candidate_margin=1e9``; give such runs a ``--tag``)
+[--set NAME=VALUE ...] [--tag TAG]`` (``--set`` changes a field of the ``localizer.Options``
+both methods run with, e.g. ``--set candidate_margin=1e9``; give such runs a ``--tag``)
 """
 
 from __future__ import annotations
