@@ -60,7 +60,7 @@ from .errors import LocalizationInputError
 from .frames import wrap_angle
 from .geometry import LocalMap
 from .index import MapIndex
-from .robust import missed_counts
+from .robust import log_prior, missed_counts
 from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 #: Most frames one call accepts (a window of a few seconds at 10 Hz).
@@ -606,12 +606,9 @@ def _unpredict(t: _Track, motion) -> _Track:
 
 def _log_prior(pose, t: _Track) -> float:
     """The prior term :func:`localize` adds for ``pose`` under the prior ``_prior_of(t)``."""
-    d = (pose[0] - t.pose[0], pose[1] - t.pose[1], wrap_angle(pose[2] - t.pose[2]))
-    if t.cov is None:
-        return -0.5 * ((d[0] ** 2 + d[1] ** 2) / t.sigma_m**2 + (d[2] / t.sigma_yaw) ** 2)
-    info = np.linalg.inv(t.cov[:2, :2])  # a prior's position and heading are independent
-    q = info[0, 0] * d[0] ** 2 + 2.0 * info[0, 1] * d[0] * d[1] + info[1, 1] * d[1] ** 2
-    return -0.5 * (float(q) + (d[2] / t.sigma_yaw) ** 2)
+    # a prior's position and heading are independent: the position's block alone
+    pos_info = t.sigma_m if t.cov is None else np.linalg.inv(t.cov[:2, :2])
+    return log_prior(pose, t.pose, pos_info, t.sigma_yaw)
 
 
 def _children(r: Pose, parent: _Track, base: float, weight: float, frame_geo,
