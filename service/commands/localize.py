@@ -152,7 +152,7 @@ def register(app: typer.Typer) -> None:
         ),
         method: str = typer.Option("default", "--method", help=f"One of: {', '.join(METHODS)}."),
         position_sigma: float | None = typer.Option(
-            None, "--position-sigma", help="GPS position sigma, metres (default 5)."),
+            None, "--position-sigma", help=f"GPS position sigma, metres (default {Prior.position_sigma_m:g})."),
         position_ellipse: str | None = typer.Option(
             None, "--position-ellipse", metavar="MAJOR,MINOR,ORIENTATION",
             help="GPS error ellipse instead of --position-sigma: the sigmas along its major and minor axes "
@@ -214,10 +214,11 @@ def register(app: typer.Typer) -> None:
         _ready_kernels()
         try:
             index = index_from_markings(arrays, info.crs)
+            # Without --position-sigma the fix takes the library's default sigma.
+            sigma = {} if position_sigma is None else {"position_sigma_m": position_sigma}
             prior = None if lat is None else Prior(
-                lat=lat, lon=lon, heading_deg=heading,
-                position_sigma_m=5.0 if position_sigma is None else position_sigma,
-                heading_sigma_deg=heading_sigma, position_ellipse=ellipse,
+                lat=lat, lon=lon, heading_deg=heading, heading_sigma_deg=heading_sigma,
+                position_ellipse=ellipse, **sigma,
             )
             if seq is not None:
                 from localizer.track import localize_sequence
