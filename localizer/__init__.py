@@ -66,7 +66,12 @@ Methods
        the first 20 candidates holds less than 99.9 %, the next 20 coarse
        optima are refined and scored too (``Options.extra_candidates``): a
        truth crowded out of the first ones, or a rival that makes a
-       confident answer ambiguous. Then the best pose is refined again from
+       confident answer ambiguous. The best four coarse optima more than
+       3 m from the best pose are refined again at its heading where theirs
+       is more than 1.5° off (``Options.heading_restarts``): the coarse
+       grid's headings lie degrees apart, and the truth's optimum one step
+       turned can settle at a wrong heading while a pose one dash period
+       along wins. Then the best pose is refined again from
        a few starts beside it (1.5 m and 0.75 m along, 0.75 m across, 2°
        turned; ``Options.neighbour_starts``): the coarse grid can hand over
        a candidate that settles in the basin next to the truth's, and a

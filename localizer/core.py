@@ -327,6 +327,11 @@ def localize(
             refined = refined + _refine_candidates(scene, extra)
             ranked = _rank_hypotheses(scene, refined)
             searched = first + extra
+        if options.heading_restarts:
+            turned = _heading_restarts(ranked, searched, options.heading_restarts)
+            if turned:
+                refined = refined + _refine_candidates(scene, turned)
+                ranked = _rank_hypotheses(scene, refined)
         if options.neighbour_starts:
             # The coarse grid's cells are about as wide as a basin on a map with
             # short or shifted markings: the best candidate's refinement can
@@ -488,6 +493,20 @@ def _with_negative_evidence(local: LocalMap, obs_xy, cands: list[Candidate], opt
     return sorted(charged, key=lambda c: -c.score)
 
 
+def _heading_restarts(ranked: "_Ranked", searched: list[Candidate], n: int) -> list[Candidate]:
+    """The best ``n`` coarse optima away from the best hypothesis, at its heading where theirs differs from it.
+
+    Next to the best pose the neighbour starts already search; these look for
+    a rival (or the truth) that the coarse grid's heading step hid elsewhere.
+    """
+    bx, by, yaw = ranked.kept[0][1].pose
+    out = []
+    for c in sorted(searched, key=lambda c: -c.score)[:n]:
+        if abs(wrap_angle(c.yaw - yaw)) > _TURN_RAD and math.hypot(c.x - bx, c.y - by) > HEADING_RESTART_MIN_M:
+            out.append(Candidate(c.x, c.y, yaw, -math.inf))
+    return out
+
+
 def _neighbour_starts(pose, options: Options) -> list[Candidate]:
     """Starts around ``pose``: along and across its heading, and turned, by ``options.neighbour_starts``."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -516,6 +535,8 @@ def _score_options(o: Options, n_clutter: int) -> Options:
 # have been dragged off; _refine_candidates). The restart at the refined
 # heading uses the same bound under its own name, so it can be switched off.
 _TURN_RAD = math.radians(1.5)
+# Heading restarts look for optima beyond the neighbour starts' reach (1.5 m).
+HEADING_RESTART_MIN_M = 3.0
 _RESTART_TURN_RAD = _TURN_RAD
 
 

@@ -273,6 +273,15 @@ class Options:
         (log units) are not refined. Under heavy clutter the coarse correlation
         rewards chance matches, and the truth's optimum was found 11–14 below the
         best in scenes that a margin of 10 left confidently wrong.
+    heading_restarts : int
+        The best this many coarse optima more than 3 m from the best
+        hypothesis (beside it, ``neighbour_starts`` search) are refined again
+        at its heading where theirs differs from it by more than 1.5°.
+        The coarse grid's headings lie several degrees apart; a coarse optimum
+        next to the truth's position but turned by one step can be refined to
+        a nearby wrong heading, and the truth is then missing from the
+        hypotheses. Rivals along a lane share its heading, so the best
+        hypothesis's is the one to try. 0: no such restarts.
     anneal_m : tuple of float
         Robust (Geman-McClure) scales of the refinement, coarse to fine, metres.
     iterations_per_scale : int
@@ -393,6 +402,7 @@ class Options:
     extra_search_probability: float = 0.999
     coarse_pool: int = 100
     candidate_margin: float = 15.0
+    heading_restarts: int = 4
     anneal_m: tuple[float, ...] = (0.8, 0.4, 0.2, 0.15)
     iterations_per_scale: int = 6
     noise_m: float = 0.05
@@ -529,7 +539,7 @@ _OPTIONAL_RANGES = (
 _OPTION_COUNTS = (("max_iterations", 1), ("iterations_per_scale", 1),
                   ("max_search_observations", 1), ("max_search_cells", 1), ("max_search_work", 1),
                   ("candidates", 1),
-                  ("extra_candidates", 0), ("coarse_pool", 0), ("max_hypotheses", 1), ("min_inliers", 1),
+                  ("extra_candidates", 0), ("coarse_pool", 0), ("heading_restarts", 0), ("max_hypotheses", 1), ("min_inliers", 1),
                   ("fallback_min_inliers", 1), ("max_observations", 1))
 
 

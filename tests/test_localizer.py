@@ -589,8 +589,9 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     import localizer.core
 
     index, pose, prior, obs, _ = benchmark_scene("dragged_refinement.json")
-    # Shared crowd weights alone rescue this scene too; the restart is tested without them.
-    opts = Options(crowd_radius_m=None)
+    # Shared crowd weights alone rescue this scene too, and so do the heading
+    # restarts from the best coarse optima; the restart is tested without them.
+    opts = Options(crowd_radius_m=None, heading_restarts=0)
     monkeypatch.setattr(localizer.core, "_RESTART_TURN_RAD", math.inf)
     without = localize(index, obs, prior, options=opts)
     assert without.status == "ok" and errors(without, pose)[0] > 1.0  # confidently wrong
@@ -618,6 +619,27 @@ def test_a_truth_scoring_far_below_clutter_in_the_coarse_search_is_still_refined
     # The clutter's optimum is still a rival: the answer is not beyond doubt.
     assert r.status == "ambiguous"
     assert any(math.hypot(hy.easting - narrow.easting, hy.northing - narrow.northing) < 0.5
+               for hy in r.hypotheses)
+
+
+def test_a_coarse_optimum_turned_off_the_truth_is_refined_again_at_the_best_heading():
+    # The first frame of a benchmark drive from 8-10 m: 10 observations, 4 of
+    # them dashes among a preceding vehicle's clusters and a curb. The best
+    # coarse optimum lies 0.9 m from the truth but 7° turned (the coarse grid
+    # holds no heading closer), and refined from there it settles 10° off,
+    # matching two observations. The answer was the pose one dash period
+    # (9 m) along the lane, `ok`. Started again at that answer's heading, the
+    # truth's coarse optimum reaches the truth, which outscores it.
+    index, pose, prior, obs, labels = benchmark_scene("truth_turned_off_by_coarse_grid.json")
+    assert labels.count("dash") == 4
+    before = localize(index, obs, prior, options=Options(heading_restarts=0))
+    assert before.status == "ok" and errors(before, pose)[0] > 8.0  # confidently wrong
+    r = localize(index, obs, prior)
+    e, h = errors(r, pose)
+    assert e < 0.25 and h < 1.0 and r.log_score > before.log_score
+    # The dash period still leaves the fix in doubt: the shifted pose is a rival.
+    assert r.status == "ambiguous"
+    assert any(math.hypot(hy.easting - before.easting, hy.northing - before.northing) < 1.0
                for hy in r.hypotheses)
 
 
@@ -1391,6 +1413,7 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"view_min_range_m": 30.0}, "view_min_range_m"), ({"ambiguity_probability": 0.0}, "ambiguity"),
      ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
      ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
+     ({"heading_restarts": -1}, "heading_restarts"), ({"heading_restarts": 1.5}, "heading_restarts"),
      ({"extra_search_probability": 1.5}, "extra_search_probability"),
      ({"fallback_min_inliers": 0}, "fallback_min_inliers"),
      ({"iterations_per_scale": 0}, "iterations_per_scale"),
