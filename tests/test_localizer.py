@@ -602,42 +602,32 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     assert r.log_score > without.log_score
 
 
-def test_a_truth_scoring_far_below_clutter_in_the_coarse_search_is_still_refined():
-    # A benchmark scene from 8-10 m under heavy clutter: 22 observations, 7 of
-    # them dashes. The clutter's chance matches give the coarse correlation a
-    # best optimum 13 m off; the truth's coarse optimum (0.2 m, 0.7° off)
-    # scores 14 log units below it. Skipped as hopeless by a margin of 10, the
-    # wrong pose was answered `ok`; refined, the truth outscores it.
-    index, pose, prior, obs, labels = benchmark_scene("truth_far_below_clutter.json")
-    assert labels.count("dash") == 7
-    narrow = localize(index, obs, prior, options=Options(candidate_margin=10.0))
-    assert narrow.status == "ok" and errors(narrow, pose)[0] > 10.0  # confidently wrong
+@pytest.mark.parametrize("scene_file, dashes, without, wrong_m", [
+    # From 8-10 m under heavy clutter: 22 observations, 7 of them dashes. The
+    # clutter's chance matches give the coarse correlation a best optimum 13 m
+    # off; the truth's coarse optimum (0.2 m, 0.7° off) scores 14 log units
+    # below it. Skipped as hopeless by a margin of 10, the wrong pose was
+    # answered `ok`; refined, the truth outscores it.
+    pytest.param("truth_far_below_clutter.json", 7, {"candidate_margin": 10.0}, 10.0, id="far-below-clutter"),
+    # The first frame of a drive from 8-10 m: 10 observations, 4 of them
+    # dashes among a preceding vehicle's clusters and a curb. The best coarse
+    # optimum lies 0.9 m from the truth but 7° turned (the coarse grid holds
+    # no heading closer), and refined from there it settles 10° off, matching
+    # two observations. The answer was the pose one dash period (9 m) along
+    # the lane, `ok`. Started again at that answer's heading, the truth's
+    # coarse optimum reaches the truth, which outscores it.
+    pytest.param("truth_turned_off_by_coarse_grid.json", 4, {"heading_restarts": 0}, 8.0, id="turned-by-coarse-grid"),
+])
+def test_a_truth_the_coarse_search_misplaced_is_still_refined(scene_file, dashes, without, wrong_m):
+    index, pose, prior, obs, labels = benchmark_scene(scene_file)
+    assert labels.count("dash") == dashes
+    before = localize(index, obs, prior, options=Options(**without))
+    assert before.status == "ok" and errors(before, pose)[0] > wrong_m  # confidently wrong
     r = localize(index, obs, prior)
     e, h = errors(r, pose)
-    assert r.status != "failed" and e < 0.25 and h < 1.0
-    assert r.probability > 0.5 and r.log_score > narrow.log_score
-    # The clutter's optimum is still a rival: the answer is not beyond doubt.
-    assert r.status == "ambiguous"
-    assert any(math.hypot(hy.easting - narrow.easting, hy.northing - narrow.northing) < 0.5
-               for hy in r.hypotheses)
-
-
-def test_a_coarse_optimum_turned_off_the_truth_is_refined_again_at_the_best_heading():
-    # The first frame of a benchmark drive from 8-10 m: 10 observations, 4 of
-    # them dashes among a preceding vehicle's clusters and a curb. The best
-    # coarse optimum lies 0.9 m from the truth but 7° turned (the coarse grid
-    # holds no heading closer), and refined from there it settles 10° off,
-    # matching two observations. The answer was the pose one dash period
-    # (9 m) along the lane, `ok`. Started again at that answer's heading, the
-    # truth's coarse optimum reaches the truth, which outscores it.
-    index, pose, prior, obs, labels = benchmark_scene("truth_turned_off_by_coarse_grid.json")
-    assert labels.count("dash") == 4
-    before = localize(index, obs, prior, options=Options(heading_restarts=0))
-    assert before.status == "ok" and errors(before, pose)[0] > 8.0  # confidently wrong
-    r = localize(index, obs, prior)
-    e, h = errors(r, pose)
-    assert e < 0.25 and h < 1.0 and r.log_score > before.log_score
-    # The dash period still leaves the fix in doubt: the shifted pose is a rival.
+    assert e < 0.25 and h < 1.0
+    assert r.probability > 0.5 and r.log_score > before.log_score
+    # The wrong optimum is still a rival: the answer is not beyond doubt.
     assert r.status == "ambiguous"
     assert any(math.hypot(hy.easting - before.easting, hy.northing - before.northing) < 1.0
                for hy in r.hypotheses)
