@@ -633,21 +633,20 @@ def test_a_truth_the_coarse_search_misplaced_is_still_refined(scene_file, dashes
                for hy in r.hypotheses)
 
 
-def test_a_pitch_fit_that_leaves_too_few_matches_keeps_the_chosen_optimum():
+def test_a_pitch_fit_that_leaves_too_few_matches_answers_failed():
     # A benchmark scene from 0.5-2 m: 10 observations, 3 of them markings
     # among curbs and a preceding vehicle. The best-ranked pose matches three;
     # the joint fit with the camera's pitch, started there, leaves it two
-    # within the inlier gate, and taking that fit answered `failed` ("only 2
-    # of 10 observations match") although the search had found hypotheses,
-    # the truth among them.
+    # within the inlier gate. The rigid optimum is 0.9 m off (the truth ranks
+    # second): matches that a small change of the camera model loses are no
+    # fix, and the answer is `failed`, not that pose.
     index, pose, prior, obs, labels = benchmark_scene("pitch_fit_loses_a_match.json")
     assert labels.count("dash") + labels.count("solid") == 3
     rigid = localize(index, obs, prior, options=Options(estimate_pitch=False))
+    assert rigid.status != "failed" and rigid.inliers >= 3 and errors(rigid, pose)[0] > 0.5
     r = localize(index, obs, prior)
-    assert r.status == "ambiguous" and r.inliers >= 3
-    assert math.isclose(r.easting, rigid.easting, abs_tol=1e-6)
-    assert math.isclose(r.northing, rigid.northing, abs_tol=1e-6)
-    assert any(math.hypot(hy.easting - pose[0], hy.northing - pose[1]) < 0.25 for hy in r.hypotheses)
+    assert r.status == "failed" and r.easting is None
+    assert "only 2 of 10 observations match" in r.reason
 
 
 def test_crowded_observations_share_their_weight():
