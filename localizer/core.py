@@ -492,15 +492,17 @@ def _with_negative_evidence(local: LocalMap, obs_xy, cands: list[Candidate], opt
 
 
 def _heading_restarts(ranked: "_Ranked", searched: list[Candidate], n: int) -> list[Candidate]:
-    """The best ``n`` coarse optima away from the best hypothesis, at its heading where theirs differs from it.
+    """The best ``n`` coarse optima away from the best hypothesis, turned to its heading.
 
-    Next to the best pose the neighbour starts already search; these look for
-    a rival (or the truth) that the coarse grid's heading step hid elsewhere.
+    Only those whose heading differs from it by more than 1.5°. Next to the
+    best pose the neighbour starts already search; these look for a rival (or
+    the truth) that the coarse grid's heading step hid elsewhere.
     """
     bx, by, yaw = ranked.kept[0][1].pose
     out = []
     for c in sorted(searched, key=lambda c: -c.score)[:n]:
-        if abs(wrap_angle(c.yaw - yaw)) > _TURN_RAD and math.hypot(c.x - bx, c.y - by) > HEADING_RESTART_MIN_M:
+        turned = abs(wrap_angle(c.yaw - yaw)) > _TURN_RAD
+        if turned and math.hypot(c.x - bx, c.y - by) > _HEADING_RESTART_MIN_M:
             out.append(Candidate(c.x, c.y, yaw, -math.inf))
     return out
 
@@ -534,7 +536,7 @@ def _score_options(o: Options, n_clutter: int) -> Options:
 # heading uses the same bound under its own name, so it can be switched off.
 _TURN_RAD = math.radians(1.5)
 # Heading restarts look for optima beyond the neighbour starts' reach (1.5 m).
-HEADING_RESTART_MIN_M = 3.0
+_HEADING_RESTART_MIN_M = 3.0
 _RESTART_TURN_RAD = _TURN_RAD
 
 

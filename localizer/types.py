@@ -539,7 +539,8 @@ _OPTIONAL_RANGES = (
 _OPTION_COUNTS = (("max_iterations", 1), ("iterations_per_scale", 1),
                   ("max_search_observations", 1), ("max_search_cells", 1), ("max_search_work", 1),
                   ("candidates", 1),
-                  ("extra_candidates", 0), ("coarse_pool", 0), ("heading_restarts", 0), ("max_hypotheses", 1), ("min_inliers", 1),
+                  ("extra_candidates", 0), ("coarse_pool", 0), ("heading_restarts", 0),
+                  ("max_hypotheses", 1), ("min_inliers", 1),
                   ("fallback_min_inliers", 1), ("max_observations", 1))
 
 

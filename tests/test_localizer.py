@@ -608,7 +608,8 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     # off; the truth's coarse optimum (0.2 m, 0.7° off) scores 14 log units
     # below it. Skipped as hopeless by a margin of 10, the wrong pose was
     # answered `ok`; refined, the truth outscores it.
-    pytest.param("truth_far_below_clutter.json", 7, {"candidate_margin": 10.0}, 10.0, id="far-below-clutter"),
+    pytest.param("truth_far_below_clutter.json", 7, {"candidate_margin": 10.0}, 10.0,
+                 id="far-below-clutter"),
     # The first frame of a drive from 8-10 m: 10 observations, 4 of them
     # dashes among a preceding vehicle's clusters and a curb. The best coarse
     # optimum lies 0.9 m from the truth but 7° turned (the coarse grid holds
@@ -616,7 +617,8 @@ def test_a_refinement_dragged_off_while_turning_is_restarted_at_its_heading(monk
     # two observations. The answer was the pose one dash period (9 m) along
     # the lane, `ok`. Started again at that answer's heading, the truth's
     # coarse optimum reaches the truth, which outscores it.
-    pytest.param("truth_turned_off_by_coarse_grid.json", 4, {"heading_restarts": 0}, 8.0, id="turned-by-coarse-grid"),
+    pytest.param("truth_turned_off_by_coarse_grid.json", 4, {"heading_restarts": 0}, 8.0,
+                 id="turned-by-coarse-grid"),
 ])
 def test_a_truth_the_coarse_search_misplaced_is_still_refined(scene_file, dashes, without, wrong_m):
     index, pose, prior, obs, labels = benchmark_scene(scene_file)
@@ -1402,7 +1404,8 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"view_min_range_m": 30.0}, "view_min_range_m"), ({"ambiguity_probability": 0.0}, "ambiguity"),
      ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
      ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
-     ({"heading_restarts": -1}, "heading_restarts"), ({"heading_restarts": 1.5}, "heading_restarts"),
+     ({"heading_restarts": -1}, "heading_restarts"),
+     ({"heading_restarts": 1.5}, "heading_restarts"),
      ({"extra_search_probability": 1.5}, "extra_search_probability"),
      ({"fallback_min_inliers": 0}, "fallback_min_inliers"),
      ({"iterations_per_scale": 0}, "iterations_per_scale"),
