@@ -80,16 +80,21 @@ SCENARIOS = [
 ]
 
 
-def option_value(text: str) -> tuple[str, object]:
-    """``NAME=VALUE`` of ``--set``: an Options field and its value as JSON (lists become tuples)."""
-    name, sep, value = text.partition("=")
-    if not sep or name not in Options.__dataclass_fields__:
-        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with NAME a localizer.Options field: {text!r}")
-    try:
-        parsed = json.loads(value)
-    except json.JSONDecodeError as exc:
-        raise argparse.ArgumentTypeError(f"{name}: VALUE is not JSON: {value!r}") from exc
-    return name, tuple(parsed) if isinstance(parsed, list) else parsed
+def field_value(cls: type):
+    """A parser of ``NAME=VALUE`` for ``--set``: a field of the dataclass ``cls`` and its value as
+    JSON (lists become tuples)."""
+
+    def parse(text: str) -> tuple[str, object]:
+        name, sep, value = text.partition("=")
+        if not sep or name not in cls.__dataclass_fields__:
+            raise argparse.ArgumentTypeError(f"expected NAME=VALUE with NAME a field of {cls.__name__}: {text!r}")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise argparse.ArgumentTypeError(f"{name}: VALUE is not JSON: {value!r}") from exc
+        return name, tuple(parsed) if isinstance(parsed, list) else parsed
+
+    return parse
 
 
 def heading_err_deg(a: float, b: float) -> float:
@@ -356,7 +361,7 @@ def main() -> None:
     ap.add_argument("--no-kinds", action="store_true",
                     help="index the map without its markings' kinds, as a map detected from imagery")
     ap.add_argument("--tag", default="")
-    ap.add_argument("--set", action="append", type=option_value, metavar="NAME=VALUE",
+    ap.add_argument("--set", action="append", type=field_value(Options), metavar="NAME=VALUE",
                     help="a localizer.Options field (repeatable; VALUE as JSON)")
     args = ap.parse_args()
     out = run(args)

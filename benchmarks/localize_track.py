@@ -23,12 +23,17 @@ last (the answer right within 1 m and 2°; ``--evidence-scale`` sets
 :attr:`localizer.track.TrackOptions.evidence_scale`, chosen by it on seed 7).
 
 Run: ``.venv/bin/python benchmarks/localize_track.py [--runs 200] [--frames 10] [--seed 0] [--only 8-10m --tag _20]
-[--evidence-scale 6]``
+[--evidence-scale 6] [--set NAME=VALUE ...] [--track-set NAME=VALUE ...]``. ``--set`` changes a field
+of the ``localizer.Options`` both the single frame and the sequence run with, ``--track-set`` one of
+``TrackOptions`` (as ``localize_paper.py --set``; give such runs a ``--tag``). Every drive's grades
+at the last frame are written to ``benchmarks/out/localize_track{TAG}.json``, to compare two runs
+drive by drive.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -41,8 +46,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from _localizer_helpers import karlsruhe  # noqa: E402
+from localize_paper import field_value  # noqa: E402
 
-from localizer import Prior, carry_prior, localize  # noqa: E402
+from localizer import Options, Prior, carry_prior, localize  # noqa: E402
 from localizer.simulate import (  # noqa: E402
     HEAVY,
     Camera,
@@ -92,6 +98,11 @@ def log_loss_term(p: float, right: bool) -> float:
     return -math.log(p if right else 1 - p)
 
 
+def finite(x: float) -> float | None:
+    """``x`` as JSON allows it: ``None`` where there is no pose to grade."""
+    return float(x) if math.isfinite(x) else None
+
+
 def grade(p, truth) -> tuple[str, float, float]:
     if p.easting is None:
         return p.status, math.inf, math.inf
@@ -114,13 +125,18 @@ def main() -> None:
     ap.add_argument("--tag", default="", help="suffix of the plot's file name")
     ap.add_argument("--evidence-scale", type=float, default=TrackOptions().evidence_scale,
                     help="TrackOptions.evidence_scale of the sequence")
+    ap.add_argument("--set", action="append", type=field_value(Options), metavar="NAME=VALUE", default=[],
+                    help="a localizer.Options field for every frame, its value as JSON (repeatable)")
+    ap.add_argument("--track-set", action="append", type=field_value(TrackOptions), metavar="NAME=VALUE",
+                    default=[], help="a TrackOptions field, its value as JSON (repeatable)")
     args = ap.parse_args()
     index, smap = karlsruhe()
     cam = Camera()
     drives = sample_trajectories(smap, args.runs, args.frames, args.step, np.random.default_rng(args.seed), cam,
                                  min_visible=4)
-    topt = TrackOptions(evidence_scale=args.evidence_scale)
-    rows, curves, log_loss = [], {}, []
+    opts = Options(**dict(args.set))
+    topt = TrackOptions(**{"evidence_scale": args.evidence_scale, **dict(args.track_set)})
+    rows, curves, log_loss, per_drive = [], {}, [], {}
     for name, dist, hdg, sig_m, sig_deg, clutter in SCENARIOS:
         if args.only not in name:
             continue
@@ -133,14 +149,14 @@ def main() -> None:
             start = perturb(drive[0], rng.uniform(*dist), rng.uniform(-hdg, hdg), rng)
             prior = prior_at(index.frame, start, sig_m, sig_deg)
             last_prior = carried_prior(index, start, motions[1:], sig_m, sig_deg)
-            single.append(grade(localize(index, scenes[-1].observations, last_prior), drive[-1]))
+            single.append(grade(localize(index, scenes[-1].observations, last_prior, options=opts), drive[-1]))
             last = scenes[-1]
             o = oracle_pose(last, cam.range_noise_m + cam.range_noise_coeff * np.sum(last.observations[:, :2] ** 2, 1))
             oracle.append(("failed", math.inf, math.inf) if o is None else
                           ("ok", math.hypot(o[0] - drive[-1][0], o[1] - drive[-1][1]), heading_err_deg(o[2], drive[-1][2])))
             t0 = time.perf_counter()
             r = localize_sequence(index, [Frame(s.observations, m) for s, m in zip(scenes, motions)], prior,
-                                  track_options=topt)
+                                  options=opts, track_options=topt)
             ms.append(1000 * (time.perf_counter() - t0) / len(drive))
             seq.append(grade(r.pose, drive[-1]))
             for k, p in enumerate(r.poses):
@@ -149,6 +165,7 @@ def main() -> None:
                 if k > 0 and p.probability is not None:
                     log_loss.append(log_loss_term(p.probability, e <= 1.0 and h <= 2.0))
         curves[name] = per_frame / len(drives)
+        per_drive[name] = {"single frame": single, "sequence": seq, "oracle": oracle}
         for method, res in (("oracle", oracle), ("single frame", single), ("sequence", seq)):
             st = np.array([r[0] for r in res])
             e = np.array([r[1] for r in res])
@@ -169,6 +186,14 @@ def main() -> None:
     png = OUT / f"localize_track{args.tag}.png"
     plot_success(curves, args.step, "localize_sequence: success after each frame", png)
     print(f"plot: {png}")
+    grades = OUT / f"localize_track{args.tag}.json"
+    grades.write_text(json.dumps(
+        {"seed": args.seed, "frames": args.frames, "options": dict(args.set), "track_options": dict(args.track_set),
+         "drives": {name: {method: [{"status": st, "error_m": finite(e), "heading_error_deg": finite(h)}
+                                    for st, e, h in res]
+                           for method, res in methods.items()} for name, methods in per_drive.items()}},
+        indent=1, ensure_ascii=False))
+    print(f"per-drive grades: {grades}")
 
 
 def plot_success(curves: dict, step: float, title: str, png: Path, **style) -> None:
