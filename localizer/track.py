@@ -26,7 +26,11 @@ hypothesis through the frames with the vehicle's odometry:
    start a track. The fix carries a full covariance: an error in its heading
    moves it across the direction driven, the same error at every frame, so
    its error ellipse grows across the road and hardly along it
-   (:func:`carry_prior` does the same for a single frame's prior);
+   (:func:`carry_prior` does the same for a single frame's prior). A pose
+   found there that no track follows is scored on the last few frames too,
+   moved back along the odometry (``TrackOptions.retrodiction_frames``), and
+   weighed as if it had been followed from the earliest of them: a truth the
+   first frame's search missed is not outweighed by the rivals followed since;
 4. tracks ending within ``merge_distance_m`` / ``merge_heading_deg`` of each
    other are merged, the weakest are dropped; "none of these" (the first
    frame's ``Options.null_score``: every observation clutter) takes its share
@@ -135,6 +139,16 @@ class TrackOptions:
         ``max_lead / unexplained_penalty`` views of unmatched frames, and the
         frames are searched around the GPS fix again. 30 (a posterior of
         1 - 1e-13) is far beyond any threshold of ``ok``.
+    retrodiction_frames : int
+        Previous frames on which a pose first found around the GPS fix is
+        scored, as if a track had followed it from the earliest of them (the
+        pose moved back by their odometry and refined in each). Without it
+        such a pose starts from "none of these" with one frame's evidence,
+        while the tracks followed since the first frame hold the evidence of
+        every frame, and a truth the first frame's search missed could not
+        catch up with a rival that had been found. A retrodicted weight only
+        ever raises the new track's. The frames' observations travel in the
+        :class:`TrackState`. 0: no retrodiction.
     """
 
     odometry_sigma_m: float = 0.05
@@ -149,6 +163,13 @@ class TrackOptions:
     evidence_scale: float = 6.0
     unexplained_penalty: float = 8.0
     max_lead: float = 30.0
+    retrodiction_frames: int = 3
+
+    def __post_init__(self) -> None:
+        n = self.retrodiction_frames
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= n <= MAX_FRAMES:
+            raise LocalizationInputError(
+                f"track_options.retrodiction_frames: must be an integer in [0, {MAX_FRAMES}], got {n!r}")
 
 
 #: Most tracks a :class:`TrackState` may hold (``TrackOptions.max_tracks`` keeps fewer).
@@ -193,6 +214,15 @@ class TrackState:
         and rad: its uncertainty grows across the road as the odometry carries
         a heading error along. A state without it (from before it was kept)
         starts one from the sigmas.
+    history : tuple of tuple
+        The last frames, oldest first, for ``TrackOptions.retrodiction_frames``:
+        ``(observations, motion, weight, first)`` each, with the observations
+        as ``(x, y, weight)`` rows, the odometry into that frame, the share of
+        its evidence a track gained there, and whether it was the drive's
+        first frame. Empty in a state from before it was kept.
+    shift : float
+        Log weight taken off every track so far by ``TrackOptions.max_lead``
+        (retrodicted weights are put on the same footing).
     """
 
     crs: str
@@ -200,6 +230,8 @@ class TrackState:
     tracks: tuple[tuple[float, float, float, float, float, float, bool], ...]
     gps: tuple[float, float, float, float, float]
     gps_covariance: tuple[tuple[float, float, float], ...] | None = None
+    history: tuple = ()
+    shift: float = 0.0
 
     def to_dict(self) -> dict:
         """JSON-safe form (the API's ``state``)."""
@@ -211,6 +243,10 @@ class TrackState:
             "frames": self.frames,
             "tracks": [dict(zip(_TRACK_KEYS, (*(float(v) for v in t[:6]), bool(t[6])))) for t in self.tracks],
             "gps": gps,
+            "history": [{"observations": [[float(v) for v in row] for row in obs],
+                         "motion": [float(v) for v in motion], "weight": float(weight), "first": bool(first)}
+                        for obs, motion, weight, first in self.history],
+            "shift": float(self.shift),
         }
 
     @classmethod
@@ -239,7 +275,42 @@ class TrackState:
             out.append((*values, t["matched"]))
         gps_values = _state_numbers(gps, _GPS_KEYS, "state.gps")
         cov = gps.get("covariance")
-        return cls(crs, frames, tuple(out), gps_values, None if cov is None else _state_covariance(cov))
+        shift = data.get("shift", 0.0)
+        if shift is None:
+            shift = 0.0
+        if isinstance(shift, bool) or not isinstance(shift, (int, float)) or not 0.0 <= shift < math.inf:
+            raise LocalizationInputError("state.shift: expected a finite number, at least 0")
+        return cls(crs, frames, tuple(out), gps_values, None if cov is None else _state_covariance(cov),
+                   _state_history(data.get("history")), float(shift))
+
+
+def _state_history(history) -> tuple:
+    if history is None:
+        return ()
+    if not isinstance(history, list) or len(history) > MAX_FRAMES:
+        raise LocalizationInputError(f"state.history: expected a list of at most {MAX_FRAMES} frames")
+    out = []
+    for k, h in enumerate(history):
+        where = f"state.history[{k}]"
+        if not isinstance(h, dict):
+            raise LocalizationInputError(f"{where}: expected an object")
+        try:
+            obs = parse_observations(h.get("observations"), DEFAULT_OPTIONS.max_observations,
+                                     DEFAULT_OPTIONS.max_observation_range_m)
+        except LocalizationInputError as exc:
+            raise LocalizationInputError(f"{where}.{exc}") from exc
+        motion, weight, first = h.get("motion"), h.get("weight"), h.get("first")
+        if (not isinstance(motion, list) or len(motion) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                           for v in motion)):
+            raise LocalizationInputError(f"{where}.motion: expected three finite numbers (dx, dy, dyaw)")
+        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0.0 <= weight <= 1.0:
+            raise LocalizationInputError(f"{where}.weight: expected a number in [0, 1]")
+        if not isinstance(first, bool):
+            raise LocalizationInputError(f"{where}.first: expected true or false")
+        out.append((tuple(tuple(float(v) for v in row) for row in obs), tuple(float(v) for v in motion),
+                    float(weight), first))
+    return tuple(out)
 
 
 def _state_covariance(cov) -> tuple[tuple[float, float, float], ...]:
@@ -399,9 +470,10 @@ def localize_sequence(
     if state is None:
         gps = _gps_track(frame_geo, prior, null)
         first = localize(map_index, parsed[0][0], prior, options=options)
-        tracks = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
+        tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
         result.poses.append(first)
         rest, seen = parsed[1:], 1
+        history = [(parsed[0][0], parsed[0][1], 1.0, True)]
     else:
         tracks = [_Track(t[:3], t[3], t[4], t[5], t[6]) for t in state.tracks]
         cov = (np.array(state.gps_covariance, float) if state.gps_covariance is not None
@@ -412,15 +484,26 @@ def localize_sequence(
             # odometry, so that the step below brings it to where it was taken.
             gps = _unpredict(_gps_track(frame_geo, prior, null), parsed[0][1])
         rest, seen = parsed, state.frames
+        history = [(np.array(obs, float).reshape(-1, 3), motion, weight, first)
+                   for obs, motion, weight, first in state.history]
+        shift = state.shift
     for obs, motion in rest:
-        tracks, gps = _step(map_index, tracks, gps, obs, motion, options, topt, frame_geo)
+        past = history[max(0, len(history) - topt.retrodiction_frames):] if topt.retrodiction_frames else []
+        tracks, gps, weight, excess = _step(map_index, tracks, gps, obs, motion, options, topt, frame_geo,
+                                            past, shift)
+        shift += excess
+        history = past + [(obs, motion, weight, False)]
         result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
+    history = history[max(0, len(history) - topt.retrodiction_frames):] if topt.retrodiction_frames else []
     result.tracks = len(tracks)
     result.state = TrackState(
         crs, seen + len(rest),
         tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched)) for t in tracks),
         (*(float(v) for v in gps.pose), *_state_sigmas(gps)),
         tuple(tuple(float(v) for v in row) for row in gps.cov),
+        tuple((tuple(tuple(float(v) for v in row) for row in obs), tuple(float(v) for v in motion),
+               float(weight), bool(first)) for obs, motion, weight, first in history),
+        float(shift),
     )
     return result
 
@@ -463,8 +546,15 @@ def _state_sigmas(t: _Track) -> tuple[float, float]:
 
 
 def _step(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs, motion, options: Options,
-          topt: TrackOptions, frame_geo) -> tuple[list[_Track], _Track]:
-    """One frame after the first: every track predicted by the odometry and updated by the frame."""
+          topt: TrackOptions, frame_geo, history: list,
+          shift: float) -> tuple[list[_Track], _Track, float, float]:
+    """One frame after the first: every track predicted by the odometry and updated by the frame.
+
+    ``history``: the frames before it that a new pose is retrodicted on
+    (:func:`_retrodicted`), ``shift``: the weight ``max_lead`` has taken off
+    the tracks so far. Returns the tracks, the GPS fix, the share of this
+    frame's evidence a track gained, and the weight ``max_lead`` took off now.
+    """
     null = options.null_score
     view = _view_depth(options)
     # The share of new ground this frame sees: its evidence counts in that
@@ -487,8 +577,70 @@ def _step(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs, motion, o
         # frame did. What it finds starts from "none of these" with this
         # frame's evidence in full (those poses explained nothing before).
         r = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
-        children.extend(_children(r, gps, null, 1.0, frame_geo))
-    return _prune(children, null, topt), gps
+        found = _children(r, gps, null, 1.0, frame_geo)
+        if history:
+            for c in found:
+                if any(_same_track(c, k, topt) for k in children):
+                    continue
+                before = _retrodicted(map_index, c.pose, motion, history, options, topt, frame_geo)
+                if before is not None:
+                    lp = _log_prior(c.pose, gps)
+                    c.log_w = max(c.log_w, before - shift + weight * (c.log_w - null - lp) + lp)
+        children.extend(found)
+    tracks, excess = _prune(children, null, topt)
+    return tracks, gps, weight, excess
+
+
+def _same_track(a: _Track, b: _Track, topt: TrackOptions) -> bool:
+    return (math.hypot(a.pose[0] - b.pose[0], a.pose[1] - b.pose[1]) <= topt.merge_distance_m
+            and abs(wrap_angle(a.pose[2] - b.pose[2])) <= math.radians(topt.merge_heading_deg))
+
+
+def _retrodicted(map_index: MapIndex, pose, motion, history: list, options: Options, topt: TrackOptions,
+                 frame_geo) -> float | None:
+    """The log weight a track at ``pose`` would hold had it been followed through ``history``.
+
+    ``pose`` is this frame's, ``motion`` the odometry into it; ``history`` the
+    frames before, oldest first, as ``(observations, motion into it, weight,
+    first)``. The pose is moved back frame by frame and each frame localized
+    with the moved pose as a track's prior; the hypothesis of that answer
+    within 1 m and 3° of it gives the frame's evidence, as it would have to
+    the track (none there: the frame counts as all clutter, as for a track).
+    The earliest frame starts the track as the first frame of a drive does
+    (from 0) or as the GPS search does (from "none of these"); the GPS prior
+    term is left to the caller. None: no history.
+    """
+    if not history:
+        return None
+    poses = []
+    back = _Track(pose, 0.0, 0.0, 0.0, False)
+    into = motion
+    for obs, into_past, _, _ in reversed(history):
+        back = _unpredict(back, into)
+        poses.append(back.pose)
+        into = into_past
+    total = None
+    sigma_m, sigma_yaw = topt.min_position_sigma_m, math.radians(topt.min_heading_sigma_deg)
+    for (obs, _, weight, first), q in zip(history, reversed(poses)):
+        pred = _Track(q, sigma_m, sigma_yaw, 0.0, False)
+        r = localize(map_index, obs, _prior_of(pred, frame_geo), options=options)
+        evidence = None
+        if r.status != "failed" and r.log_score is not None:
+            items = [((h.easting, h.northing, _grid_yaw(h, frame_geo)), h.log_score)
+                     for h in r.hypotheses if h.log_score is not None]
+            items = items or [((r.easting, r.northing, r.yaw_grid_rad), r.log_score)]
+            for p, ls in items:
+                if (math.hypot(p[0] - q[0], p[1] - q[1]) <= 1.0
+                        and abs(wrap_angle(p[2] - q[2])) <= math.radians(3.0)):
+                    evidence = ls - _log_prior(p, pred)
+                    break
+        if evidence is None:
+            evidence = -topt.unexplained_penalty * (1.0 - _p_nothing_seen(map_index, q, options))
+        if total is None:
+            total = (0.0 if first else options.null_score) + evidence
+        else:
+            total += weight * evidence
+    return total
 
 
 def _p_nothing_seen(map_index: MapIndex, pose, options: Options) -> float:
@@ -646,7 +798,8 @@ def _grid_yaw(h: Hypothesis, frame_geo) -> float:
     return float(frame_geo.heading_to_grid_yaw(h.heading_deg, h.lon, h.lat))
 
 
-def _prune(tracks: list[_Track], null: float, topt: TrackOptions) -> list[_Track]:
+def _prune(tracks: list[_Track], null: float, topt: TrackOptions) -> tuple[list[_Track], float]:
+    """The tracks merged, the weakest dropped, and the lead capped: the tracks and the weight taken off each."""
     tracks = sorted(tracks, key=lambda t: -t.log_w)
     kept: list[_Track] = []
     for t in tracks:
@@ -661,10 +814,11 @@ def _prune(tracks: list[_Track], null: float, topt: TrackOptions) -> list[_Track
     prob = _posterior(kept, null)
     kept = [t for t, p in zip(kept, prob) if p >= topt.min_track_probability][: topt.max_tracks]
     excess = (kept[0].log_w - null - topt.max_lead) if kept else 0.0
-    if excess > 0:
-        for t in kept:
-            t.log_w -= excess
-    return kept
+    if excess <= 0:
+        return kept, 0.0
+    for t in kept:
+        t.log_w -= excess
+    return kept, float(excess)
 
 
 def _posterior(tracks: list[_Track], null: float) -> np.ndarray:

@@ -354,13 +354,21 @@ def test_bad_drive_states_are_named(api, kmap):
                                                                                          [0, 0, 0.01]]}}},
          "symmetric"),
         ({"frames": frames[1:], "state": {**state, "extra": 1}}, "extra"),
+        ({"frames": frames[1:], "state": {**state, "shift": -1}}, "shift"),
+        ({"frames": frames[1:], "state": {**state, "history": [{**state["history"][0], "weight": 2}]}}, "weight"),
+        ({"frames": frames[1:], "state": {**state, "history": [{**state["history"][0],
+                                                                "observations": [[10.0, 1.0, -1.0]]}]}},
+         "history[0].observations"),
     ]
     for body, words in cases:
         assert_problem(httpx.post(url, json=body, timeout=60), 422, words)
-    # The same state continues the drive, with or without a newer GPS fix.
-    for extra in ({}, {"gps": gps_near(*truth[1])}):
+    # The same state continues the drive, with or without a newer GPS fix, and
+    # so does one from before the last frames were kept.
+    older = {k: v for k, v in state.items() if k not in ("history", "shift")}
+    for extra in ({}, {"gps": gps_near(*truth[1])}, {"state": older}):
         r = httpx.post(url, json={"frames": frames[1:], "state": state, **extra}, timeout=60)
         assert r.status_code == 200 and r.json()["state"]["frames"] == 2, r.text
+        assert len(r.json()["state"]["history"]) == (2 if extra.get("state") is None else 1)
 
 
 def test_answers_follow_the_documented_schema(api, kmap):

@@ -153,6 +153,19 @@ class DriveGps(BaseModel):
                     "road as the odometry carries its heading error along (absent in older states)")
 
 
+class DriveFrame(BaseModel):
+    """One of a drive's last frames, kept to score a newly found pose on them (map-independent)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    observations: list[list[float]] = Field(..., max_length=10_000,
+                                            description="`[x, y, weight]` per observation, as sent")
+    motion: list[float] = Field(..., min_length=3, max_length=3,
+                                description="Odometry into that frame: metres forward, metres left, radians")
+    weight: float = Field(..., ge=0, le=1, description="Share of that frame's evidence a track gained "
+                                                        "(0: the vehicle stood still)")
+    first: bool = Field(..., description="Whether it was the drive's first frame")
+
+
 class DriveState(BaseModel):
     """Where a drive's filter stands after its last frame (``SequenceOut.state``): send it back unchanged."""
 
@@ -162,6 +175,10 @@ class DriveState(BaseModel):
     tracks: list[DriveTrack] = Field(..., max_length=64,
                                      description="The hypotheses followed, most probable first")
     gps: DriveGps = Field(..., description="The GPS fix carried along by the odometry")
+    history: list[DriveFrame] | None = Field(
+        None, max_length=50, description="The drive's last frames (absent in older states)")
+    shift: float = Field(0.0, ge=0, allow_inf_nan=False,
+                         description="Log weight the lead cap has taken off every track so far")
 
 
 class SequenceIn(BaseModel):
