@@ -327,7 +327,7 @@ def localize(
             refined = refined + _refine_candidates(scene, extra)
             ranked = _rank_hypotheses(scene, refined)
             searched = first + extra
-        if options.heading_restarts:
+        if options.heading_restarts and sigma_p >= _HEADING_RESTART_MIN_M:
             turned = _heading_restarts(ranked, searched, options.heading_restarts)
             if turned:
                 refined = refined + _refine_candidates(scene, turned)
@@ -535,7 +535,8 @@ def _score_options(o: Options, n_clutter: int) -> Options:
 # have been dragged off; _refine_candidates). The restart at the refined
 # heading uses the same bound under its own name, so it can be switched off.
 _TURN_RAD = math.radians(1.5)
-# Heading restarts look for optima beyond the neighbour starts' reach (1.5 m).
+# Heading restarts look for optima beyond the neighbour starts' reach (1.5 m),
+# and only under a prior at least that wide (see Options.heading_restarts).
 _HEADING_RESTART_MIN_M = 3.0
 _RESTART_TURN_RAD = _TURN_RAD
 
