@@ -299,18 +299,37 @@ def _state_history(history) -> tuple:
                                      DEFAULT_OPTIONS.max_observation_range_m)
         except LocalizationInputError as exc:
             raise LocalizationInputError(f"{where}.{exc}") from exc
-        motion, weight, first = h.get("motion"), h.get("weight"), h.get("first")
-        if (not isinstance(motion, list) or len(motion) != 3
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                           for v in motion)):
-            raise LocalizationInputError(f"{where}.motion: expected three finite numbers (dx, dy, dyaw)")
+        motion = _motion(h.get("motion"), f"{where}.motion")
+        weight, first = h.get("weight"), h.get("first")
         if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0.0 <= weight <= 1.0:
             raise LocalizationInputError(f"{where}.weight: expected a number in [0, 1]")
         if not isinstance(first, bool):
             raise LocalizationInputError(f"{where}.first: expected true or false")
-        out.append((tuple(tuple(float(v) for v in row) for row in obs), tuple(float(v) for v in motion),
-                    float(weight), first))
+        out.append((_frozen(obs), motion, float(weight), first))
     return tuple(out)
+
+
+def _motion(m, where: str) -> tuple[float, float, float]:
+    """Odometry ``(dx, dy, dyaw)`` as three finite floats, or an error naming ``where``."""
+    try:
+        if isinstance(m, (str, bytes)) or any(isinstance(v, (bool, str, bytes)) for v in m):
+            raise TypeError
+        values = tuple(float(v) for v in m)
+    except (TypeError, ValueError) as exc:
+        raise LocalizationInputError(f"{where}: expected three numbers (dx, dy, dyaw)") from exc
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise LocalizationInputError(f"{where}: expected three finite numbers (dx, dy, dyaw)")
+    return values
+
+
+def _frozen(obs) -> tuple[tuple[float, ...], ...]:
+    """Observation rows as nested tuples of floats, as a :class:`TrackState` keeps them."""
+    return tuple(tuple(float(v) for v in row) for row in obs)
+
+
+def _last(frames: list, n: int) -> list:
+    """The last ``n`` of ``frames`` (none for 0)."""
+    return frames[max(0, len(frames) - n):] if n else []
 
 
 def _state_covariance(cov) -> tuple[tuple[float, float, float], ...]:
@@ -450,12 +469,7 @@ def localize_sequence(
     for k, f in enumerate(frames):
         if not isinstance(f, Frame):
             raise LocalizationInputError(f"frames[{k}]: expected a localizer.track.Frame")
-        try:
-            motion = tuple(float(v) for v in f.motion)
-        except (TypeError, ValueError) as exc:
-            raise LocalizationInputError(f"frames[{k}].motion: expected three numbers") from exc
-        if len(motion) != 3 or not all(math.isfinite(v) for v in motion):
-            raise LocalizationInputError(f"frames[{k}].motion: expected three finite numbers (dx, dy, dyaw)")
+        motion = _motion(f.motion, f"frames[{k}].motion")
         try:
             obs = parse_observations(f.observations, options.max_observations,
                                      options.max_observation_range_m)  # fmt: skip
@@ -488,21 +502,20 @@ def localize_sequence(
                    for obs, motion, weight, first in state.history]
         shift = state.shift
     for obs, motion in rest:
-        past = history[max(0, len(history) - topt.retrodiction_frames):] if topt.retrodiction_frames else []
+        past = _last(history, topt.retrodiction_frames)
         tracks, gps, weight, excess = _step(map_index, tracks, gps, obs, motion, options, topt, frame_geo,
                                             past, shift)
         shift += excess
         history = past + [(obs, motion, weight, False)]
         result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
-    history = history[max(0, len(history) - topt.retrodiction_frames):] if topt.retrodiction_frames else []
+    history = _last(history, topt.retrodiction_frames)
     result.tracks = len(tracks)
     result.state = TrackState(
         crs, seen + len(rest),
         tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched)) for t in tracks),
         (*(float(v) for v in gps.pose), *_state_sigmas(gps)),
         tuple(tuple(float(v) for v in row) for row in gps.cov),
-        tuple((tuple(tuple(float(v) for v in row) for row in obs), tuple(float(v) for v in motion),
-               float(weight), bool(first)) for obs, motion, weight, first in history),
+        tuple((_frozen(obs), motion, float(weight), bool(first)) for obs, motion, weight, first in history),
         float(shift),
     )
     return result
@@ -530,13 +543,7 @@ def carry_prior(map_index: MapIndex, prior: Prior, motions: Sequence[tuple[float
     topt = track_options or TrackOptions()
     t = _gps_track(map_index.frame, prior, 0.0)
     for k, m in enumerate(motions):
-        try:
-            m = tuple(float(v) for v in m)
-        except (TypeError, ValueError) as exc:
-            raise LocalizationInputError(f"motions[{k}]: expected three numbers") from exc
-        if len(m) != 3 or not all(math.isfinite(v) for v in m):
-            raise LocalizationInputError(f"motions[{k}]: expected three finite numbers (dx, dy, dyaw)")
-        t = _predict(t, m, topt, floor=False)
+        t = _predict(t, _motion(m, f"motions[{k}]"), topt, floor=False)
     return _prior_of(t, map_index.frame)
 
 
@@ -592,6 +599,7 @@ def _step(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs, motion, o
 
 
 def _same_track(a: _Track, b: _Track, topt: TrackOptions) -> bool:
+    """Whether two tracks end within ``merge_distance_m`` and ``merge_heading_deg``: one hypothesis."""
     return (math.hypot(a.pose[0] - b.pose[0], a.pose[1] - b.pose[1]) <= topt.merge_distance_m
             and abs(wrap_angle(a.pose[2] - b.pose[2])) <= math.radians(topt.merge_heading_deg))
 
@@ -615,7 +623,7 @@ def _retrodicted(map_index: MapIndex, pose, motion, history: list, options: Opti
     poses = []
     back = _Track(pose, 0.0, 0.0, 0.0, False)
     into = motion
-    for obs, into_past, _, _ in reversed(history):
+    for _, into_past, _, _ in reversed(history):
         back = _unpredict(back, into)
         poses.append(back.pose)
         into = into_past
@@ -804,8 +812,7 @@ def _prune(tracks: list[_Track], null: float, topt: TrackOptions) -> tuple[list[
     kept: list[_Track] = []
     for t in tracks:
         for k in kept:
-            if (math.hypot(t.pose[0] - k.pose[0], t.pose[1] - k.pose[1]) <= topt.merge_distance_m
-                    and abs(wrap_angle(t.pose[2] - k.pose[2])) <= math.radians(topt.merge_heading_deg)):
+            if _same_track(t, k, topt):
                 k.log_w = float(np.logaddexp(k.log_w, t.log_w))
                 k.matched = k.matched or t.matched
                 break
