@@ -234,11 +234,26 @@ def likelihood_raster(
         dx = x0 + jj * cell - points[:, 0, None]
         gy = amp[:, None] * np.exp(-0.5 * dy * dy / sigma**2)
         gx = np.exp(-0.5 * dx * dx / sigma**2)
-        val = gy[:, :, None] * gx[:, None, :]
-        ok = ((ii >= 0) & (ii < ny))[:, :, None] & ((jj >= 0) & (jj < nx))[:, None, :]
-        flat = ii[:, :, None] * nx + jj[:, None, :]
-        np.maximum.at(k, flat[ok], val[ok])
+        _stamp_max(k, ny, nx, ci - r, cj - r, gy, gx)
     return np.log1p(k / outlier_density).reshape(ny, nx).astype(np.float32)
+
+
+@njit(cache=True, nogil=True)
+def _stamp_max(k, ny, nx, i0, j0, gy, gx):
+    """``k[i, j] = max(k[i, j], gy[p, a] gx[p, b])`` at ``i = i0[p] + a``, ``j = j0[p] + b`` inside
+    the ``ny`` x ``nx`` raster ``k`` (flat), for every point ``p``."""
+    for p in range(i0.size):
+        for a in range(gy.shape[1]):
+            i = i0[p] + a
+            if i < 0 or i >= ny:
+                continue
+            row = i * nx
+            for b in range(gx.shape[1]):
+                j = j0[p] + b
+                if 0 <= j < nx:
+                    v = gy[p, a] * gx[p, b]
+                    if v > k[row + j]:
+                        k[row + j] = v
 
 
 def correlative_search(

@@ -353,22 +353,47 @@ def test_the_joint_pitch_fit_matches_its_numpy_form():
 
 def test_warm_up_compiles_what_requests_run():
     """After localizer.warm_up(), varied requests compile nothing more (no request waits for numba)."""
-    from localizer import Frame, geometry, localize_sequence, robust, warm_up
+    from localizer import Frame, geometry, localize_sequence, robust, search, warm_up
 
     warm_up()
     kernels = [geometry.closest_points, robust._refine_batch, robust._positive_scores, robust._missed_batch,
-               robust._fit_sums, robust._pitch_fit]  # fmt: skip
+               robust._fit_sums, robust._pitch_fit, search._stamp_max, search._separated]  # fmt: skip
     compiled = [len(k.signatures) for k in kernels]
     assert all(n >= 1 for n in compiled)
     index, smap = karlsruhe()
     for pose, scene, _ in _karlsruhe_scenes(21, 3):
         lon, lat = index.frame.to_lonlat(pose[0] + 1.0, pose[1] - 1.0)
-        prior = Prior(lat, lon, float(index.frame.grid_yaw_to_heading(pose[2], lon, lat)), 3.0, 8.0)
-        for options in (Options(), Options(bearing_noise_rad=None, record_trace=True, record_candidates=True)):
-            for method in ("default", "pink2008"):
-                localize(index, scene.observations, prior, method=method, options=options)
-        localize_sequence(index, [Frame(scene.observations, (0.0, 0.0, 0.0))] * 2, prior)
+        heading = float(index.frame.grid_yaw_to_heading(pose[2], lon, lat))
+        # A tight prior's small search volume takes its own path (_maximum_filter).
+        for prior in (Prior(lat, lon, heading, 3.0, 8.0), Prior(lat, lon, heading, 1.5, 2.0)):
+            for options in (Options(), Options(bearing_noise_rad=None, record_trace=True, record_candidates=True)):
+                for method in ("default", "pink2008"):
+                    localize(index, scene.observations, prior, method=method, options=options)
+            localize_sequence(index, [Frame(scene.observations, (0.0, 0.0, 0.0))] * 2, prior)
     assert [len(k.signatures) for k in kernels] == compiled
+
+
+def test_likelihood_raster_is_the_best_kernel_within_its_window():
+    """Each cell holds the largest amplitude-scaled Gaussian of the points within 3 sigma (in cells)."""
+    from localizer.search import likelihood_raster
+
+    rng = np.random.default_rng(3)
+    # Points inside and around a 23 x 31 raster: stamps clipped at every edge.
+    pts = rng.uniform([-3.0, -3.0], [18.0, 14.0], size=(60, 2))
+    amp = rng.uniform(0.1, 1.0, 60)
+    x0, y0, cell, sigma, dens = 0.5, -0.25, 0.5, 0.4, 0.05
+    got = likelihood_raster(pts, x0, y0, (23, 31), cell, sigma, dens, amp)
+    r = int(np.ceil(3 * sigma / cell))
+    ii, jj = np.mgrid[0:23, 0:31]
+    want = np.zeros((23, 31))
+    for (px, py), a in zip(pts, amp):
+        ci, cj = np.rint((py - y0) / cell), np.rint((px - x0) / cell)
+        inside = (np.abs(ii - ci) <= r) & (np.abs(jj - cj) <= r)
+        d2 = (x0 + jj * cell - px) ** 2 + (y0 + ii * cell - py) ** 2
+        want = np.maximum(want, np.where(inside, a * np.exp(-0.5 * d2 / sigma**2), 0.0))
+    assert got.shape == (23, 31) and (want > 0).mean() > 0.5
+    assert np.allclose(got, np.log1p(want / dens), rtol=1e-6, atol=1e-7)
+    assert not likelihood_raster(pts[:0], x0, y0, (4, 5), cell, sigma, dens).any()
 
 
 def test_small_volume_maximum_filter_is_scipys():
