@@ -15,8 +15,10 @@ scenario and saves error-versus-iteration plots
 like the paper's Fig. 8/9 under ``benchmarks/out/``; then, pooled over the
 scenarios, how often the default method's answers of each posterior
 probability (``Pose.probability``) are right, as a table and a reliability
-diagram (``localize_reliability_<tag>.png``), and what accepting answers from
-other probability thresholds than ``ok``'s 0.95 would give.
+diagram (``localize_reliability_<tag>.png``), what accepting answers from
+other probability thresholds than ``ok``'s 0.95 would give, and how often
+an ambiguous answer's truth lies inside the 95 % ellipse of its own
+covariance and of its ``mixture_covariance``.
 
 Run: ``.venv/bin/python benchmarks/localize_paper.py [--runs 200] [--seed 0] [--intersections] [--no-kinds]
 [--set NAME=VALUE ...] [--tag TAG]`` (``--set`` changes a field of the ``localizer.Options``
@@ -152,17 +154,25 @@ def run(args) -> dict:
                 ms = 1000 * (time.perf_counter() - t0)
                 if p.easting is None:
                     e = h = math.inf
-                    maha = math.inf
+                    maha = maha_mix = math.inf
+                    mix_sigmas = (math.nan, math.nan)
                 else:
                     dx = np.array([p.easting - pose[0], p.northing - pose[1]])
                     e = float(np.hypot(*dx))
                     h = heading_err_deg(p.yaw_grid_rad, pose[2])
                     cov = p.covariance
                     maha = float(dx @ np.linalg.solve(cov[:2, :2], dx)) if cov is not None else math.inf
+                    mix = p.mixture_covariance
+                    maha_mix = float(dx @ np.linalg.solve(mix[:2, :2], dx)) if mix is not None else math.inf
+                    mix_sigmas = (math.nan, math.nan)
+                    if mix is not None:
+                        c, s_ = math.cos(p.yaw_grid_rad), math.sin(p.yaw_grid_rad)
+                        mix_sigmas = tuple(math.sqrt(float(u @ mix[:2, :2] @ u))
+                                           for u in (np.array([c, s_]), np.array([-s_, c])))
                 hit = any(math.hypot(hy.easting - pose[0], hy.northing - pose[1]) <= 0.5
                           for hy in p.hypotheses)
-                row[method] = dict(status=p.status, err=e, herr=h, ms=ms, maha=maha,
-                                   it=p.iterations, hyp_hit=hit, prob=p.probability)
+                row[method] = dict(status=p.status, err=e, herr=h, ms=ms, maha=maha, maha_mix=maha_mix,
+                                   mix_sigmas=mix_sigmas, it=p.iterations, hyp_hit=hit, prob=p.probability)
                 if len(tr[method]) < 60 and p.trace:
                     tr[method].append(
                         [(math.hypot(t[0] - pose[0], t[1] - pose[1]), heading_err_deg(t[2], pose[2]))
@@ -215,6 +225,24 @@ def summarize(rows: list[dict], method: str) -> dict:
         "cov95": float(np.mean(maha[ok & (e <= 1.0)] <= 5.991)) if (ok & (e <= 1.0)).any() else math.nan,
         "cov2sigma": float(np.mean(maha[ok & (e <= 1.0)] <= 4.0)) if (ok & (e <= 1.0)).any() else math.nan,
     }
+
+
+def mixture_cover_table(all_rows: dict) -> str:
+    """Ambiguous answers: how often the truth lies inside the 95 % ellipse of the answer's own
+    covariance and of its ``mixture_covariance`` (the hypotheses' spread about the answer)."""
+    lines = ["| scenario | ambiguous | truth in the answer's 95 % ellipse | in the mixture's 95 % ellipse "
+             "| mixture: median sigma along / across the heading |", "|---|---|---|---|---|"]
+    for name, rows in all_rows.items():
+        r = [x["default"] for x in rows if x["default"]["status"] == "ambiguous"]
+        if not r:
+            continue
+        own = np.mean([x["maha"] <= 5.991 for x in r])
+        mix = np.mean([x["maha_mix"] <= 5.991 for x in r])
+        # NaN where an answer has no mixture (no hypothesis listed)
+        along = np.nanmedian([x["mix_sigmas"][0] for x in r])
+        across = np.nanmedian([x["mix_sigmas"][1] for x in r])
+        lines.append(f"| {name} | {len(r)} | {own:.1%} | {mix:.1%} | {along:.2f} / {across:.2f} m |")
+    return "\n".join(lines)
 
 
 #: Bins of the default method's posterior probability for the reliability table.
@@ -381,10 +409,14 @@ def main() -> None:
     thr = threshold_table(out["results"])
     print("default: success and confidently wrong had answers been accepted from a probability threshold")
     print(thr)
+    mixc = mixture_cover_table(out["results"])
+    print("default, ambiguous answers: the truth inside the 95 % ellipse of the answer's covariance and of "
+          "its mixture_covariance (all hypotheses)")
+    print(mixc)
     OUT.mkdir(parents=True, exist_ok=True)
     suffix = ("_intersections" if args.intersections else "") + ("_nokinds" if args.no_kinds else "")
     tag = args.tag or ("intersections" if args.intersections else "all") + ("_nokinds" if args.no_kinds else "")
-    (OUT / f"localize_paper_{tag}.md").write_text(tab + "\n\n" + rel + "\n\n" + thr + "\n")
+    (OUT / f"localize_paper_{tag}.md").write_text(tab + "\n\n" + rel + "\n\n" + thr + "\n\n" + mixc + "\n")
     reliability_plot(bins, OUT / f"localize_reliability_{tag}.png")
     (OUT / f"localize_paper_{tag}.json").write_text(json.dumps(out["results"], default=float))
     plots(out["traces"], suffix)

@@ -25,6 +25,7 @@ from .robust import (
     log_prior,
     miss_costs,
     missed_counts,
+    mixture_covariance,
     noise_sigma,
     pitch_corrected,
     refine_with_pitch,
@@ -413,13 +414,19 @@ def localize(
     if options.record_trace:
         out.trace = [(t[0] + local.origin[0], t[1] + local.origin[1], t[2]) for t in trace]
     if status == "ambiguous":
-        for (hp, p), ls in zip(hyps[: options.max_hypotheses], log_scores):
+        listed = []
+        for k, ((hp, p), ls) in enumerate(zip(hyps[: options.max_hypotheses], log_scores)):
             if p < options.min_hypothesis_probability:
                 break
             h = _make_pose(frame, local.origin, hp, "ok", crs)
+            cov = fit.covariance if k == 0 else fit_statistics(local, obs_xy, w_data, sig, hp, options,
+                                                                 prior_info).covariance
             out.hypotheses.append(
-                Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p, log_score=ls)
+                Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, p, log_score=ls, covariance=cov)
             )
+            listed.append(hp)
+        out.mixture_covariance = mixture_covariance(
+            pose, listed, [h.score for h in out.hypotheses], [h.covariance for h in out.hypotheses])
     return out
 
 

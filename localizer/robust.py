@@ -586,6 +586,38 @@ def fit_statistics(
     return Fit(n, rms, cov, m)
 
 
+def mixture_covariance(about, poses, weights, covariances) -> np.ndarray | None:
+    """Expected outer product of the error of pose ``about`` over a mixture of pose hypotheses.
+
+    Parameters
+    ----------
+    about : (x, y, yaw)
+        The reported pose: metres, metres, radians.
+    poses : sequence of (x, y, yaw)
+        The hypotheses' poses, in the same frame.
+    weights : sequence of float
+        Their probabilities; rescaled to sum to one.
+    covariances : sequence of (3, 3) array_like or None
+        Each hypothesis's covariance of (x m, y m, yaw rad).
+
+    Returns
+    -------
+    (3, 3) ndarray or None
+        ``sum p_i (C_i + d_i d_i^T)`` with ``d_i = pose_i - about``, the yaw
+        difference wrapped to [-pi, pi); None if a covariance is None or no
+        weight is positive.
+    """
+    w = np.asarray(weights, float)
+    if any(c is None for c in covariances) or not w.sum() > 0:
+        return None
+    w = w / w.sum()
+    d = np.asarray(poses, float).reshape(-1, 3) - np.asarray(about, float)
+    d[:, 2] = (d[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    c = np.asarray(covariances, float).reshape(-1, 3, 3)
+    out = np.einsum("k,kij->ij", w, c) + np.einsum("k,ki,kj->ij", w, d, d)
+    return 0.5 * (out + out.T)
+
+
 @njit(cache=True, nogil=True)
 def _fit_sums(pose, obs, w_obs, sigma, gate, gmax, lever, tables):
     """The sums behind :func:`fit_statistics`, compiled.

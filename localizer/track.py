@@ -64,7 +64,7 @@ from .errors import LocalizationInputError
 from .frames import wrap_angle
 from .geometry import LocalMap
 from .index import MapIndex
-from .robust import log_prior, missed_counts
+from .robust import log_prior, missed_counts, mixture_covariance
 from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 #: Most frames one call accepts (a window of a few seconds at 10 Hz).
@@ -845,13 +845,16 @@ def _estimate(tracks, null, options: Options, frame_geo, crs) -> Pose:
     out = _pose_at(best, status, frame_geo, crs)
     out.probability = float(prob[0])
     if status == "ambiguous":
+        listed = []
         for t, p in zip(tracks[: options.max_hypotheses], prob):
             if p < options.min_hypothesis_probability:
                 break
             h = _pose_at(t, "ok", frame_geo, crs)
-            out.hypotheses.append(
-                Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, float(p), log_score=t.log_w)
-            )
+            out.hypotheses.append(Hypothesis(h.lat, h.lon, h.heading_deg, h.easting, h.northing, float(p),
+                                             log_score=t.log_w, covariance=h.covariance))
+            listed.append(t.pose)
+        out.mixture_covariance = mixture_covariance(
+            best.pose, listed, [h.score for h in out.hypotheses], [h.covariance for h in out.hypotheses])
     return out
 
 

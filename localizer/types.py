@@ -66,7 +66,9 @@ class Hypothesis:
     """One candidate pose of an ambiguous result.
 
     ``score`` is the posterior probability of the candidate among all candidates found;
-    ``log_score`` its unnormalised log posterior (see :attr:`Pose.log_score`).
+    ``log_score`` its unnormalised log posterior (see :attr:`Pose.log_score`);
+    ``covariance`` the (3, 3) covariance of (easting m, northing m, yaw rad)
+    of this candidate's pose, were it the right one (as :attr:`Pose.covariance`).
     """
 
     lat: float
@@ -76,8 +78,9 @@ class Hypothesis:
     northing: float
     score: float
     log_score: float | None = None
+    covariance: np.ndarray | None = field(default=None, compare=False)
 
-    def to_dict(self) -> dict[str, float]:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "lat": float(self.lat),
             "lon": float(self.lon),
@@ -85,7 +88,15 @@ class Hypothesis:
             "easting": float(self.easting),
             "northing": float(self.northing),
             "score": float(self.score),
+            "covariance": _matrix(self.covariance),
         }
+
+
+def _matrix(m) -> list[list[float | None]] | None:
+    """A matrix as nested plain floats, non-finite entries as None (JSON has no NaN)."""
+    if m is None:
+        return None
+    return [[float(v) if math.isfinite(v) else None for v in row] for row in np.asarray(m, float)]
 
 
 @dataclass
@@ -111,7 +122,18 @@ class Pose:
     yaw_grid_rad : float or None
         Yaw in the map CRS: radians counter-clockwise from the grid's +x axis.
     covariance : (3, 3) ndarray or None
-        Covariance of (easting m, northing m, yaw rad).
+        Covariance of (easting m, northing m, yaw rad): of the returned pose,
+        as the optimum it is (when ambiguous, were the best hypothesis right).
+    mixture_covariance : (3, 3) ndarray or None
+        When ambiguous: the expected outer product of the returned pose's
+        error over the listed hypotheses, ``sum p_i (C_i + d_i d_i^T)`` with
+        ``p_i`` their scores rescaled to sum to one, ``C_i`` their covariances
+        and ``d_i`` their offsets from the returned pose (yaw wrapped). The
+        returned pose's uncertainty with the ambiguity in it: between rivals
+        along a road of repeating dashes it is long along the road and about
+        as narrow across it as one hypothesis's. None when ``ok`` or
+        ``failed``, when no hypothesis is listed (all below
+        ``Options.min_hypothesis_probability``) or one has no covariance.
     iterations : int
         Refinement iterations of the returned pose.
     inliers : int
@@ -159,6 +181,7 @@ class Pose:
     yaw_enu_rad: float | None = None
     yaw_grid_rad: float | None = None
     covariance: np.ndarray | None = None
+    mixture_covariance: np.ndarray | None = None
     iterations: int = 0
     inliers: int = 0
     rms_m: float | None = None
@@ -179,9 +202,6 @@ class Pose:
             v = float(v)
             return v if math.isfinite(v) else None
 
-        cov = None
-        if self.covariance is not None:
-            cov = [[num(v) for v in row] for row in np.asarray(self.covariance, float)]
         return {
             "status": self.status,
             "lat": num(self.lat),
@@ -191,7 +211,8 @@ class Pose:
             "northing": num(self.northing),
             "crs": self.crs,
             "yaw_enu_rad": num(self.yaw_enu_rad),
-            "covariance": cov,
+            "covariance": _matrix(self.covariance),
+            "mixture_covariance": _matrix(self.mixture_covariance),
             "iterations": int(self.iterations),
             "inliers": int(self.inliers),
             "rms_m": num(self.rms_m),

@@ -383,7 +383,8 @@ def test_answers_follow_the_documented_schema(api, kmap):
 
     single = validator("/collections/{mapId}/localize")
     drive = validator("/collections/{mapId}/localize/sequence")
-    assert {"probability", "covariance", "hypotheses"} <= set(spec["components"]["schemas"]["PoseOut"]["properties"])
+    assert {"probability", "covariance", "mixture_covariance", "hypotheses"} <= set(
+        spec["components"]["schemas"]["PoseOut"]["properties"])
     map_id, feats = kmap
     url = f"{api.base_url}/collections/{map_id}/localize"
     p, lon, lat, heading, obs = scene(feats, 250)
@@ -397,6 +398,12 @@ def test_answers_follow_the_documented_schema(api, kmap):
     answers.append(httpx.post(url, json={"gps": far, "observations": obs}, timeout=60).json())
     assert [a["status"] for a in answers[:2]] == ["ok", "ok"] and answers[3]["status"] == "failed"
     assert answers[2]["status"] == "ambiguous" and answers[2]["hypotheses"], answers[2]
+    # Each hypothesis has its covariance, and the ambiguous answer the mixture of them (ok: none).
+    amb = answers[2]
+    assert all(len(h["covariance"]) == 3 for h in amb["hypotheses"])
+    assert amb["hypotheses"][0]["covariance"] == amb["covariance"]
+    assert np.trace(amb["mixture_covariance"]) > np.trace(amb["covariance"]) + 1.0  # rivals metres apart
+    assert answers[0]["mixture_covariance"] is None and answers[1]["mixture_covariance"] is None
     for a in answers:
         errors = [e.message for e in single.iter_errors(a)]
         assert not errors, (a, errors)

@@ -763,6 +763,49 @@ def test_periodic_dash_rows_are_ambiguous_with_hypotheses_a_period_apart():
     assert p.status in ("ok", "failed") and p.hypotheses == [] and p.probability is None
 
 
+def test_an_ambiguous_answer_gives_each_hypothesis_its_covariance_and_their_mixture():
+    """Rivals a dash period apart along the road: the mixture is long along it, narrow across."""
+    from localizer.robust import mixture_covariance
+
+    xy = dash_rows(lateral=(0.0, 3.5))
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
+    pose = (ORIGIN[0] + 1.0, ORIGIN[1] + 1.7, 0.0)  # driving east along the lane
+    scene = observe(xy, pose, Camera(miss_probability=0.0), np.random.default_rng(5))
+    r = localize(index, scene.observations, prior_at(index, (pose[0] + 4.5, pose[1], 0.0)))
+    assert r.status == "ambiguous" and len(r.hypotheses) >= 2
+    for h in r.hypotheses:
+        c = h.covariance
+        assert c.shape == (3, 3) and np.allclose(c, c.T) and np.all(np.linalg.eigvalsh(c) > 0)
+        assert math.sqrt(c[0, 0]) < 0.5 and math.sqrt(c[1, 1]) < 0.5  # each one is sure of itself
+    assert np.array_equal(r.hypotheses[0].covariance, r.covariance)
+    # sum p_i (C_i + d_i d_i^T), the scores rescaled, spelled out
+    p = np.array([h.score for h in r.hypotheses])
+    p /= p.sum()
+    want = np.zeros((3, 3))
+    for w, h in zip(p, r.hypotheses):
+        yaw = index.frame.heading_to_grid_yaw(h.heading_deg, h.lon, h.lat)
+        d = np.array([h.easting - r.easting, h.northing - r.northing,
+                      math.remainder(yaw - r.yaw_grid_rad, 2 * math.pi)])
+        want += w * (h.covariance + np.outer(d, d))
+    m = r.mixture_covariance
+    assert np.allclose(m, want, rtol=1e-6, atol=1e-9)  # yaw back from the heading: to 1e-9 rad
+    # Along the road the rivals spread it over the period; across it and in
+    # heading it stays about one hypothesis's.
+    spread = math.sqrt(sum(w * (h.easting - r.easting) ** 2 for w, h in zip(p, r.hypotheses)))
+    assert spread > 3.0 and math.sqrt(m[0, 0]) == pytest.approx(spread, rel=0.01)
+    assert math.sqrt(m[1, 1]) < 0.3 and math.sqrt(m[2, 2]) < math.radians(1.0)
+    # The truth lies inside its 95 % ellipse, whichever rival the answer is.
+    dx = np.array([pose[0] - r.easting, pose[1] - r.northing])
+    assert dx @ np.linalg.solve(m[:2, :2], dx) < 5.99
+    d = json.loads(json.dumps(r.to_dict(), allow_nan=False))
+    assert np.allclose(d["mixture_covariance"], m) and np.allclose(d["hypotheses"][1]["covariance"],
+                                                                    r.hypotheses[1].covariance)
+    # Without a hypothesis's covariance there is no mixture; yaw offsets wrap.
+    assert mixture_covariance((0, 0, 0), [(0, 0, 0)], [1.0], [None]) is None
+    got = mixture_covariance((0.0, 0.0, math.pi - 0.01), [(0.0, 0.0, -math.pi + 0.01)], [0.5], [np.zeros((3, 3))])
+    assert got[2, 2] == pytest.approx(0.02**2)
+
+
 def test_a_doubtful_answer_gets_more_candidates_refined():
     xy = dash_rows(lateral=(0.0, 3.5))
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], None, CRS)
@@ -1314,9 +1357,10 @@ def test_result_dict_is_json_safe_with_the_api_keys():
     r = localize(index, scene.observations, prior_at(index, pose))
     d = json.loads(json.dumps(r.to_dict(), allow_nan=False))
     assert set(d) == {"status", "lat", "lon", "heading_deg", "easting", "northing", "crs",
-                      "yaw_enu_rad", "covariance", "iterations", "inliers", "rms_m",
-                      "probability", "hypotheses", "reason"}
+                      "yaw_enu_rad", "covariance", "mixture_covariance", "iterations", "inliers",
+                      "rms_m", "probability", "hypotheses", "reason"}
     assert d["status"] == "ok" and d["crs"] == CRS and d["reason"] is None
+    assert d["mixture_covariance"] is None and d["hypotheses"] == []
     assert Options().ambiguity_probability <= d["probability"] <= 1.0
     assert len(d["covariance"]) == 3 and all(len(row) == 3 for row in d["covariance"])
     assert 0 <= d["heading_deg"] < 360

@@ -43,7 +43,7 @@ def test_a_drive_resolves_what_single_frames_cannot():
     rng = np.random.default_rng(11)
     drives = sample_trajectories(smap, 16, 10, 1.5, rng, Camera(), min_visible=4)
     assert drives.shape == (16, 10, 3)
-    single_ok = seq_ok = resolved = 0
+    single_ok = seq_ok = resolved = ambiguous = 0
     for drive in drives:
         scenes = [simulate_scene(smap, tuple(p), rng, Camera(), Clutter()) for p in drive]
         motions = [(0.0, 0.0, 0.0)] + [odometry(drive[k - 1], drive[k]) for k in range(1, len(drive))]
@@ -62,12 +62,26 @@ def test_a_drive_resolves_what_single_frames_cannot():
                 # ok exactly when the track holds the threshold's share of the posterior
                 assert (pose.status == "ok") == (pose.probability >= Options().ambiguity_probability)
                 assert pose.status == "ok" or pose.probability == pytest.approx(pose.hypotheses[0].score)
+                # Each hypothesis is a track's pose with its covariance; the mixture exactly when ambiguous.
+                assert all(h.covariance is not None for h in pose.hypotheses)
+                assert (pose.mixture_covariance is not None) == (pose.status == "ambiguous")
+                if pose.status == "ambiguous":
+                    assert np.allclose(pose.hypotheses[0].covariance, pose.covariance)
+                    # The mixture holds the rivals' spread about the answer.
+                    m = pose.mixture_covariance
+                    p = np.array([h.score for h in pose.hypotheses])
+                    d2 = [(h.easting - pose.easting) ** 2 + (h.northing - pose.northing) ** 2
+                          for h in pose.hypotheses]
+                    assert np.allclose(m, m.T) and np.all(np.linalg.eigvalsh(m) > 0)
+                    assert m[0, 0] + m[1, 1] >= float(p @ d2) / p.sum() - 1e-9
+                    ambiguous += 1
         s_status, s_err = graded(single, drive[-1])
         q_status, q_err = graded(result.pose, drive[-1])
         single_ok += s_status == "ok" and s_err <= 0.5
         seq_ok += q_status == "ok" and q_err <= 0.5
         resolved += s_status == "ambiguous" and q_status == "ok" and q_err <= 0.5
     assert seq_ok >= single_ok + 2 and resolved >= 2, (single_ok, seq_ok, resolved)
+    assert ambiguous >= 3
 
 
 def test_odometry_is_iso8855_and_carries_the_pose_through_blind_frames():

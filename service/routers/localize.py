@@ -220,6 +220,8 @@ class HypothesisOut(BaseModel):
     easting: float = Field(..., description="Metres in the map's CRS")
     northing: float = Field(..., description="Metres in the map's CRS")
     score: float = Field(..., ge=0, le=1, description="Posterior probability of this hypothesis")
+    covariance: list[list[float | None]] | None = Field(
+        None, description="3x3 covariance of (easting m, northing m, yaw rad) of this hypothesis, were it right")
 
 
 class PoseOut(BaseModel):
@@ -235,7 +237,8 @@ class PoseOut(BaseModel):
                 "easting": 457234.940, "northing": 5428188.496, "crs": "EPSG:25832", "yaw_enu_rad": -0.31147,
                 "covariance": [[0.01205, -0.00213, 0.0000866], [-0.00213, 0.00833, -0.000505],
                                [0.0000866, -0.000505, 0.0000330]],
-                "iterations": 6, "inliers": 8, "rms_m": 0.089, "probability": 0.99992, "hypotheses": [],
+                "mixture_covariance": None, "iterations": 6, "inliers": 8, "rms_m": 0.089, "probability": 0.99992,
+                "hypotheses": [],
             }
         },
     )  # fmt: skip
@@ -249,7 +252,12 @@ class PoseOut(BaseModel):
     northing: float | None = Field(None, description="Metres in the map's CRS")
     yaw_enu_rad: float | None = Field(None, description="REP-103 yaw: radians counter-clockwise from true east")
     covariance: list[list[float | None]] | None = Field(
-        None, description="3x3 covariance of (easting m, northing m, yaw rad)")
+        None, description="3x3 covariance of (easting m, northing m, yaw rad) of the pose as the optimum it is "
+                          "(when ambiguous: were the best hypothesis right)")
+    mixture_covariance: list[list[float | None]] | None = Field(
+        None, description="When ambiguous: 3x3 expected outer product of the pose's error over the listed "
+                          "hypotheses, sum p_i (C_i + d_i d_i^T) with p_i their scores rescaled to sum to one, "
+                          "C_i their covariances, d_i their offsets from the pose; null otherwise")
     iterations: int | None = Field(None, description="Refinement iterations of the answer")
     inliers: int | None = Field(None, description="Observations matched to the map")
     rms_m: float | None = Field(None, description="RMS distance of the matched observations, metres")
