@@ -660,6 +660,25 @@ def test_a_truth_the_coarse_search_misplaced_is_still_refined(scene_file, dashes
                for hy in r.hypotheses)
 
 
+def test_heading_restarts_run_only_under_priors_of_at_least_3_m(monkeypatch):
+    """Under a GPS-like prior they found nothing on the benchmark and cost a fifth of a request."""
+    import localizer.core
+
+    calls = []
+    real = localizer.core._heading_restarts
+    monkeypatch.setattr(localizer.core, "_heading_restarts", lambda *a: calls.append(1) or real(*a))
+    index, pose, prior, obs, _ = benchmark_scene("truth_turned_off_by_coarse_grid.json")
+    runs = {}
+    for name, p in [("2.9 m", replace(prior, position_sigma_m=2.9)),
+                    ("3 m", replace(prior, position_sigma_m=3.0)),
+                    ("ellipse 3 x 1 m", replace(prior, position_ellipse=ErrorEllipse(3.0, 1.0, 0.0))),
+                    ("ellipse 2.9 x 1 m", replace(prior, position_ellipse=ErrorEllipse(2.9, 1.0, 0.0)))]:
+        calls.clear()
+        localize(index, obs, p)
+        runs[name] = len(calls)
+    assert runs == {"2.9 m": 0, "3 m": 1, "ellipse 3 x 1 m": 1, "ellipse 2.9 x 1 m": 0}
+
+
 def test_a_pitch_fit_that_leaves_too_few_matches_answers_failed():
     # A benchmark scene from 0.5-2 m: 10 observations, 3 of them markings
     # among curbs and a preceding vehicle. The best-ranked pose matches three;
