@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -68,6 +69,14 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     assert res.exit_code == 3, res.output
     warn = res.stderr.strip().splitlines()
     assert len(warn) == 1 and warn[0].startswith("warning: the answer is ambiguous"), warn
+    # ... and says what the hypotheses leave known: the mixture's sigmas along and across the heading.
+    m = np.array(strict["mixture_covariance"])
+    yaw = math.radians(90.0 - strict["heading_deg"])  # within the meridian convergence of the grid's
+    u, v = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+    along, across = (float(x) for x in re.search(r"±([\d.]+) m along the heading and ±([\d.]+) m across",
+                                                    warn[0]).groups())
+    assert along == pytest.approx(math.sqrt(u @ m[:2, :2] @ u), abs=0.02)
+    assert across == pytest.approx(math.sqrt(v @ m[:2, :2] @ v), abs=0.02)
     # The fix's error ellipse instead of one sigma.
     res = CliRunner().invoke(app, [
         "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -228,19 +229,31 @@ def register(app: typer.Typer) -> None:
                        "state": result.state.to_dict()}
                 if state_file is not None:
                     save_state(state_file, out["state"])
+                last_pose = result.poses[-1]
             else:
-                out = localize(index, obs, prior, method=method, options=options).to_dict()
+                last_pose = localize(index, obs, prior, method=method, options=options)
+                out = last_pose.to_dict()
         except LocalizationInputError as exc:
             fail(str(exc))
         typer.echo(json.dumps(out, indent=2, allow_nan=False))
-        last = out["poses"][-1] if seq is not None else out
-        status = last["status"]
+        status = last_pose.status
         if status == "failed":
-            typer.echo(f"error: localization failed: {last.get('reason') or 'no reason given'}", err=True)
+            typer.echo(f"error: localization failed: {last_pose.reason or 'no reason given'}", err=True)
         elif status == "ambiguous":
             typer.echo(
-                f"warning: the answer is ambiguous (probability {last.get('probability') or 0:.3f}); "
-                f"{len(last.get('hypotheses') or [])} hypotheses in the JSON",
+                f"warning: the answer is ambiguous (probability {last_pose.probability or 0:.3f}); "
+                f"{len(last_pose.hypotheses)} hypotheses in the JSON{_spread(last_pose)}",
                 err=True,
             )
         raise typer.Exit(EXIT_CODES[status])
+
+
+def _spread(pose) -> str:
+    """How far apart an ambiguous answer's hypotheses leave it along and across its heading."""
+    m = pose.mixture_covariance
+    if m is None:
+        return ""
+    c, s = math.cos(pose.yaw_grid_rad), math.sin(pose.yaw_grid_rad)
+    along = math.sqrt(max(0.0, c * c * m[0, 0] + 2 * c * s * m[0, 1] + s * s * m[1, 1]))
+    across = math.sqrt(max(0.0, s * s * m[0, 0] - 2 * c * s * m[0, 1] + c * c * m[1, 1]))
+    return f"; with them, the position is known to ±{along:.2f} m along the heading and ±{across:.2f} m across it"
