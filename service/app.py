@@ -115,9 +115,10 @@ def create_app(
 
     document_problems(app)
 
+    from . import metrics
     from .routers import changesets, collections, health, imagery, jobs, landing, localize
 
-    for module in (landing, collections, changesets, imagery, jobs, localize, health):
+    for module in (landing, collections, changesets, imagery, jobs, localize, health, metrics):
         app.include_router(module.router)
 
     if EDITOR_DIR.is_dir():
@@ -125,6 +126,9 @@ def create_app(
 
     # Outermost first: CORS must also answer for requests the body guard refuses.
     app.add_middleware(BodyGuard, max_bytes=settings.max_body_bytes, stream_paths=STREAM_PATHS)
+    # Outside the body guard (its refusals count), inside HEAD-as-GET (whose copy
+    # of the request is the one the router labels with its route).
+    app.add_middleware(metrics.RequestMetrics)
     app.add_middleware(HeadAsGet)
     origins = settings.cors_origin_list()
     if origins:

@@ -371,6 +371,60 @@ def test_bad_drive_states_are_named(api, kmap):
         assert len(r.json()["state"]["history"]) == (2 if extra.get("state") is None else 1)
 
 
+def metric_samples(text: str) -> dict[tuple, float]:
+    """``/metrics`` as {(sample name, sorted label items): value}."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for family in text_string_to_metric_families(text) for s in family.samples}
+
+
+def test_metrics_count_localizations_by_outcome(api, kmap):
+    """``/metrics``: answers by endpoint and status, requests by route template, the localizer's time."""
+    map_id, feats = kmap
+    url = f"{api.base_url}/collections/{map_id}/localize"
+
+    def scrape():
+        r = httpx.get(f"{api.base_url}/metrics")
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain"), r.text
+        assert map_id not in r.text  # routes are labelled by their template, not by the path sent
+        return metric_samples(r.text)
+
+    before = scrape()
+    p, lon, lat, heading, obs = scene(feats, 250)
+    for _ in range(2):
+        assert httpx.post(url, json={"gps": gps_near(p, heading), "observations": obs}, timeout=60).json()[
+            "status"] == "ok"
+    far = dict(gps_near(p, heading), lat=lat + 0.5)
+    assert httpx.post(url, json={"gps": far, "observations": obs}, timeout=60).json()["status"] == "failed"
+    bad = [{"x": 10.0, "y": 1.0, "weight": -1.0}]
+    assert httpx.post(url, json={"gps": far, "observations": bad}, timeout=60).status_code == 422
+    frames, _ = drive_frames(feats, 3)
+    drive = httpx.post(f"{url}/sequence", json={"gps": gps_near(p, heading), "frames": frames}, timeout=60).json()
+    after = scrape()
+
+    def delta(name, **labels):
+        key = (name, tuple(sorted(labels.items())))
+        return after.get(key, 0.0) - before.get(key, 0.0)
+
+    assert delta("lanemap_localizations_total", endpoint="frame", method="default", status="ok") == 2
+    assert delta("lanemap_localizations_total", endpoint="frame", method="default", status="failed") == 1
+    by_status = {}
+    for pose in drive["poses"]:
+        by_status[pose["status"]] = by_status.get(pose["status"], 0) + 1
+    for status, n in by_status.items():
+        assert delta("lanemap_localizations_total", endpoint="drive", method="default", status=status) == n
+    assert delta("lanemap_localizer_duration_seconds_count", endpoint="frame") == 3
+    assert delta("lanemap_localizer_duration_seconds_count", endpoint="drive") == 1
+    assert delta("lanemap_localizer_duration_seconds_sum", endpoint="frame") > 0
+    route = "/collections/{mapId}/localize"
+    assert delta("lanemap_http_requests_total", method="POST", route=route, status="200") == 3
+    assert delta("lanemap_http_requests_total", method="POST", route=route, status="422") == 1
+    assert delta("lanemap_http_requests_total", method="POST", route=route + "/sequence", status="200") == 1
+    assert delta("lanemap_http_request_duration_seconds_count", route=route) == 4
+    assert delta("lanemap_http_requests_total", method="GET", route="/metrics", status="200") == 1
+
+
 def test_answers_follow_the_documented_schema(api, kmap):
     """Every kind of answer (ok, ambiguous, failed, a drive) validates against openapi.json."""
     import jsonschema_rs

@@ -12,6 +12,7 @@ import socket
 import stat
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -129,9 +130,9 @@ def _listening_processes(root_pid: int, port: int) -> set[int]:
     return pids
 
 
-def _get_health(sock: socket.socket) -> int:
-    """One ``GET /health`` on a keep-alive HTTP/1.1 connection; the status code."""
-    sock.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+def _get(sock: socket.socket, path: str) -> tuple[int, bytes]:
+    """One ``GET`` on a keep-alive HTTP/1.1 connection; the status code and the body."""
+    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
     data = b""
     while b"\r\n\r\n" not in data:
         chunk = sock.recv(65536)
@@ -141,7 +142,31 @@ def _get_health(sock: socket.socket) -> int:
     length = int(re.search(rb"(?im)^content-length:\s*(\d+)", head).group(1))
     while len(body) < length:
         body += sock.recv(65536)
-    return int(head.split()[1])
+    return int(head.split()[1]), body
+
+
+def _get_health(sock: socket.socket) -> int:
+    """One ``GET /health`` on a keep-alive HTTP/1.1 connection; the status code."""
+    return _get(sock, "/health")[0]
+
+
+def _spread_connections(server, n: int) -> tuple[list[socket.socket], set[int]]:
+    """``n`` keep-alive connections made while both server processes are stopped, so that the
+    kernel spreads them over the processes' sockets (as a burst under load); and the processes."""
+    port = int(server.base_url.rsplit(":", 1)[1])
+    workers = _listening_processes(server.proc.pid, port)
+    assert len(workers) == 2
+    conns: list[socket.socket] = []
+    for pid in workers:
+        os.kill(pid, signal.SIGSTOP)
+    try:
+        for _ in range(n):
+            conns.append(socket.create_connection(("127.0.0.1", port), timeout=30))
+    finally:
+        for pid in sorted(workers):  # one process frees up a little before the other
+            os.kill(pid, signal.SIGCONT)
+            time.sleep(0.3)
+    return conns, workers
 
 
 def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
@@ -157,17 +182,7 @@ def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
     port = int(server.base_url.rsplit(":", 1)[1])
     conns: list[socket.socket] = []
     try:
-        workers = _listening_processes(server.proc.pid, port)
-        assert len(workers) == 2
-        for pid in workers:
-            os.kill(pid, signal.SIGSTOP)
-        try:
-            for _ in range(16):
-                conns.append(socket.create_connection(("127.0.0.1", port), timeout=30))
-        finally:
-            for pid in sorted(workers):  # one process frees up a little before the other
-                os.kill(pid, signal.SIGCONT)
-                time.sleep(0.3)
+        conns, workers = _spread_connections(server, 16)
         assert [_get_health(c) for c in conns] == [200] * len(conns)
         counts = _established_per_process(server.proc.pid, port)
         assert sum(counts.values()) == len(conns)
@@ -179,6 +194,38 @@ def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
         for c in conns:
             c.close()
         server.stop()
+
+
+def test_several_workers_count_their_metrics_together(tmp_path):
+    """Whichever server process answers ``/metrics`` reports what all of them counted."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", args=("--workers", "2"))
+    port = int(server.base_url.rsplit(":", 1)[1])
+    conns: list[socket.socket] = []
+    try:
+        conns, workers = _spread_connections(server, 16)
+        assert [_get_health(c) for c in conns] == [200] * len(conns)
+        # The process holding each connection: its server side's peer is our local port.
+        holder = {}
+        for pid in workers:
+            for c in psutil.Process(pid).net_connections("tcp"):
+                if c.status == psutil.CONN_ESTABLISHED and c.raddr:
+                    holder[c.raddr.port] = pid
+        one_each = {holder[c.getsockname()[1]]: c for c in conns}
+        assert set(one_each) == workers  # both served some of the 16
+        for pid, c in one_each.items():
+            status, body = _get(c, "/metrics")
+            assert status == 200
+            health = [s.value for f in text_string_to_metric_families(body.decode()) for s in f.samples
+                      if s.name == "lanemap_http_requests_total" and s.labels["route"] == "/health"]
+            assert health == [16.0], (pid, health)
+    finally:
+        for c in conns:
+            c.close()
+        server.stop()
+    # The counts' directory is removed with the server.
+    assert not re.search(r"lanemap-metrics-", " ".join(os.listdir(tempfile.gettempdir())))
 
 
 def test_worker_that_cannot_start_is_one_line_error(tmp_path):

@@ -27,6 +27,33 @@ def _check_port(host: str, port: int) -> None:
             fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
 
 
+def _share_metrics() -> None:
+    """Give the server processes one directory to count metrics in (see :mod:`service.metrics`).
+
+    Set before they start, so that each imports prometheus_client in its
+    multiprocess mode. A directory the operator names in
+    ``PROMETHEUS_MULTIPROC_DIR`` is used and emptied of an earlier run's
+    counts; otherwise a fresh one is made and removed when the server stops.
+    """
+    import atexit
+    import glob
+    import os
+    import shutil
+    import tempfile
+
+    from ..metrics import MULTIPROC_ENV
+
+    given = os.environ.get(MULTIPROC_ENV)
+    if given:
+        os.makedirs(given, exist_ok=True)
+        for path in glob.glob(os.path.join(given, "*.db")):
+            os.remove(path)
+        return
+    path = tempfile.mkdtemp(prefix="lanemap-metrics-")
+    os.environ[MULTIPROC_ENV] = path
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("serve")
     def serve(
@@ -85,6 +112,8 @@ def register(app: typer.Typer) -> None:
         else:
             typer.echo("write tokens: from LANEMAP_API_TOKENS")
         logging.getLogger("service").setLevel(logging.INFO)
+        if workers > 1:
+            _share_metrics()
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
                         log_level=log_level)  # fmt: skip

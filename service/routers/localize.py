@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from localizer import Options
 
+from .. import metrics
 from ..deps import Context, get_ctx, require_read
 from ..map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 from ..problems import Problem
@@ -352,6 +353,7 @@ async def _admit(ctx: Context, fn, map_id: str, body):
     # for a worker thread as well as the running ones.
     cap = ctx.settings.localize_max_pending
     if cap and ctx.localize_pending >= cap:
+        metrics.shed.inc()
         raise Problem(503, f"the server is busy: {ctx.localize_pending} localizations are pending; "
                       "retry shortly", "busy", headers={"Retry-After": "1"})  # fmt: skip
     if ctx.localize_limiter is None:
@@ -377,9 +379,11 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
                         options=localize_options(body.min_probability))  # fmt: skip
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("localization on %s failed numerically: %r", map_id, exc)
+        _count("frame", body.method, ["failed"], t1)
         return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
                              "reason": f"numerical failure ({exc.__class__.__name__})"},
                             headers=_server_timing(admitted, t0, t1))  # fmt: skip
+    _count("frame", body.method, [pose.status], t1)
     headers = _server_timing(admitted, t0, t1)
     return JSONResponse(_pose_json(pose), headers=headers)
 
@@ -404,11 +408,20 @@ def _localize_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float
         log.warning("drive localization on %s failed numerically: %r", map_id, exc)
         failed = {"status": "failed", "crs": index.crs, "hypotheses": [],
                   "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
+        _count("drive", "default", ["failed"] * len(frames), t1)
         return JSONResponse({"poses": [failed] * len(frames), "tracks": 0, "state": None},
                             headers=_server_timing(admitted, t0, t1))  # fmt: skip
+    _count("drive", "default", [p.status for p in result.poses], t1)
     out = {"poses": [_pose_json(p) for p in result.poses], "tracks": result.tracks,
            "state": result.state.to_dict()}
     return JSONResponse(out, headers=_server_timing(admitted, t0, t1))
+
+
+def _count(endpoint: str, method: str, statuses: list[str], started: float) -> None:
+    """Count a request's answers by status, and time its localizer since ``started``."""
+    metrics.localizer_seconds.labels(endpoint).observe(time.perf_counter() - started)
+    for status in statuses:
+        metrics.localizations.labels(endpoint, method, status).inc()
 
 
 def _prior(g: GpsIn):

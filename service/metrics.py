@@ -1,0 +1,106 @@
+"""Prometheus metrics: ``GET /metrics`` in the text exposition format.
+
+What an operator watches: requests by route and status and how long they
+took, localizations by outcome (a rising share of ``failed`` or ``ambiguous``
+on a map says the road has changed under it), how long the localizer itself
+took, and requests shed under load (the 503s of
+``LANEMAP_LOCALIZE_MAX_PENDING``). Routes are labelled by their template
+(``/collections/{mapId}/localize``), never by the path a client sent, so the
+number of series stays bounded.
+
+With several server processes (``lanemap serve --workers N``) each counts in
+files of one directory that all of them share (prometheus_client's
+multiprocess mode, ``PROMETHEUS_MULTIPROC_DIR``; ``lanemap serve`` makes a
+fresh one unless the variable is set), and whichever process answers
+``/metrics`` sums them all. The variable has to be set before this module is
+first imported in a process, which is why ``lanemap serve`` sets it before it
+starts its server processes.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import Response
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    REGISTRY,
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    generate_latest,
+)
+from prometheus_client import multiprocess as _multiprocess
+
+from .deps import require_read
+
+#: The environment variable of prometheus_client's multiprocess mode.
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
+
+_SECONDS = (0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+http_requests = Counter(
+    "lanemap_http_requests", "HTTP requests answered, by method, route template and status code",
+    ["method", "route", "status"],
+)
+http_seconds = Histogram(
+    "lanemap_http_request_duration_seconds", "Time from a request's arrival to its answer's start, seconds",
+    ["route"], buckets=_SECONDS,
+)
+localizations = Counter(
+    "lanemap_localizations", "Localization answers by endpoint (frame, or each frame of a drive), method "
+    "and status", ["endpoint", "method", "status"],
+)
+localizer_seconds = Histogram(
+    "lanemap_localizer_duration_seconds", "Time the localizer took per request, without HTTP and queueing, "
+    "seconds", ["endpoint"], buckets=_SECONDS,
+)
+shed = Counter("lanemap_localizations_shed", "Localization requests refused with 503 while too many were pending")
+
+router = APIRouter(tags=["Health"])
+
+
+@router.get("/metrics", include_in_schema=False, dependencies=[Depends(require_read)])
+def metrics() -> Response:
+    """The counters of every server process, in Prometheus's text format."""
+    if os.environ.get(MULTIPROC_ENV):
+        registry = CollectorRegistry()
+        _multiprocess.MultiProcessCollector(registry)
+    else:
+        registry = REGISTRY
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+
+class RequestMetrics:
+    """ASGI middleware counting every HTTP request by route template and status, and timing it."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        t0 = time.perf_counter()
+        status = [500]
+
+        async def send_status(message) -> None:
+            if message["type"] == "http.response.start":
+                status[0] = message["status"]
+                # Timed to the answer's start: a streamed tile or export is not the server's wait.
+                http_seconds.labels(_route(scope)).observe(time.perf_counter() - t0)
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            http_requests.labels(scope["method"], _route(scope), str(status[0])).inc()
+
+
+def _route(scope) -> str:
+    """The template of the route that answered (``unmatched`` when none did)."""
+    route = scope.get("route")
+    path = getattr(route, "path_format", None) or getattr(route, "path", None)
+    return path or "unmatched"
