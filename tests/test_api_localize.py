@@ -272,6 +272,14 @@ def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: 
         for _ in range(3):
             assert httpx.post(url, json=body, timeout=60).status_code == 200
         assert "Traceback" not in server.log()
+        # /metrics counts what was shed, and the answers given
+        m = metric_samples(httpx.get(f"{server.base_url}/metrics").text)
+        assert m[("lanemap_localizations_shed_total", ())] == codes.count(503)
+        assert m[("lanemap_http_requests_total", (("method", "POST"), ("route", "/collections/{mapId}/localize"),
+                                                  ("status", "503")))] == codes.count(503)
+        answered = sum(v for (name, labels), v in m.items()
+                       if name == "lanemap_localizations_total" and ("endpoint", "frame") in labels)
+        assert answered == codes.count(200) + 3
     finally:
         server.stop()
 
