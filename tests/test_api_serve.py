@@ -12,7 +12,6 @@ import socket
 import stat
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -177,7 +176,11 @@ def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
     (uvicorn's own multiprocess mode) the process that got the CPU back first
     accepted every queued connection and served those clients for good. 16
     connections all hashed to one of two sockets would happen once in 2**15 runs.
+
+    Whichever process answers ``/metrics`` then reports what both counted.
     """
+    from prometheus_client.parser import text_string_to_metric_families
+
     server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", args=("--workers", "2"))
     port = int(server.base_url.rsplit(":", 1)[1])
     conns: list[socket.socket] = []
@@ -190,42 +193,23 @@ def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
         # The keep-alive connections stay where they are: a second round moves none.
         assert [_get_health(c) for c in conns] == [200] * len(conns)
         assert _established_per_process(server.proc.pid, port) == counts
-    finally:
-        for c in conns:
-            c.close()
-        server.stop()
-
-
-def test_several_workers_count_their_metrics_together(tmp_path):
-    """Whichever server process answers ``/metrics`` reports what all of them counted."""
-    from prometheus_client.parser import text_string_to_metric_families
-
-    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data", args=("--workers", "2"))
-    port = int(server.base_url.rsplit(":", 1)[1])
-    conns: list[socket.socket] = []
-    try:
-        conns, workers = _spread_connections(server, 16)
-        assert [_get_health(c) for c in conns] == [200] * len(conns)
-        # The process holding each connection: its server side's peer is our local port.
-        holder = {}
-        for pid in workers:
-            for c in psutil.Process(pid).net_connections("tcp"):
-                if c.status == psutil.CONN_ESTABLISHED and c.raddr:
-                    holder[c.raddr.port] = pid
+        # A connection held by each process (its server side's peer is our local port).
+        holder = {c.raddr.port: pid for pid in workers for c in psutil.Process(pid).net_connections("tcp")
+                  if c.status == psutil.CONN_ESTABLISHED and c.raddr}  # fmt: skip
         one_each = {holder[c.getsockname()[1]]: c for c in conns}
-        assert set(one_each) == workers  # both served some of the 16
+        assert set(one_each) == workers
         for pid, c in one_each.items():
             status, body = _get(c, "/metrics")
-            assert status == 200
             health = [s.value for f in text_string_to_metric_families(body.decode()) for s in f.samples
                       if s.name == "lanemap_http_requests_total" and s.labels["route"] == "/health"]
-            assert health == [16.0], (pid, health)
+            assert status == 200 and health == [2.0 * len(conns)], (pid, health)
+        counted_in = {psutil.Process(pid).environ()["PROMETHEUS_MULTIPROC_DIR"] for pid in workers}
+        assert len(counted_in) == 1 and os.listdir(next(iter(counted_in)))
     finally:
         for c in conns:
             c.close()
         server.stop()
-    # The counts' directory is removed with the server.
-    assert not re.search(r"lanemap-metrics-", " ".join(os.listdir(tempfile.gettempdir())))
+    assert not os.path.exists(next(iter(counted_in)))  # the server's own folder goes with it
 
 
 def test_worker_that_cannot_start_is_one_line_error(tmp_path):
