@@ -212,6 +212,32 @@ def test_several_workers_spread_a_burst_of_keep_alive_connections(tmp_path):
     assert not os.path.exists(next(iter(counted_in)))  # the server's own folder goes with it
 
 
+def test_an_operators_metrics_folder_is_made_and_emptied_of_an_earlier_runs_counts(tmp_path):
+    """``PROMETHEUS_MULTIPROC_DIR`` named by the operator: made if missing, its old counts dropped."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    folder = tmp_path / "metrics" / "lanemap"
+    folder.mkdir(parents=True)
+    # An earlier run's count, written as a server process writes it.
+    stale = "from service import metrics; metrics.http_requests.labels('GET', '/health', '200').inc(1000)"
+    env = {**os.environ, "PROMETHEUS_MULTIPROC_DIR": str(folder)}
+    subprocess.run([sys.executable, "-c", stale], env=env, check=True, cwd=Path(__file__).resolve().parents[1])
+    assert list(folder.glob("counter_*.db"))
+    for where in (folder, tmp_path / "missing" / "folder"):
+        server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                              env={"PROMETHEUS_MULTIPROC_DIR": str(where)})  # fmt: skip
+        try:
+            for _ in range(2):
+                assert httpx.get(f"{server.base_url}/health").status_code == 200
+            text = httpx.get(f"{server.base_url}/metrics").text
+        finally:
+            server.stop()
+        health = [s.value for f in text_string_to_metric_families(text) for s in f.samples
+                  if s.name == "lanemap_http_requests_total" and s.labels["route"] == "/health"]
+        assert health == [2.0], (where, health)
+        assert where.is_dir() and list(where.glob("counter_*.db"))  # the operator's folder stays
+
+
 def test_worker_that_cannot_start_is_one_line_error(tmp_path):
     """A server process that ends before it serves stops the server with one ``error:`` line."""
     code = (

@@ -27,13 +27,17 @@ def _check_port(host: str, port: int) -> None:
             fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
 
 
-def _share_metrics() -> None:
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
+
+
+def _share_metrics(workers: int) -> None:
     """Give the server processes one directory to count metrics in (see :mod:`service.metrics`).
 
     Set before they start, so that each imports prometheus_client in its
     multiprocess mode. A directory the operator names in
-    ``PROMETHEUS_MULTIPROC_DIR`` is used and emptied of an earlier run's
-    counts; otherwise a fresh one is made and removed when the server stops.
+    ``PROMETHEUS_MULTIPROC_DIR`` is made if missing and emptied of an earlier
+    run's counts, whatever the number of processes; otherwise, for more than
+    one, a fresh one is made and removed when the server stops.
     """
     import atexit
     import glob
@@ -41,13 +45,15 @@ def _share_metrics() -> None:
     import shutil
     import tempfile
 
-    from ..metrics import MULTIPROC_ENV
-
+    # prometheus_client's variable (service.metrics.MULTIPROC_ENV). This runs
+    # before that module is imported: its import already writes a count file.
     given = os.environ.get(MULTIPROC_ENV)
     if given:
         os.makedirs(given, exist_ok=True)
         for path in glob.glob(os.path.join(given, "*.db")):
             os.remove(path)
+        return
+    if workers == 1:
         return
     path = tempfile.mkdtemp(prefix="lanemap-metrics-")
     os.environ[MULTIPROC_ENV] = path
@@ -64,6 +70,7 @@ def register(app: typer.Typer) -> None:
         log_level: str = typer.Option("info", help="uvicorn log level."),
     ) -> None:
         """Serve the REST API (OGC API Features, builds, tiles, localization)."""
+        _share_metrics(workers)
         import uvicorn
 
         from mapbuilder.settings import Settings as StoreSettings
@@ -112,8 +119,6 @@ def register(app: typer.Typer) -> None:
         else:
             typer.echo("write tokens: from LANEMAP_API_TOKENS")
         logging.getLogger("service").setLevel(logging.INFO)
-        if workers > 1:
-            _share_metrics()
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
                         log_level=log_level)  # fmt: skip
