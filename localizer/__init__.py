@@ -119,7 +119,15 @@ from .core import METHODS, localize, parse_observations, warm_up
 from .errors import LocalizationInputError
 from .frames import GeoFrame, bearing_to_yaw, wrap_angle, yaw_to_bearing
 from .index import MapIndex
-from .track import Frame, SequenceResult, TrackOptions, TrackState, carry_prior, localize_sequence
+from .track import (
+    Frame,
+    SequenceResult,
+    TrackOptions,
+    TrackState,
+    carry_prior,
+    iter_sequence,
+    localize_sequence,
+)
 from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 __all__ = [
@@ -139,6 +147,7 @@ __all__ = [
     "bearing_to_yaw",
     "carry_prior",
     "localize",
+    "iter_sequence",
     "localize_sequence",
     "parse_observations",
     "warm_up",

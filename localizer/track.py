@@ -54,7 +54,7 @@ vehicle frame: ``dx`` forward, ``dy`` left (metres), ``dyaw`` counter-clockwise
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -448,6 +448,31 @@ def localize_sequence(
         For malformed input: no frames, too many, bad observations, odometry
         or state, a state of another CRS, or neither a prior nor a state.
     """
+    steps = iter_sequence(map_index, frames, prior, options, track_options, state)
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+def iter_sequence(
+    map_index: MapIndex,
+    frames: Sequence[Frame],
+    prior: Prior | None = None,
+    options: Options | None = None,
+    track_options: TrackOptions | None = None,
+    state: TrackState | None = None,
+) -> Generator[Pose, None, SequenceResult]:
+    """:func:`localize_sequence` a frame at a time: a generator of each frame's pose.
+
+    It checks the whole input when first advanced (raising
+    :class:`LocalizationInputError` as :func:`localize_sequence` does, before
+    any frame is localized), then yields the pose of each frame in turn, and
+    returns the :class:`SequenceResult` (``StopIteration.value``). A server
+    advances it in turns with other requests, so that a long drive holds
+    the localizer for one frame at a time.
+    """
     options = options or DEFAULT_OPTIONS
     topt = track_options or TrackOptions()
     if not isinstance(frames, Sequence) or isinstance(frames, (str, bytes)) or not frames:
@@ -486,6 +511,7 @@ def localize_sequence(
         first = localize(map_index, parsed[0][0], prior, options=options)
         tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
         result.poses.append(first)
+        yield first
         rest, seen = parsed[1:], 1
         history = [(parsed[0][0], parsed[0][1], 1.0, True)]
     else:
@@ -508,6 +534,7 @@ def localize_sequence(
         shift += excess
         history = past + [(obs, motion, weight, False)]
         result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
+        yield result.poses[-1]
     history = _last(history, topt.retrodiction_frames)
     result.tracks = len(tracks)
     result.state = TrackState(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import httpx
 import numpy as np
@@ -282,6 +283,47 @@ def test_overload_is_refused_at_once_with_503(tmp_path, karlsruhe_fc):  # noqa: 
         assert answered == codes.count(200) + 3
     finally:
         server.stop()
+
+
+def test_a_frame_sent_during_a_long_drive_waits_for_one_of_its_frames(api, kmap):
+    """A drive takes the localization thread a frame at a time, not for all its frames at once."""
+    import threading
+
+    map_id, feats = kmap
+    url = f"{api.base_url}/collections/{map_id}/localize"
+    p, lon, lat, heading, obs = scene(feats, 250)
+    # Frames of 200 observations that no pose explains, under a fix of any heading:
+    # every frame searches the whole neighbourhood again.
+    rng = np.random.default_rng(22)
+    frames = []
+    for k in range(6):
+        r, b = np.sqrt(rng.uniform(4.0**2, 148.0**2, 200)), rng.uniform(-1.0, 1.0, 200)
+        frames.append({"observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in
+                                        zip(r * np.cos(b), r * np.sin(b), rng.uniform(20, 200, 200))]})
+        if k:
+            frames[-1]["motion"] = {"dx": 1.5, "dy": 0.0}
+    gps = {"lat": lat, "lon": lon, "heading_deg": heading, "position_sigma_m": 1000.0, "heading_sigma_deg": 180.0}
+    drive = {}
+
+    def send_drive():
+        t = time.perf_counter()
+        r = httpx.post(f"{url}/sequence", json={"gps": gps, "frames": frames}, timeout=300)
+        drive.update(answer=r, seconds=time.perf_counter() - t, done=time.perf_counter())
+
+    thread = threading.Thread(target=send_drive)
+    thread.start()
+    time.sleep(0.3)  # the drive's first frame is being localized
+    t = time.perf_counter()
+    single = httpx.post(url, json={"gps": gps_near(p, heading), "observations": obs}, timeout=300)
+    single_done = time.perf_counter()
+    thread.join()
+    assert single.status_code == 200 and single.json()["status"] == "ok"
+    assert drive["answer"].status_code == 200 and len(drive["answer"].json()["poses"]) == len(frames)
+    per_frame = drive["seconds"] / len(frames)
+    print(f"drive {drive['seconds']:.2f} s, the frame sent during it {single_done - t:.2f} s")
+    # Answered after one of the drive's frames, not after all of them.
+    assert single_done - t < 2 * per_frame + 0.3, (single_done - t, drive["seconds"])
+    assert single_done < drive["done"] - 2 * per_frame
 
 
 def test_a_drive_is_localized_frame_by_frame(api, kmap):

@@ -164,6 +164,34 @@ def test_a_drive_streamed_in_parts_gives_the_poses_of_one_call():
     assert {"ok", "ambiguous"} <= statuses
 
 
+def test_a_drive_advanced_a_frame_at_a_time_gives_the_poses_of_one_call():
+    """iter_sequence: a pose per step, the same result at the end, the input checked before any frame."""
+    from localizer import iter_sequence
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(23)
+    drive = sample_trajectories(smap, 1, 6, 1.5, rng, Camera(), min_visible=4)[0]
+    scenes = [simulate_scene(smap, tuple(p), rng, Camera(), Clutter()) for p in drive]
+    motions = [(0.0, 0.0, 0.0)] + [odometry(drive[k - 1], drive[k]) for k in range(1, len(drive))]
+    prior = prior_at(index, perturb(drive[0], 9.0, 10.0, rng), 6.5, 9.0)
+    frames = [Frame(s.observations, m) for s, m in zip(scenes, motions)]
+    whole = localize_sequence(index, frames, prior)
+    steps = iter_sequence(index, frames, prior)
+    yielded = []
+    while True:
+        try:
+            yielded.append(next(steps))
+        except StopIteration as end:
+            result = end.value
+            break
+    assert [p.to_dict() for p in yielded] == [p.to_dict() for p in result.poses] == [p.to_dict() for p in whole.poses]
+    assert result.state == whole.state and result.tracks == whole.tracks
+    # A bad frame late in the drive is refused at the first step, before any localization.
+    bad = frames[:3] + [Frame(np.array([[10.0, 1.0, -1.0]]), (1.5, 0.0, 0.0))] + frames[4:]
+    with pytest.raises(LocalizationInputError, match=r"frames\[3\]"):
+        next(iter_sequence(index, bad, prior))
+
+
 def test_a_continued_drive_searches_around_a_newer_gps_fix():
     """While no track is sure, the frames are searched around the fix; a newer one replaces the carried one."""
     rng = np.random.default_rng(6)
