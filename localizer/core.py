@@ -307,7 +307,11 @@ def localize(
             # Candidates far below the best cannot become competitive.
             floor = cands[0].score - options.candidate_margin
             cands = [c for k, c in enumerate(cands) if k < 4 or c.score >= floor]
-        first, extra = cands[: options.candidates], cands[options.candidates:]
+        # Each refinement iterates over every observation: hundreds of them
+        # (clutter) get fewer candidates, the best ones.
+        per_pass = max(4, options.max_refine_work // len(obs_xy))
+        first = cands[: min(options.candidates, per_pass)]
+        extra = cands[options.candidates: options.candidates + min(options.extra_candidates, per_pass)]
         # The prior itself is always refined too: when clutter dominates the
         # coarse correlation, the few true matches may still pull a refinement
         # started at the GPS fix to the right pose.

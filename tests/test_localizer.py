@@ -660,6 +660,27 @@ def test_a_truth_the_coarse_search_misplaced_is_still_refined(scene_file, dashes
                for hy in r.hypotheses)
 
 
+def test_hundreds_of_observations_get_fewer_candidates_refined():
+    """The refinement's budget: a frame of 500 clutter observations refines the best four a pass."""
+    index, smap = karlsruhe()
+    x, y = smap.marking_xy[250]
+    lon, lat = index.frame.to_lonlat(float(x), float(y))
+    prior = Prior(lat, lon, 100.0, 1000.0, 180.0)  # any heading: many coarse optima
+    rng = np.random.default_rng(22)
+    r, b = np.sqrt(rng.uniform(4.0**2, 148.0**2, 500)), rng.uniform(-1.0, 1.0, 500)
+    clutter = np.column_stack([r * np.cos(b), r * np.sin(b), rng.uniform(20, 200, 500)])
+    unbounded = Options(max_refine_work=10**9)
+    many = localize(index, clutter, prior, options=unbounded)
+    few = localize(index, clutter, prior)
+    assert len(many.diagnostics["search"]) > 12
+    assert len(few.diagnostics["search"]) <= 8  # four, and four more when in doubt
+    assert few.status != "ok"  # nothing explains clutter either way
+    # A frame within the coarse search's 120 observations is refined as before.
+    obs = clutter[:120]
+    a, b_ = localize(index, obs, prior), localize(index, obs, prior, options=unbounded)
+    assert a.diagnostics["search"] == b_.diagnostics["search"] and a.to_dict() == b_.to_dict()
+
+
 def test_heading_restarts_run_only_under_priors_of_at_least_3_m(monkeypatch):
     """Under a GPS-like prior they found nothing on the benchmark and cost a fifth of a request."""
     import localizer.core
@@ -1493,6 +1514,7 @@ def test_bad_prior_raises(small, kwargs, match):
      ({"min_search_radius_m": 50.0}, "min_search_radius_m"), ({"null_score": float("inf")}, "null_score"),
      ({"epsilon_m": "0.05"}, "epsilon_m"), ({"extra_candidates": -1}, "extra_candidates"),
      ({"heading_restarts": -1}, "heading_restarts"),
+     ({"max_refine_work": 0}, "max_refine_work"),
      ({"heading_restarts": 1.5}, "heading_restarts"),
      ({"extra_search_probability": 1.5}, "extra_search_probability"),
      ({"fallback_min_inliers": 0}, "fallback_min_inliers"),
