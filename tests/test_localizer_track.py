@@ -426,6 +426,70 @@ def test_a_truth_the_first_frame_missed_outweighs_the_rivals_followed_since():
     assert state == result.state
 
 
+def test_extreme_but_valid_inputs_never_raise_anything_but_input_errors():
+    """Degenerate geometry and extreme numbers: an answer or a LocalizationInputError, never a crash.
+
+    Randomised with a fixed seed: observations all at one point, on one line,
+    at the range limit, nanometres apart; weights from 1e-300 to 1e300;
+    sigmas at the ends of their valid ranges; ellipses 1e5 : 1; headings far beyond 360°;
+    fixes far off the map; odometry of kilometres or nothing; every drive's
+    state through JSON and back.
+    """
+    from localizer import ErrorEllipse
+
+    index, smap = karlsruhe()
+    rng = np.random.default_rng(2026)
+    sigmas_m = [0.01, 0.5, 5.0, 50.0, 1e3]  # the valid range's ends and between
+    sigmas_deg = [0.01, 10.0, 180.0]
+    weights = [1e-300, 1e-9, 1.0, 1e6, 1e300]
+
+    def observations():
+        n = int(rng.choice([1, 2, 3, 30, 500]))
+        kind = rng.integers(0, 5)
+        if kind == 0:
+            xy = np.zeros((n, 2))
+        elif kind == 1:
+            xy = np.column_stack([np.full(n, 10.0), np.full(n, 1.0)])
+        elif kind == 2:
+            xy = rng.uniform(-1e-9, 1e-9, (n, 2))
+        elif kind == 3:
+            xy = np.column_stack([rng.uniform(4.0, 25.0, n), np.zeros(n)])
+        else:
+            a = rng.uniform(-math.pi, math.pi, n)
+            xy = 149.9 * np.column_stack([np.cos(a), np.sin(a)])
+        return np.column_stack([xy, np.full(n, rng.choice(weights))])
+
+    def prior():
+        x, y = smap.marking_xy[rng.integers(0, len(smap.marking_xy))] + rng.choice([0.0, 500.0, 1e4])
+        lon, lat = index.frame.to_lonlat(float(x), float(y))
+        ellipse = None
+        if rng.random() < 0.3:
+            major = float(rng.choice(sigmas_m))
+            ellipse = ErrorEllipse(major, float(rng.choice([major, 0.01])), float(rng.uniform(-1e3, 1e3)))
+        return Prior(lat, lon, float(rng.choice([-720.0, 359.999, 1e6])), float(rng.choice(sigmas_m)),
+                     float(rng.choice(sigmas_deg)), ellipse)
+
+    answered = 0
+    for _ in range(40):
+        p = prior()
+        try:
+            if rng.random() < 0.6:
+                r = localize(index, observations(), p)
+                if r.status != "failed":
+                    assert np.isfinite([r.lat, r.lon, r.heading_deg]).all()
+                json.dumps(r.to_dict(), allow_nan=False)
+            else:
+                frames = [Frame(observations(), tuple(float(v) for v in rng.choice([0.0, 1.5, -3.0, 1e3], 3)))
+                          for _ in range(int(rng.integers(1, 4)))]
+                r = localize_sequence(index, frames, p)
+                again = TrackState.from_dict(json.loads(json.dumps(r.state.to_dict(), allow_nan=False)))
+                localize_sequence(index, frames[:1], state=again)
+            answered += 1
+        except LocalizationInputError:
+            pass
+    assert answered >= 30  # most are valid requests (the rest: a fix off the CRS's area)
+
+
 def test_bad_track_options_are_input_errors():
     for bad in (-1, MAX_FRAMES + 1, 1.5, True, "3"):
         with pytest.raises(LocalizationInputError, match="retrodiction_frames"):
