@@ -44,6 +44,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from _localizer_helpers import karlsruhe  # noqa: E402
 
 from localizer import Options, Prior, localize  # noqa: E402
+from localizer.robust import along_across_sigmas  # noqa: E402
 from localizer.simulate import (  # noqa: E402
     HEAVY,
     Camera,
@@ -164,11 +165,8 @@ def run(args) -> dict:
                     maha = float(dx @ np.linalg.solve(cov[:2, :2], dx)) if cov is not None else math.inf
                     mix = p.mixture_covariance
                     maha_mix = float(dx @ np.linalg.solve(mix[:2, :2], dx)) if mix is not None else math.inf
-                    mix_sigmas = (math.nan, math.nan)
-                    if mix is not None:
-                        c, s_ = math.cos(p.yaw_grid_rad), math.sin(p.yaw_grid_rad)
-                        mix_sigmas = tuple(math.sqrt(float(u @ mix[:2, :2] @ u))
-                                           for u in (np.array([c, s_]), np.array([-s_, c])))
+                    mix_sigmas = ((math.nan, math.nan) if mix is None
+                                  else along_across_sigmas(mix, p.yaw_grid_rad))
                 hit = any(math.hypot(hy.easting - pose[0], hy.northing - pose[1]) <= 0.5
                           for hy in p.hypotheses)
                 row[method] = dict(status=p.status, err=e, herr=h, ms=ms, maha=maha, maha_mix=maha_mix,

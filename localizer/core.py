@@ -310,6 +310,9 @@ def localize(
         # Each refinement iterates over every observation: hundreds of them
         # (clutter) get fewer candidates, the best ones.
         per_pass = max(4, options.max_refine_work // len(obs_xy))
+        if per_pass < max(options.candidates, options.extra_candidates):
+            log.debug("refinement within its budget: %d candidates a pass for %d observations",
+                      per_pass, len(obs_xy))
         first = cands[: min(options.candidates, per_pass)]
         extra = cands[options.candidates: options.candidates + min(options.extra_candidates, per_pass)]
         # The prior itself is always refined too: when clutter dominates the

@@ -618,6 +618,27 @@ def mixture_covariance(about, poses, weights, covariances) -> np.ndarray | None:
     return 0.5 * (out + out.T)
 
 
+def along_across_sigmas(covariance, yaw: float) -> tuple[float, float]:
+    """Standard deviations of a pose's position along and across its heading.
+
+    Parameters
+    ----------
+    covariance : (2, 2) or (3, 3) array_like
+        Covariance whose first two axes are map x and y, square metres.
+    yaw : float
+        The heading in the same frame, radians counter-clockwise from x.
+
+    Returns
+    -------
+    (along, across) : tuple of float
+        Metres.
+    """
+    m = np.asarray(covariance, float)[:2, :2]
+    u = np.array([math.cos(yaw), math.sin(yaw)])
+    v = np.array([-u[1], u[0]])
+    return math.sqrt(max(0.0, float(u @ m @ u))), math.sqrt(max(0.0, float(v @ m @ v)))
+
+
 @njit(cache=True, nogil=True)
 def _fit_sums(pose, obs, w_obs, sigma, gate, gmax, lever, tables):
     """The sums behind :func:`fit_statistics`, compiled.

@@ -323,7 +323,7 @@ def _motion(m, where: str) -> tuple[float, float, float]:
 
 
 def _frozen(obs) -> tuple[tuple[float, ...], ...]:
-    """Observation rows as nested tuples of floats, as a :class:`TrackState` keeps them."""
+    """Rows (observations, a covariance) as nested tuples of floats, as a :class:`TrackState` keeps them."""
     return tuple(tuple(float(v) for v in row) for row in obs)
 
 
@@ -349,7 +349,7 @@ def _state_covariance(cov) -> tuple[tuple[float, float, float], ...]:
         raise LocalizationInputError(f"{where}: a variance is not positive or beyond a prior's largest")
     if np.linalg.eigvalsh(a)[0] < -1e-9 * float(np.max(np.diag(a))):
         raise LocalizationInputError(f"{where}: expected a positive semi-definite matrix")
-    return tuple(tuple(float(v) for v in row) for row in a)
+    return _frozen(a)
 
 
 def _state_numbers(item, keys, where: str) -> tuple[float, ...]:
@@ -541,7 +541,7 @@ def iter_sequence(
         crs, seen + len(rest),
         tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched)) for t in tracks),
         (*(float(v) for v in gps.pose), *_state_sigmas(gps)),
-        tuple(tuple(float(v) for v in row) for row in gps.cov),
+        _frozen(gps.cov),
         tuple((_frozen(obs), motion, float(weight), bool(first)) for obs, motion, weight, first in history),
         float(shift),
     )

@@ -35,9 +35,7 @@ from prometheus_client import (
 from prometheus_client import multiprocess as _multiprocess
 
 from .deps import require_read
-
-#: The environment variable of prometheus_client's multiprocess mode.
-MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
+from .settings import PROMETHEUS_MULTIPROC_ENV
 
 _SECONDS = (0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 
@@ -65,7 +63,7 @@ router = APIRouter(tags=["Health"])
 @router.get("/metrics", include_in_schema=False, dependencies=[Depends(require_read)])
 def metrics() -> Response:
     """The counters of every server process, in Prometheus's text format."""
-    if os.environ.get(MULTIPROC_ENV):
+    if os.environ.get(PROMETHEUS_MULTIPROC_ENV):
         registry = CollectorRegistry()
         _multiprocess.MultiProcessCollector(registry)
     else:

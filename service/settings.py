@@ -22,6 +22,9 @@ log = logging.getLogger(__name__)
 
 #: Name of the file in the data folder that keeps the generated write token.
 TOKEN_FILE = "api-token"
+#: prometheus_client's variable for its multiprocess mode: the folder in which
+#: every server process counts its metrics (``service.metrics``).
+PROMETHEUS_MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 
 class ServiceSettings(BaseSettings):

@@ -834,6 +834,11 @@ def test_an_ambiguous_answer_gives_each_hypothesis_its_covariance_and_their_mixt
     spread = math.sqrt(sum(w * (h.easting - r.easting) ** 2 for w, h in zip(p, r.hypotheses)))
     assert spread > 3.0 and math.sqrt(m[0, 0]) == pytest.approx(spread, rel=0.01)
     assert math.sqrt(m[1, 1]) < 0.3 and math.sqrt(m[2, 2]) < math.radians(1.0)
+    # Driving east: along the heading is east, across it north.
+    from localizer.robust import along_across_sigmas
+
+    along, across = along_across_sigmas(m, r.yaw_grid_rad)
+    assert along == pytest.approx(math.sqrt(m[0, 0]), rel=1e-3) and across == pytest.approx(math.sqrt(m[1, 1]), abs=0.01)
     # The truth lies inside its 95 % ellipse, whichever rival the answer is.
     dx = np.array([pose[0] - r.easting, pose[1] - r.northing])
     assert dx @ np.linalg.solve(m[:2, :2], dx) < 5.99

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import typer
 
 from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
+from localizer.robust import along_across_sigmas
 from service.cli_errors import fail
 from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 
@@ -250,10 +250,7 @@ def register(app: typer.Typer) -> None:
 
 def _spread(pose) -> str:
     """How far apart an ambiguous answer's hypotheses leave it along and across its heading."""
-    m = pose.mixture_covariance
-    if m is None:
+    if pose.mixture_covariance is None:
         return ""
-    c, s = math.cos(pose.yaw_grid_rad), math.sin(pose.yaw_grid_rad)
-    along = math.sqrt(max(0.0, c * c * m[0, 0] + 2 * c * s * m[0, 1] + s * s * m[1, 1]))
-    across = math.sqrt(max(0.0, s * s * m[0, 0] - 2 * c * s * m[0, 1] + c * c * m[1, 1]))
+    along, across = along_across_sigmas(pose.mixture_covariance, pose.yaw_grid_rad)
     return f"; with them, the position is known to ±{along:.2f} m along the heading and ±{across:.2f} m across it"

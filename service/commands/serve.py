@@ -27,9 +27,6 @@ def _check_port(host: str, port: int) -> None:
             fail(f"cannot listen on {host}:{port}: {exc.strerror or exc}")
 
 
-MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
-
-
 def _share_metrics(workers: int) -> None:
     """Give the server processes one directory to count metrics in (see :mod:`service.metrics`).
 
@@ -45,8 +42,9 @@ def _share_metrics(workers: int) -> None:
     import shutil
     import tempfile
 
-    # prometheus_client's variable (service.metrics.MULTIPROC_ENV). This runs
-    # before that module is imported: its import already writes a count file.
+    from ..settings import PROMETHEUS_MULTIPROC_ENV as MULTIPROC_ENV
+
+    # This runs before service.metrics is imported: its import already writes a count file.
     given = os.environ.get(MULTIPROC_ENV)
     if given:
         os.makedirs(given, exist_ok=True)
