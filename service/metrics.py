@@ -47,9 +47,12 @@ http_seconds = Histogram(
     "lanemap_http_request_duration_seconds", "Time from a request's arrival to its answer's start, seconds",
     ["route"], buckets=_SECONDS,
 )
+# By map too: a map whose share of failed or ambiguous answers rises is one whose
+# road has changed. Only maps that exist are counted (an unknown one is a 404
+# before any localization), so the series grow with the maps, not the requests.
 localizations = Counter(
-    "lanemap_localizations", "Localization answers by endpoint (frame, or each frame of a drive), method "
-    "and status", ["endpoint", "method", "status"],
+    "lanemap_localizations", "Localization answers by map, endpoint (frame, or each frame of a drive), method "
+    "and status", ["map", "endpoint", "method", "status"],
 )
 localizer_seconds = Histogram(
     "lanemap_localizer_duration_seconds", "Time the localizer took per request, without HTTP and queueing, "

@@ -437,7 +437,8 @@ def test_metrics_count_localizations_by_outcome(api, kmap):
     def scrape():
         r = httpx.get(f"{api.base_url}/metrics")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain"), r.text
-        assert map_id not in r.text  # routes are labelled by their template, not by the path sent
+        # Routes are labelled by their template, not by the path sent; answers by map.
+        assert f'route="/collections/{map_id}' not in r.text
         return metric_samples(r.text)
 
     before = scrape()
@@ -449,6 +450,9 @@ def test_metrics_count_localizations_by_outcome(api, kmap):
     assert httpx.post(url, json={"gps": far, "observations": obs}, timeout=60).json()["status"] == "failed"
     bad = [{"x": 10.0, "y": 1.0, "weight": -1.0}]
     assert httpx.post(url, json={"gps": far, "observations": bad}, timeout=60).status_code == 422
+    nope = httpx.post(f"{api.base_url}/collections/no-such-map/localize",
+                      json={"gps": gps_near(p, heading), "observations": obs}, timeout=60)
+    assert nope.status_code == 404
     frames, _ = drive_frames(feats, 3)
     drive = httpx.post(f"{url}/sequence", json={"gps": gps_near(p, heading), "frames": frames}, timeout=60).json()
     after = scrape()
@@ -457,21 +461,26 @@ def test_metrics_count_localizations_by_outcome(api, kmap):
         key = (name, tuple(sorted(labels.items())))
         return after.get(key, 0.0) - before.get(key, 0.0)
 
-    assert delta("lanemap_localizations_total", endpoint="frame", method="default", status="ok") == 2
-    assert delta("lanemap_localizations_total", endpoint="frame", method="default", status="failed") == 1
+    assert delta("lanemap_localizations_total", map=map_id, endpoint="frame", method="default", status="ok") == 2
+    assert delta("lanemap_localizations_total", map=map_id, endpoint="frame", method="default",
+                 status="failed") == 1
+    # A map that does not exist is a 404, and makes no series of its own.
+    assert not any(("map", "no-such-map") in labels for _, labels in after)
     by_status = {}
     for pose in drive["poses"]:
         by_status[pose["status"]] = by_status.get(pose["status"], 0) + 1
     for status, n in by_status.items():
-        assert delta("lanemap_localizations_total", endpoint="drive", method="default", status=status) == n
+        assert delta("lanemap_localizations_total", map=map_id, endpoint="drive", method="default",
+                     status=status) == n
     assert delta("lanemap_localizer_duration_seconds_count", endpoint="frame") == 3
     assert delta("lanemap_localizer_duration_seconds_count", endpoint="drive") == 1
     assert delta("lanemap_localizer_duration_seconds_sum", endpoint="frame") > 0
     route = "/collections/{mapId}/localize"
     assert delta("lanemap_http_requests_total", method="POST", route=route, status="200") == 3
     assert delta("lanemap_http_requests_total", method="POST", route=route, status="422") == 1
+    assert delta("lanemap_http_requests_total", method="POST", route=route, status="404") == 1
     assert delta("lanemap_http_requests_total", method="POST", route=route + "/sequence", status="200") == 1
-    assert delta("lanemap_http_request_duration_seconds_count", route=route) == 4
+    assert delta("lanemap_http_request_duration_seconds_count", route=route) == 5
     assert delta("lanemap_http_requests_total", method="GET", route="/metrics", status="200") == 1
 
 

@@ -387,11 +387,11 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
                         options=localize_options(body.min_probability))  # fmt: skip
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("localization on %s failed numerically: %r", map_id, exc)
-        _count("frame", body.method, ["failed"], time.perf_counter() - t1)
+        _count(map_id, "frame", body.method, ["failed"], time.perf_counter() - t1)
         return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
                              "reason": f"numerical failure ({exc.__class__.__name__})"},
                             headers=_server_timing(admitted, t0, t1))  # fmt: skip
-    _count("frame", body.method, [pose.status], time.perf_counter() - t1)
+    _count(map_id, "frame", body.method, [pose.status], time.perf_counter() - t1)
     headers = _server_timing(admitted, t0, t1)
     return JSONResponse(_pose_json(pose), headers=headers)
 
@@ -421,7 +421,7 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
                   "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
         statuses = ["failed"] * len(frames)
         answer = JSONResponse({"poses": [failed] * len(frames), "tracks": 0, "state": None})
-    _count("drive", "default", statuses, busy)
+    _count(map_id, "drive", "default", statuses, busy)
     answer.headers.update(_server_timing(admitted, t0, t1, busy))
     return answer
 
@@ -462,11 +462,11 @@ def _advance(steps) -> tuple[tuple[list[str], JSONResponse] | None, float]:
     return None, time.perf_counter() - t
 
 
-def _count(endpoint: str, method: str, statuses: list[str], seconds: float) -> None:
-    """Count a request's answers by status, and the ``seconds`` its localizer took."""
+def _count(map_id: str, endpoint: str, method: str, statuses: list[str], seconds: float) -> None:
+    """Count a request's answers by map and status, and the ``seconds`` its localizer took."""
     metrics.localizer_seconds.labels(endpoint).observe(seconds)
     for status in statuses:
-        metrics.localizations.labels(endpoint, method, status).inc()
+        metrics.localizations.labels(map_id, endpoint, method, status).inc()
 
 
 def _prior(g: GpsIn):
