@@ -21,6 +21,7 @@ from mapbuilder.store import Store
 from . import problems
 from .deps import Context
 from .middleware import BodyGuard, HeadAsGet
+from .request_id import RequestId
 from .settings import ServiceSettings, Token, resolve_tokens
 
 log = logging.getLogger(__name__)
@@ -136,9 +137,11 @@ def create_app(
             CORSMiddleware,
             allow_origins=origins,
             allow_methods=["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"],
-            allow_headers=["Authorization", "Content-Type", "If-Match", "If-None-Match"],
-            expose_headers=["ETag", "Location", "Link"],
+            allow_headers=["Authorization", "Content-Type", "If-Match", "If-None-Match", "X-Request-ID"],
+            expose_headers=["ETag", "Location", "Link", "X-Request-ID"],
         )
+    # Outermost: every answer carries its ID, a CORS preflight's and a refused body's too.
+    app.add_middleware(RequestId)
     return app
 
 

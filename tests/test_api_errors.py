@@ -131,6 +131,36 @@ def test_limits_read_tokens_and_cors(strict):
     assert c.get("/collections", headers=strict.auth).status_code == 200  # still serving
 
 
+def test_every_answer_carries_a_request_id_that_the_log_shows(api, strict):
+    """``X-Request-ID``: the client's (when it is safe to log) or a fresh one, on answers and refusals alike."""
+    fresh = re.compile(r"[0-9a-f]{32}")
+    ids = [httpx.get(f"{api.base_url}/conformance").headers["x-request-id"] for _ in range(2)]
+    assert all(fresh.fullmatch(i) for i in ids) and ids[0] != ids[1]
+    mine = "vehicle-42:frame/7.3"
+    r = httpx.get(f"{api.base_url}/collections/no-such-map", headers={"X-Request-ID": mine})
+    assert_problem(r, 404)
+    assert r.headers["x-request-id"] == mine
+    # What could forge or flood a log line is replaced, not echoed.
+    for bad in ("two words", "x" * 129, "a;b", 'q"uote'):
+        got = httpx.get(f"{api.base_url}/conformance", headers={"X-Request-ID": bad}).headers.get_list("x-request-id")
+        assert len(got) == 1 and fresh.fullmatch(got[0]), (bad, got)
+    # the body guard's refusal, before any route
+    r = httpx.post(f"{strict.base_url}/collections/x/import", content=b"{}", headers={
+        **strict.auth, "Content-Type": "text/plain", "X-Request-ID": "refused-1"})  # fmt: skip
+    assert_problem(r, 415)
+    assert r.headers["x-request-id"] == "refused-1"
+    # a browser may send one and read it back
+    pre = httpx.options(f"{strict.base_url}/collections", headers={
+        "Origin": "http://editor.example", "Access-Control-Request-Method": "GET",
+        "Access-Control-Request-Headers": "authorization,x-request-id"})  # fmt: skip
+    assert pre.status_code == 200 and fresh.fullmatch(pre.headers["x-request-id"])
+    r = httpx.get(f"{strict.base_url}/collections", headers={**strict.auth, "Origin": "http://editor.example"})
+    assert "x-request-id" in r.headers["access-control-expose-headers"].lower()
+    # The operator finds the request's access line by its ID.
+    lines = [ln for ln in api.log().splitlines() if f"[{mine}]" in ln]
+    assert any('"GET /collections/no-such-map HTTP/1.1" 404' in ln for ln in lines), api.log()[-2000:]
+
+
 #: Every response must be documented: status, content type, headers and body schema.
 SCHEMATHESIS_CHECKS = ("not_a_server_error,status_code_conformance,content_type_conformance,"
                        "response_headers_conformance,response_schema_conformance")

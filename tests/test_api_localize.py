@@ -149,6 +149,21 @@ def test_index_follows_map_edits(api, kmap):
     assert httpx.post(url, json=body, timeout=60).json()["status"] == "ok"
 
 
+def test_the_localization_thread_logs_under_the_request_id(api, karlsruhe_fc):  # noqa: F811
+    """What the localization thread logs (a new map's index) carries the request's ``X-Request-ID``."""
+    map_id = api.new_map(prefix="rid")
+    part = {**karlsruhe_fc, "features": karlsruhe_fc["features"][:40]}
+    assert httpx.post(f"{api.base_url}/collections/{map_id}/import", json=part, headers=api.auth,
+                      timeout=60).status_code == 201  # fmt: skip
+    lon, lat = part["features"][0]["geometry"]["coordinates"]
+    body = {"gps": {"lat": lat, "lon": lon, "heading_deg": 0.0}, "observations": [{"x": 10.0, "y": 0.0}]}
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/localize", json=body, timeout=60,
+                   headers={"X-Request-ID": f"first-frame-{map_id}"})  # fmt: skip
+    assert r.status_code == 200 and r.headers["x-request-id"] == f"first-frame-{map_id}"
+    built = [ln for ln in api.log().splitlines() if f"map {map_id}: spatial index of 40 markings" in ln]
+    assert len(built) == 1 and f"[first-frame-{map_id}]" in built[0], built
+
+
 def test_no_observations_is_a_failed_status(api, kmap):
     map_id, feats = kmap
     p, *_ = scene(feats, 10)

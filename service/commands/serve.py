@@ -76,6 +76,7 @@ def register(app: typer.Typer) -> None:
 
         from .. import multiprocess
         from ..app import create_app
+        from ..request_id import log_config
         from ..settings import ServiceSettings, ensure_token_file, parse_tokens, token_path
 
         settings = ServiceSettings()
@@ -119,11 +120,11 @@ def register(app: typer.Typer) -> None:
         logging.getLogger("service").setLevel(logging.INFO)
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
-                        log_level=log_level)  # fmt: skip
+                        log_level=log_level, log_config=log_config())  # fmt: skip
         elif sockets is not None:
             store.close()
             config = uvicorn.Config("service.app:app_from_env", factory=True, host=host, port=port,
-                                    log_level=log_level)  # fmt: skip
+                                    log_level=log_level, log_config=log_config())  # fmt: skip
             try:
                 multiprocess.serve(config, sockets)
             except multiprocess.WorkerStartError as exc:
@@ -131,4 +132,4 @@ def register(app: typer.Typer) -> None:
         else:
             store.close()
             uvicorn.run("service.app:app_from_env", factory=True, host=host, port=port, workers=workers,
-                        log_level=log_level)  # fmt: skip
+                        log_level=log_level, log_config=log_config())  # fmt: skip

@@ -1,0 +1,91 @@
+"""Request IDs: every answer carries ``X-Request-ID``, and the server's log lines of that request show it.
+
+A client that reports a doubtful answer (a vehicle's pose, a refused edit)
+quotes the header; the operator finds the request's access line and
+whatever the server logged while answering it. A client may send its own
+``X-Request-ID`` (up to 128 letters, digits and ``._:/+=-``, so that it
+cannot forge log lines); anything else is replaced by a fresh one.
+
+The ID lives in a context variable, which the localization thread inherits
+(``anyio.to_thread`` runs in a copy of the request's context), and
+:class:`RequestIdFilter` writes it into every log record as ``request_id``
+(``-`` outside a request). :func:`log_config` is uvicorn's logging
+configuration with the ID in its formats, for ``lanemap serve``.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import re
+import uuid
+from contextvars import ContextVar
+
+HEADER = b"x-request-id"
+_VALID = re.compile(r"[A-Za-z0-9._:/+=-]{1,128}")
+
+current: ContextVar[str] = ContextVar("lanemap_request_id", default="-")
+
+
+def _from_client(headers) -> str | None:
+    for key, value in headers:
+        if key == HEADER:
+            try:
+                text = value.decode("ascii")
+            except UnicodeDecodeError:
+                return None
+            return text if _VALID.fullmatch(text) else None
+    return None
+
+
+class RequestId:
+    """ASGI middleware: take the client's ``X-Request-ID`` or make one, and send it back."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        rid = _from_client(scope["headers"]) or uuid.uuid4().hex
+        token = current.set(rid)
+
+        async def send_with_id(message) -> None:
+            if message["type"] == "http.response.start":
+                headers = [(k, v) for k, v in message.get("headers", ()) if k.lower() != HEADER]
+                message = {**message, "headers": headers + [(HEADER, rid.encode())]}
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            current.reset(token)
+
+
+class RequestIdFilter(logging.Filter):
+    """Adds ``request_id`` to every record a handler emits (``-`` outside a request)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.request_id = current.get()
+        return True
+
+
+def log_config() -> dict:
+    """uvicorn's logging configuration with the request ID in the server's and the access log's lines.
+
+    The service's own loggers (``service.*``) log at INFO through the same
+    handler as uvicorn's, in every server process.
+    """
+    from uvicorn.config import LOGGING_CONFIG
+
+    config = copy.deepcopy(LOGGING_CONFIG)
+    config["filters"] = {"request_id": {"()": RequestIdFilter}}
+    for handler in config["handlers"].values():
+        handler.setdefault("filters", []).append("request_id")
+    config["formatters"]["default"]["fmt"] = "%(levelprefix)s [%(request_id)s] %(message)s"
+    config["formatters"]["access"]["fmt"] = (
+        '%(levelprefix)s [%(request_id)s] %(client_addr)s - "%(request_line)s" %(status_code)s'
+    )
+    config["loggers"]["service"] = {"handlers": ["default"], "level": "INFO", "propagate": False}
+    return config
