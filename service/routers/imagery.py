@@ -26,6 +26,10 @@ from ._common import JSON, base_url, link, parse_id
 
 log = logging.getLogger(__name__)
 
+#: Uploads are written in pieces of this size, off the event loop: a slow disk
+#: must not hold up the localizations the same server process answers meanwhile.
+WRITE_BLOCK_BYTES = 1 << 20
+
 router = APIRouter(tags=["Imagery"], dependencies=[Depends(require_read)])
 
 UPLOAD_TYPES = ("image/tiff", "image/geotiff", "image/tiff; application=geotiff", "application/octet-stream")
@@ -137,25 +141,39 @@ async def upload_imagery(
     try:
         await run_in_threadpool(tmp_dir.mkdir, parents=True, exist_ok=True)
         write_error: OSError | None = None
-        with open(tmp, "wb") as fh:
+        pending = bytearray()
+
+        async def write_pending() -> None:
+            nonlocal write_error
+            if write_error is None and pending:
+                try:
+                    await run_in_threadpool(fh.write, pending)
+                except OSError as exc:
+                    # Read the rest (to the limit) so that the client gets the answer
+                    # instead of a reset connection; free the space at once.
+                    write_error = exc
+                    await run_in_threadpool(tmp.unlink, missing_ok=True)
+            pending.clear()
+
+        fh = await run_in_threadpool(open, tmp, "wb")
+        try:
             try:
                 async for chunk in request.stream():
                     size += len(chunk)
                     if size > limit:
                         raise Problem(413, f"upload exceeds the limit of {limit} bytes", "too-large")
                     if write_error is None:
-                        try:
-                            fh.write(chunk)
-                        except OSError as exc:
-                            # Read the rest (to the limit) so that the client gets the answer
-                            # instead of a reset connection; free the space at once.
-                            write_error = exc
-                            tmp.unlink(missing_ok=True)
+                        pending += chunk
+                        if len(pending) >= WRITE_BLOCK_BYTES:
+                            await write_pending()
+                await write_pending()
             except ClientDisconnect:
                 log.info("upload to %s aborted by the client after %d bytes", mapId, size)
                 raise Problem(400, "the upload was interrupted", "truncated-upload") from None
             if write_error is not None:
                 raise write_error
+        finally:
+            await run_in_threadpool(fh.close)
         if declared is not None and size != int(declared):
             raise Problem(400, f"upload is truncated: {size} of {declared} bytes arrived", "truncated-upload")
         if size == 0:
