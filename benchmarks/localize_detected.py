@@ -237,7 +237,7 @@ def main() -> None:
     unknown = index_from_markings(arrays, CRS)
     indexes = {"Lanelet2": restricted_truth(areas), "detected": detected, "detected, no kinds": unknown}
     segs = {k: int((v.half_length > 0).sum()) for k, v in indexes.items()}
-    print(f"markings indexed (line pieces matched as segments): "
+    print("markings indexed (line pieces matched as segments): "
           + ", ".join(f"{k} {len(v)} ({segs[k]})" for k, v in indexes.items()))
     slack = int((~solid & (detected.half_length > 0)).sum())
     print(f"detections of unknown kind cut short or run long (slack along the axis): {slack} of {int((~solid).sum())}")

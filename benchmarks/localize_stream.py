@@ -25,7 +25,6 @@ Run: ``.venv/bin/python benchmarks/localize_stream.py [--runs 50] [--frames 40] 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path

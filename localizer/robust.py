@@ -9,7 +9,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, keep_nearest, nearest_marking, rotation
+from .geometry import _FAR, NEAREST_CENTROIDS, LocalMap, apply, keep_nearest, nearest_marking
 from .types import Options
 
 
