@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import time
 
 import httpx
@@ -244,6 +245,9 @@ def test_the_server_compiles_the_localizer_before_serving(tmp_path, karlsruhe_fc
         tmp_path, karlsruhe_fc, {"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})
     try:
         assert "localizer kernels ready in" in server.log()
+        # ... and what the start left behind is kept out of the full collections (0.1 s each otherwise)
+        frozen = re.search(r"(\d+) objects of the start frozen", server.log())
+        assert frozen and int(frozen.group(1)) > 50_000, server.log()[-2000:]
         assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # compiled here, not loaded
         p, lon, lat, heading, obs = scene(feats, 400)
         r = httpx.post(f"{server.base_url}/collections/{map_id}/localize",
