@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -119,8 +119,16 @@ def feature_to_marking(feature: Any, index: int | None = None, *, default_source
     )
 
 
-def read_feature_collection(obj: Any) -> list[Marking]:
-    """Markings from a parsed GeoJSON FeatureCollection (or a single Feature)."""
+#: Features converted between two calls of a reader's ``progress``.
+PROGRESS_STEP = 10_000
+
+
+def read_feature_collection(obj: Any, progress: Callable[[int, int], None] | None = None) -> list[Marking]:
+    """Markings from a parsed GeoJSON FeatureCollection (or a single Feature).
+
+    ``progress``, optional: called with the features converted so far and
+    their total, every :data:`PROGRESS_STEP` features and at the end.
+    """
     if isinstance(obj, dict) and obj.get("type") == "Feature":
         return [feature_to_marking(obj, 0)]
     if not isinstance(obj, dict) or obj.get("type") != "FeatureCollection":
@@ -133,15 +141,24 @@ def read_feature_collection(obj: Any) -> list[Marking]:
         name = (crs.get("properties") or {}).get("name", "") if isinstance(crs, dict) else ""
         if "CRS84" not in str(name) and "4326" not in str(name):
             raise GeoJSONError(f"GeoJSON must be WGS84 lon/lat (RFC 7946); it declares crs {name!r}")
-    return [feature_to_marking(f, i) for i, f in enumerate(feats)]
+    if progress is None:
+        return [feature_to_marking(f, i) for i, f in enumerate(feats)]
+    out: list[Marking] = []
+    for start in range(0, len(feats), PROGRESS_STEP):
+        out.extend(feature_to_marking(f, start + i) for i, f in enumerate(feats[start:start + PROGRESS_STEP]))
+        progress(len(out), len(feats))
+    return out
 
 
 def _reject_constant(value: str):
     raise GeoJSONError(f"invalid JSON number {value}")
 
 
-def read_geojson_file(path: str | Path) -> list[Marking]:
-    """Read markings from a GeoJSON file; every problem is a :class:`GeoJSONError`."""
+def read_geojson_file(path: str | Path, progress: Callable[[int, int], None] | None = None) -> list[Marking]:
+    """Read markings from a GeoJSON file; every problem is a :class:`GeoJSONError`.
+
+    ``progress``: as for :func:`read_feature_collection`, once the file is parsed.
+    """
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -156,7 +173,7 @@ def read_geojson_file(path: str | Path) -> list[Marking]:
         raise GeoJSONError(f"{path} is not UTF-8 text") from None
     except json.JSONDecodeError as exc:
         raise GeoJSONError(f"{path} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
-    return read_feature_collection(obj)
+    return read_feature_collection(obj, progress)
 
 
 def marking_to_feature(m: Marking) -> dict[str, Any]:

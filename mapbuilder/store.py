@@ -15,7 +15,7 @@ import json
 import logging
 import math
 import re
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
@@ -688,6 +688,7 @@ class Store:
         comment: str = "",
         *,
         lonlat: bool = False,
+        progress: Callable[[int, int], None] | None = None,
     ) -> list[int]:
         """Insert markings in one transaction and log it as one ``import`` changeset.
 
@@ -697,6 +698,9 @@ class Store:
             The markings' ``lon``/``lat`` hold their position (WGS84); ``x``/``y``
             are computed in the map's CRS, which is chosen from the data when the
             map has none yet.
+        progress : callable, optional
+            Called with the markings inserted so far and their total after
+            each batch (up to 5,000), once every marking has been checked.
         """
         items = list(items)
         if not items:
@@ -725,7 +729,7 @@ class Store:
                 row["map_id"] = map_id
                 row["version"] = 1
                 rows.append(row)
-            ids = self._insert_rows(conn, rows)
+            ids = self._insert_rows(conn, rows, progress)
             cs = conn.execute(
                 insert(changesets).values(
                     map_id=map_id, who=who, at=now, comment=comment, n_create=len(ids),
@@ -742,7 +746,8 @@ class Store:
             self._touch_map(conn, map_id, [r["x"] for r in rows], [r["y"] for r in rows])
         return ids
 
-    def _insert_rows(self, conn: Connection, rows: list[dict[str, Any]]) -> list[int]:
+    def _insert_rows(self, conn: Connection, rows: list[dict[str, Any]],
+                     progress: Callable[[int, int], None] | None = None) -> list[int]:  # fmt: skip
         if not rows:
             return []
         ids: list[int] = []
@@ -753,6 +758,8 @@ class Store:
                 insert(markings).returning(markings.c.id, sort_by_parameter_order=True), chunk
             )
             ids.extend(r[0] for r in result)
+            if progress is not None:
+                progress(len(ids), len(rows))
         return ids
 
     def bulk_load(self, map_id: str, items: Iterable[Marking], chunk: int = 20000) -> int:

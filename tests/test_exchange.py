@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -221,3 +222,27 @@ def test_db_upgrade_cli(sqlite_url, tmp_path, cli):
     out = run(["db", "upgrade"], sqlite_url, tmp_path).stdout
     assert "(empty) -> 0001" in out
     assert "database: 0001" in run(["db", "current"], sqlite_url, tmp_path).stdout
+
+
+def test_import_and_export_show_progress_when_asked(db_url, tmp_path):
+    """``--progress``: bars with rate and ETA that end at the file's and the map's counts; none on a pipe."""
+    n = 12_345  # more than two of the reader's and the store's steps
+    feats = [{"type": "Feature", "geometry": {"type": "Point", "coordinates": [8.40 + i * 1e-6, 49.0]},
+              "properties": {"length_m": 3.0, "width_m": 0.15, "bearing_deg": 90.0}} for i in range(n)]
+    (tmp_path / "many.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+
+    def final(stderr, desc):
+        frames = [f for f in stderr.replace("\r", "\n").splitlines() if f.startswith(desc)]
+        assert len(frames) >= 3, stderr  # it moved on the way, not only at the end
+        return frames[-1]
+
+    proc = run(["import", "m", "many.geojson", "--create", "--progress"], db_url, tmp_path)
+    assert proc.stdout.strip() == f"imported {n} markings into m"
+    assert re.search(r"100%.*12\.3k/12\.3k .*feature/s", final(proc.stderr, "read many.geojson")), proc.stderr
+    assert re.search(r"100%.*12\.3k/12\.3k .*marking/s", final(proc.stderr, "import m")), proc.stderr
+    proc = run(["export", "m", "out.gpkg", "--progress"], db_url, tmp_path)
+    assert re.search(r"100%.*12\.3k/12\.3k .*marking/s", final(proc.stderr, "export m")), proc.stderr
+    assert proc.stdout.strip() == f"exported {n} markings to out.gpkg"
+    # Without the flag, on a pipe: nothing on stderr but errors.
+    proc = run(["export", "m", "out.geojson"], db_url, tmp_path)
+    assert proc.stderr == "" and len(json.loads((tmp_path / "out.geojson").read_text())["features"]) == n

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import typer
@@ -13,6 +15,36 @@ from mapbuilder.store import Store
 from ..cli_errors import fail
 
 
+_PROGRESS = typer.Option(None, "--progress/--no-progress",
+                         help="Show progress bars (rate, ETA) on stderr; default: when stderr is a terminal.")
+
+
+def _bar(progress: bool | None, total: int | None, unit: str, desc: str):
+    """A tqdm bar on stderr: asked for (``--progress``), or on a terminal once the work takes 0.5 s."""
+    from tqdm import tqdm
+
+    show = sys.stderr.isatty() if progress is None else progress
+    return tqdm(total=total, unit=unit, desc=desc, disable=not show, file=sys.stderr, dynamic_ncols=True,
+                unit_scale=True, delay=0.5 if progress is None else 0.0)
+
+
+def _follow(bar) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback that moves ``bar``."""
+
+    def progress(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.total = total
+        bar.update(done - bar.n)
+
+    return progress
+
+
+def _counted(items: Iterable, bar) -> Iterator:
+    for item in items:
+        yield item
+        bar.update(1)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("import")
     def import_(
@@ -20,32 +52,40 @@ def register(app: typer.Typer) -> None:
         file: Path = typer.Argument(..., help="GeoJSON FeatureCollection of marking centroids (WGS84)."),
         create: bool = typer.Option(False, "--create", help="Create the map if it does not exist."),
         comment: str = typer.Option("", "--comment", help="Comment for the edit log."),
+        progress: bool | None = _PROGRESS,
     ) -> None:
         """Import markings from GeoJSON in one transaction: all of them or none."""
-        items = read_geojson_file(file)  # parse everything before touching the database
+        # Parse and check everything before touching the database.
+        with _bar(progress, None, "feature", f"read {file.name}") as bar:
+            items = read_geojson_file(file, progress=_follow(bar))
         store = Store()
         if create and not any(m.id == map_id for m in store.list_maps()):
             store.create_map(map_id)
-        ids = store.add_markings(map_id, items, who="cli", comment=comment or f"import {file.name}", lonlat=True)
+        with _bar(progress, len(items), "marking", f"import {map_id}") as bar:
+            ids = store.add_markings(map_id, items, who="cli", comment=comment or f"import {file.name}",
+                                     lonlat=True, progress=_follow(bar))  # fmt: skip
         typer.echo(f"imported {len(ids)} markings into {map_id}")
 
     @app.command("export")
     def export(
         map_id: str = typer.Argument(..., metavar="MAP"),
         file: Path = typer.Argument(..., help="Output .geojson (WGS84) or .gpkg (storage CRS)."),
+        progress: bool | None = _PROGRESS,
     ) -> None:
         """Export a map's markings to GeoJSON or GeoPackage."""
         suffix = file.suffix.lower()
         if suffix not in (".geojson", ".json", ".gpkg"):
             fail(f"cannot export to {file.name}: use a .geojson or .gpkg file name")
         store = Store()
-        info = store.get_map(map_id)
-        if suffix == ".gpkg":
-            if info.crs is None:
-                fail(f"map {map_id} is empty and has no CRS yet")
-            n = write_gpkg(file, store.iter_markings(map_id), info.crs)
-        else:
-            n = write_geojson(file, store.iter_markings(map_id))
+        info = store.get_map(map_id, with_count=True)
+        if suffix == ".gpkg" and info.crs is None:
+            fail(f"map {map_id} is empty and has no CRS yet")
+        with _bar(progress, info.count or 0, "marking", f"export {map_id}") as bar:
+            items = _counted(store.iter_markings(map_id), bar)
+            if suffix == ".gpkg":
+                n = write_gpkg(file, items, info.crs)
+            else:
+                n = write_geojson(file, items)
         typer.echo(f"exported {n} markings to {file}")
 
     @app.command("from-lanelet2")
