@@ -348,3 +348,24 @@ def test_concurrent_writers_from_processes(db_url):
     store = Store(db_url)
     assert _count(store, "ka") == 100
     assert store.map_revision("ka") == 100
+
+
+def test_add_markings_answers_each_marking_its_own_id(db_url):
+    """Over several batches, after other maps' markings and a deleted map's: ids in the order given."""
+    store = Store(db_url)
+    for m in ("a", "b", "c"):
+        store.create_map(m, crs="EPSG:25832")
+    store.add_markings("a", [_m(i, 0) for i in range(30)])
+    store.add_markings("b", [_m(i, 1) for i in range(20)])
+    store.delete_map("b")  # the largest ids go: new ones must not reuse them
+    items = [_m(i * 0.01, 2) for i in range(12_001)]  # three batches
+    for i, m in enumerate(items):
+        m.weight = 1.0 + i
+    seen = []
+    ids = store.add_markings("c", items, progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(5000, 12_001), (10_000, 12_001), (12_001, 12_001)]
+    assert len(ids) == len(set(ids)) == len(items) and ids == sorted(ids) and ids[0] > 50
+    for k in (0, 4999, 5000, 9999, 10_000, 12_000):
+        got = store.get_marking("c", ids[k])
+        assert got.weight == items[k].weight and math.isclose(got.x, items[k].x), k
+    store.close()
