@@ -141,12 +141,11 @@ def read_feature_collection(obj: Any, progress: Callable[[int, int], None] | Non
         name = (crs.get("properties") or {}).get("name", "") if isinstance(crs, dict) else ""
         if "CRS84" not in str(name) and "4326" not in str(name):
             raise GeoJSONError(f"GeoJSON must be WGS84 lon/lat (RFC 7946); it declares crs {name!r}")
-    if progress is None:
-        return [feature_to_marking(f, i) for i, f in enumerate(feats)]
     out: list[Marking] = []
     for start in range(0, len(feats), PROGRESS_STEP):
-        out.extend(feature_to_marking(f, start + i) for i, f in enumerate(feats[start:start + PROGRESS_STEP]))
-        progress(len(out), len(feats))
+        out.extend(feature_to_marking(f, start + i) for i, f in enumerate(feats[start : start + PROGRESS_STEP]))
+        if progress is not None:
+            progress(len(out), len(feats))
     return out
 
 
