@@ -21,7 +21,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import os
 import sys
@@ -34,28 +33,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def _frames():
-    from load_localize import make_bodies
-
-    from localizer import Prior
-
-    frames = []
-    for body in make_bodies(200, 7, 1.5, 2.0):
-        d = json.loads(body)
-        g = d["gps"]
-        frames.append((np.array([[o["x"], o["y"], o["weight"]] for o in d["observations"]]),
-                       Prior(g["lat"], g["lon"], g["heading_deg"], g["position_sigma_m"],
-                             g["heading_sigma_deg"])))  # fmt: skip
-    return frames
-
-
 def _run(start_at: float, seconds: float, out) -> None:
+    from load_localize import load_frames
     from tests._localizer_helpers import karlsruhe
 
     from localizer import localize
 
     index, _ = karlsruhe()
-    frames = _frames()
+    frames = load_frames(200, 7, 1.5, 2.0)
     for obs, prior in frames[:20]:
         localize(index, obs, prior)
     time.sleep(max(0.0, start_at - time.time()))

@@ -117,6 +117,20 @@ def make_bodies(n: int, seed: int, gps_sigma: float, heading_sigma: float,
     return bodies
 
 
+def load_frames(n: int = 200, seed: int = 7, gps_sigma: float = 1.5, heading_sigma: float = 2.0):
+    """The bodies of :func:`make_bodies` as the localizer takes them: ``(observations (N, 3), Prior)`` pairs."""
+    from localizer import Prior
+
+    frames = []
+    for body in make_bodies(n, seed, gps_sigma, heading_sigma):
+        d = json.loads(body)
+        g = d["gps"]
+        frames.append((np.array([[o["x"], o["y"], o["weight"]] for o in d["observations"]]),
+                       Prior(g["lat"], g["lon"], g["heading_deg"], g["position_sigma_m"],
+                             g["heading_sigma_deg"])))  # fmt: skip
+    return frames
+
+
 @dataclass
 class Level:
     concurrency: int

@@ -29,7 +29,6 @@ Run: ``.venv/bin/python benchmarks/localize_latency.py`` (report ``uptime`` load
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -155,15 +154,9 @@ def main() -> None:
                 f"localize {method}, Karlsruhe {label}, prior {sigma_m:g} m/{sigma_deg:g}° "
                 f"({np.median(n_obs):.0f} obs median)", np.array(ms)))
     # The load test's frames, as the service receives them (JSON bodies).
-    from load_localize import make_bodies
+    from load_localize import load_frames
 
-    frames = []
-    for body in make_bodies(200, 7, 1.5, 2.0):
-        d = json.loads(body)
-        g = d["gps"]
-        frames.append((np.array([[o["x"], o["y"], o["weight"]] for o in d["observations"]]),
-                       Prior(g["lat"], g["lon"], g["heading_deg"], g["position_sigma_m"],
-                             g["heading_sigma_deg"])))  # fmt: skip
+    frames = load_frames(200, 7, 1.5, 2.0)
     for method in ("default", "pink2008"):
         ms = np.concatenate([timeit(lambda: localize(index, o, p, method=method), 1)
                              for _ in range(2) for o, p in frames])  # fmt: skip
