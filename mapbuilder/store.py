@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import (
-    Text, and_, create_engine, delete, event, func, insert, or_, select, type_coerce, update,
+    Text, and_, create_engine, delete, event, func, insert, or_, select, text, type_coerce, update,
 )  # fmt: skip
 from sqlalchemy.engine import Connection, Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
@@ -751,11 +751,27 @@ class Store:
         if not rows:
             return []
         ids: list[int] = []
+        dialect = conn.dialect
+        if dialect.name == "postgresql" and dialect.driver == "psycopg":
+            # A batched RETURNING statement (1,000 rows, 24,000 placeholders) is
+            # parsed anew by psycopg at every execution: 0.4 ms a marking. The
+            # column's sequence hands out every id in one statement instead,
+            # and the rows go by COPY with them.
+            seq = conn.execute(text("SELECT pg_get_serial_sequence('markings', 'id')")).scalar_one()
+            new_ids = sorted(conn.execute(text("SELECT nextval(:seq) FROM generate_series(1, :n)"),
+                                          {"seq": seq, "n": len(rows)}).scalars())  # fmt: skip
+            for start in range(0, len(rows), 5000):
+                chunk = rows[start : start + 5000]
+                _insert_many(conn, markings, [{"id": i, **r} for i, r in zip(new_ids[start:], chunk)])
+                ids.extend(new_ids[start : start + len(chunk)])
+                if progress is not None:
+                    progress(len(ids), len(rows))
+            return ids
         # SQLite promises no order for RETURNING, so SQLAlchemy would insert its
         # rows one statement each (three times slower). It has one writer at a
         # time and new rowids only grow: the ids above the largest one before a
-        # batch are the batch's, in its order. PostgreSQL batches RETURNING itself.
-        sqlite = conn.dialect.name == "sqlite"
+        # batch are the batch's, in its order.
+        sqlite = dialect.name == "sqlite"
         floor = conn.execute(select(func.coalesce(func.max(markings.c.id), 0))).scalar_one() if sqlite else 0
         for start in range(0, len(rows), 5000):
             chunk = rows[start : start + 5000]
