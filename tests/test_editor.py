@@ -438,6 +438,38 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     assert (cs["comment"], cs["created"], cs["updated"], cs["deleted"]) == ("after the conflict", 0, 2, 1)
 
 
+def test_a_server_error_names_the_request_to_report(editor, fx, server):
+    """A 5xx on save keeps the edits and names the answer's X-Request-ID, which the server's log shows."""
+    editor.open().enter_token()
+    page = editor.page
+    a = fx.isolated(source="detected")[0]
+    editor.click_marking(a)
+    editor.key("r")
+    # The database goes away just as the changeset is sent (the store's answer to an outage).
+    outage = json.dumps({"type": "urn:lanemap:problem:store-unavailable", "title": "Service Unavailable",
+                         "status": 503, "detail": "the database is unavailable; retry shortly"})
+
+    def post_fails(route):
+        if route.request.method != "POST":
+            return route.continue_()
+        return route.fulfill(status=503, body=outage, headers={
+            "Content-Type": "application/problem+json", "Retry-After": "5", "X-Request-ID": "outage-1"})
+
+    page.route("**/changesets", post_fails)
+    editor.save("during an outage")
+    page.wait_for_function("document.getElementById('toast').textContent.includes('outage-1')")
+    assert page.text_content("#toast") == ("Save failed, your edits are kept: 503: the database is unavailable; "
+                                           "retry shortly (request outage-1)")
+    assert editor.unsaved() == 1
+    page.unroute("**/changesets", post_fails)
+    editor.responses.clear()  # the 503 above was the test's own
+    # Once the database is back, the same edits save.
+    editor.save("after the outage")
+    page.wait_for_function("document.getElementById('unsaved').textContent === '0 unsaved'")
+    got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{a}").json()["properties"]
+    assert got["status"] == "rejected"
+
+
 def test_unsaved_edits_survive_a_reload_and_a_crash(editor, fx, server):
     editor.open().enter_token()
     page = editor.page

@@ -3,10 +3,12 @@
 import { fromFeature } from './edits.js';
 
 export class ApiError extends Error {
-  constructor(status, problem) {
+  /** @param {string|null} requestId  the answer's X-Request-ID, which the server's log shows */
+  constructor(status, problem, requestId = null) {
     super(problem?.detail || problem?.title || `HTTP ${status}`);
     this.status = status;
     this.problem = problem || {};
+    this.requestId = requestId;
   }
 }
 
@@ -44,7 +46,7 @@ export class Api {
     } catch {
       data = { detail: text.slice(0, 200) };
     }
-    if (!res.ok) throw new ApiError(res.status, data);
+    if (!res.ok) throw new ApiError(res.status, data, res.headers.get('X-Request-ID'));
     return data;
   }
 

@@ -84,8 +84,10 @@ function toast(text, kind = 'info') {
 }
 
 function problemText(err) {
-  if (err instanceof ApiError) return `${err.status}: ${err.message}`;
-  return String(err?.message || err);
+  if (!(err instanceof ApiError)) return String(err?.message || err);
+  // A server error is the operator's to look into: the request ID finds it in the server's log.
+  const ref = err.status >= 500 && err.requestId ? ` (request ${err.requestId})` : '';
+  return `${err.status}: ${err.message}${ref}`;
 }
 
 // ---------------------------------------------------------------- markings: as edited
