@@ -439,7 +439,8 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
 
 
 def test_a_server_error_names_the_request_to_report(editor, fx, server):
-    """A 5xx on save keeps the edits and names the answer's X-Request-ID, which the server's log shows."""
+    """A 5xx on save keeps the edits and names the answer's X-Request-ID (what the server's log shows:
+    tests/test_api_errors.py); the 503 is answered in the browser, as the store answers an outage."""
     editor.open().enter_token()
     page = editor.page
     a = fx.isolated(source="detected")[0]
