@@ -750,7 +750,17 @@ class Store:
                      progress: Callable[[int, int], None] | None = None) -> list[int]:  # fmt: skip
         if not rows:
             return []
+        insert_batch = self._batch_inserter(conn, len(rows))
         ids: list[int] = []
+        for start in range(0, len(rows), 5000):
+            ids.extend(insert_batch(rows[start : start + 5000]))
+            if progress is not None:
+                progress(len(ids), len(rows))
+        return ids
+
+    @staticmethod
+    def _batch_inserter(conn: Connection, n: int) -> Callable[[list[dict[str, Any]]], list[int]]:
+        """A function inserting a batch of marking rows and answering their ids in order, for ``n`` rows in all."""
         dialect = conn.dialect
         if dialect.name == "postgresql" and dialect.driver == "psycopg":
             # A batched RETURNING statement (1,000 rows, 24,000 placeholders) is
@@ -758,40 +768,39 @@ class Store:
             # column's sequence hands out every id in one statement instead,
             # and the rows go by COPY with them.
             seq = conn.execute(text("SELECT pg_get_serial_sequence('markings', 'id')")).scalar_one()
-            new_ids = sorted(conn.execute(text("SELECT nextval(:seq) FROM generate_series(1, :n)"),
-                                          {"seq": seq, "n": len(rows)}).scalars())  # fmt: skip
-            for start in range(0, len(rows), 5000):
-                chunk = rows[start : start + 5000]
-                _insert_many(conn, markings, [{"id": i, **r} for i, r in zip(new_ids[start:], chunk)])
-                ids.extend(new_ids[start : start + len(chunk)])
-                if progress is not None:
-                    progress(len(ids), len(rows))
-            return ids
-        # SQLite promises no order for RETURNING, so SQLAlchemy would insert its
-        # rows one statement each (three times slower). It has one writer at a
-        # time and new rowids only grow: the ids above the largest one before a
-        # batch are the batch's, in its order.
-        sqlite = dialect.name == "sqlite"
-        floor = conn.execute(select(func.coalesce(func.max(markings.c.id), 0))).scalar_one() if sqlite else 0
-        for start in range(0, len(rows), 5000):
-            chunk = rows[start : start + 5000]
-            if sqlite:
-                _insert_many(conn, markings, chunk)
+            reserved = iter(sorted(conn.execute(text("SELECT nextval(:seq) FROM generate_series(1, :n)"),
+                                                {"seq": seq, "n": n}).scalars()))  # fmt: skip
+
+            def copy_with_ids(batch):
+                with_ids = [{"id": next(reserved), **r} for r in batch]
+                _insert_many(conn, markings, with_ids)
+                return [r["id"] for r in with_ids]
+
+            return copy_with_ids
+        if dialect.name == "sqlite":
+            # SQLite promises no order for RETURNING, so SQLAlchemy would insert
+            # the rows one statement each (three times slower). It has one writer
+            # at a time and new rowids only grow: the ids above the largest one
+            # before a batch are the batch's, in its order.
+            floor = [conn.execute(select(func.coalesce(func.max(markings.c.id), 0))).scalar_one()]
+
+            def bulk_then_read_ids(batch):
+                _insert_many(conn, markings, batch)
                 new = conn.execute(
-                    select(markings.c.id).where(markings.c.id > floor).order_by(markings.c.id)
+                    select(markings.c.id).where(markings.c.id > floor[0]).order_by(markings.c.id)
                 ).scalars().all()  # fmt: skip
-                if len(new) != len(chunk):  # another writer in this transaction: cannot happen
-                    raise RuntimeError(f"inserted {len(chunk)} markings but found {len(new)} new ids")
-                floor = new[-1]
-                ids.extend(new)
-            else:
-                result = conn.execute(
-                    insert(markings).returning(markings.c.id, sort_by_parameter_order=True), chunk
-                )
-                ids.extend(r[0] for r in result)
-            if progress is not None:
-                progress(len(ids), len(rows))
-        return ids
+                if len(new) != len(batch):  # another writer in this transaction: cannot happen
+                    raise RuntimeError(f"inserted {len(batch)} markings but found {len(new)} new ids")
+                floor[0] = new[-1]
+                return new
+
+            return bulk_then_read_ids
+
+        def returning(batch):
+            result = conn.execute(insert(markings).returning(markings.c.id, sort_by_parameter_order=True), batch)
+            return [r[0] for r in result]
+
+        return returning
 
     def bulk_load(self, map_id: str, items: Iterable[Marking], chunk: int = 20000) -> int:
         """Insert many markings fast (benchmarks, large imports): no edit log, one transaction."""
