@@ -124,7 +124,6 @@ class _Server(uvicorn.Server):
 
 def _child(config: uvicorn.Config, sock: socket.socket, ready: multiprocessing.connection.Connection) -> None:
     config.configure_logging()
-    logging.getLogger("service").setLevel(logging.INFO)
     server = _Server(config, ready)
     try:
         server.run(sockets=[sock])

@@ -9,7 +9,6 @@ own multiprocess mode (one shared socket) is used.
 
 from __future__ import annotations
 
-import logging
 import socket
 
 import typer
@@ -117,7 +116,6 @@ def register(app: typer.Typer) -> None:
             typer.echo(token_note)
         else:
             typer.echo("write tokens: from LANEMAP_API_TOKENS")
-        logging.getLogger("service").setLevel(logging.INFO)
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
                         log_level=log_level, log_config=log_config())  # fmt: skip
