@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Iterable
+import shutil
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -196,12 +198,40 @@ def markings_to_feature_collection(items: Iterable[Marking]) -> dict[str, Any]:
     return {"type": "FeatureCollection", "features": [marking_to_feature(m) for m in items]}
 
 
+#: Free space under which a failed GeoPackage write is reported as a full disk, bytes.
+_FULL_DISK_BYTES = 1 << 20
+
+
+@contextmanager
+def _atomic_target(path: Path, suffix: str) -> Iterator[Path]:
+    """A temporary file beside ``path`` that replaces it when the block succeeds.
+
+    If the block fails (a full disk, an interrupt) the temporary file is removed
+    and ``path`` is left as it was. An ``OSError`` names ``path``, not the
+    temporary file.
+    """
+    tmp = path.with_name(path.name + suffix)
+    try:
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
+        tmp.unlink(missing_ok=True)
+        yield tmp
+        tmp.replace(path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and not str(exc).startswith("cannot write"):
+            reason = exc.strerror or str(exc)
+            named = OSError(f"cannot write {path}: {reason}")
+            named.errno = exc.errno
+            raise named from exc
+        raise
+
+
 def write_geojson(path: str | Path, items: Iterable[Marking]) -> int:
     """Write markings as a GeoJSON FeatureCollection, atomically (temp file + rename)."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".part")
     n = 0
-    with open(tmp, "w", encoding="utf-8") as fh:
+    with _atomic_target(path, ".part") as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write('{"type": "FeatureCollection", "features": [\n')
         for m in items:
             if n:
@@ -209,19 +239,17 @@ def write_geojson(path: str | Path, items: Iterable[Marking]) -> int:
             fh.write(json.dumps(marking_to_feature(m), allow_nan=False))
             n += 1
         fh.write("\n]}\n")
-    tmp.replace(path)
     return n
 
 
 def write_gpkg(path: str | Path, items: Iterable[Marking], crs: str, layer: str = "markings") -> int:
     """Write markings to a GeoPackage layer of Points in the storage CRS ``crs``."""
+    import pyogrio.errors
     import pyogrio.raw
     import shapely
 
     items = list(items)
     path = Path(path)
-    tmp = path.with_name(path.name + ".part.gpkg")
-    tmp.unlink(missing_ok=True)
     cols: dict[str, tuple[str, Any]] = {
         "marking_id": ("int64", lambda m: m.id if m.id is not None else -1),
         "weight": ("float64", lambda m: m.weight),
@@ -237,15 +265,22 @@ def write_gpkg(path: str | Path, items: Iterable[Marking], crs: str, layer: str 
     }
     field_data = [np.array([get(m) for m in items], dtype=dtype) for dtype, get in cols.values()]
     geoms = shapely.to_wkb(shapely.points([m.x for m in items], [m.y for m in items])) if items else np.array([], dtype=object)
-    pyogrio.raw.write(
-        str(tmp),
-        geometry=np.asarray(geoms, dtype=object),
-        field_data=field_data,
-        fields=list(cols),
-        crs=crs,
-        geometry_type="Point",
-        driver="GPKG",
-        layer=layer,
-    )
-    tmp.replace(path)
+    with _atomic_target(path, ".part.gpkg") as tmp:
+        try:
+            pyogrio.raw.write(
+                str(tmp),
+                geometry=np.asarray(geoms, dtype=object),
+                field_data=field_data,
+                fields=list(cols),
+                crs=crs,
+                geometry_type="Point",
+                driver="GPKG",
+                layer=layer,
+            )
+        except pyogrio.errors.DataSourceError as exc:
+            # GDAL reports a full disk as a failed commit; say which it was.
+            reason = str(exc)
+            if shutil.disk_usage(tmp.parent).free < _FULL_DISK_BYTES:
+                reason = f"No space left on device ({reason})"
+            raise OSError(f"cannot write {path}: {reason}") from exc
     return len(items)

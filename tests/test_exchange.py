@@ -174,6 +174,8 @@ CLI_ERRORS = [
         (["maps", "create", "geo", "--crs", "EPSG:4326"], "not projected"),
         (["export", "nope", "x.geojson"], "unknown map 'nope'"),
         (["export", "m", "x.shp"], "use a .geojson or .gpkg"),
+        (["export", "m", "no/such/x.geojson"], "cannot write no/such/x.geojson: folder no/such does not exist"),
+        (["export", "m", "no/such/x.gpkg"], "cannot write no/such/x.gpkg: folder no/such does not exist"),
         (["import", "m", "missing.geojson"], "cannot read missing.geojson"),
         (["maps", "delete", "nope", "--yes"], "unknown map 'nope'"),
 ]

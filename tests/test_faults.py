@@ -425,3 +425,44 @@ def test_upload_to_an_unwritable_folder_is_a_clear_500_and_leaves_no_file(tmp_pa
         assert "Traceback" not in server.log()
     finally:
         server.stop()
+
+
+def test_export_to_a_full_disk_is_one_line_and_keeps_the_earlier_file(tmp_path):
+    """An export that runs out of space names the file, leaves no partial file and
+    keeps what an earlier export wrote there."""
+    _need_mount("a full disk is simulated with a small tmpfs, which needs mount as root or through sudo")
+    import json
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    features = [{"type": "Feature", "properties": {"kind": "dash", "weight": 40},
+                 "geometry": {"type": "Point", "coordinates": [LON + dx, LAT + dy]}}
+                for dx, dy in rng.uniform(-0.01, 0.01, (3000, 2))]  # fmt: skip
+    src = tmp_path / "in.geojson"
+    src.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    env = dict(os.environ, LANEMAP_DATABASE_URL=f"sqlite:///{tmp_path / 'db.sqlite'}",
+               LANEMAP_DATA_DIR=str(tmp_path / "data"))  # fmt: skip
+    env.pop("LANEMAP_DEBUG", None)
+
+    def lanemap(*args):
+        return subprocess.run([sys.executable, "-m", "service.cli", *args], env=env, cwd=tmp_path,
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+
+    assert lanemap("import", "m", str(src), "--create").returncode == 0
+    out = tmp_path / "out"
+    with tmpfs(out, 256 * 1024):
+        for name in ("m.geojson", "m.gpkg"):
+            earlier = b"an earlier export\n"
+            (out / name).write_bytes(earlier)
+            proc = lanemap("export", "m", str(out / name))
+            assert proc.returncode == 1, proc.stdout
+            lines = proc.stderr.strip().splitlines()
+            assert lines == [f"error: cannot write {out / name}: No space left on device"] or (
+                name.endswith(".gpkg") and len(lines) == 1
+                and lines[0].startswith(f"error: cannot write {out / name}: No space left on device (")
+            ), lines  # fmt: skip
+            assert "Traceback" not in proc.stderr and ".part" not in proc.stderr
+            assert sorted(p.name for p in out.iterdir()) == [name], "a partial file was left"
+            assert (out / name).read_bytes() == earlier
+            (out / name).unlink()
