@@ -122,7 +122,7 @@ def test_cnn_verified_build_of_a_held_out_render(tmp_path):
         found[verify] = (s["tp_det"] / max(s["n_det"], 1), s["tp_truth"] / max(s["n_truth"], 1))
     print(found, s["n_truth"])
     assert s["n_truth"] >= 40
-    (p0, r0), (p1, r1) = found[False], found[True]
+    (p0, _), (p1, r1) = found[False], found[True]
     assert p1 >= 0.9 and r1 >= 0.8, found
     assert p1 > p0 + 0.1, found
 

@@ -131,8 +131,8 @@ def register(app: typer.Typer) -> None:
     def localize_cmd(
         map_id: str = typer.Argument(..., metavar="MAP", help="Map id."),
         lat: float | None = typer.Option(
-            None, "--lat", help="GPS latitude, degrees (WGS84). The GPS options are required, but when "
-            "--state continues a drive."),
+            None, "--lat", help="GPS latitude, degrees (WGS84). --lat, --lon and --heading are "
+            "required unless --state continues a drive."),
         lon: float | None = typer.Option(None, "--lon", help="GPS longitude, degrees (WGS84)."),
         heading: float | None = typer.Option(
             None, "--heading", help="GPS heading, degrees clockwise from true north."

@@ -18,7 +18,7 @@ def train(
     C: float = typer.Option(0.5, "--C", help="SVM regularisation (larger: fit the pixels harder)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the pixel sampling."),
 ) -> None:
-    """Train a marking model on IMAGE and LABELS; use it with ``lanemap build --model``."""
+    """Train a marking model on IMAGE and LABELS; use it with: lanemap build --model."""
     from mapbuilder.train import train_from_files
 
     if C <= 0:
