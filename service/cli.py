@@ -1,7 +1,8 @@
 """The ``lanemap`` command.
 
 Feature commands live in :mod:`service.commands`, one module each with a
-``register(app)`` function. Any error derived from ``ValueError`` or ``OSError``
+``register(app)`` function; :data:`COMMAND_MODULES` says which module holds
+which command, so that a command line imports only its own. Any error derived from ``ValueError`` or ``OSError``
 that escapes a command is reported as one line on stderr with exit code 1; a
 traceback is shown only with ``LANEMAP_DEBUG=1``.
 """
@@ -13,21 +14,29 @@ import logging
 import os
 import pkgutil
 import sys
+from collections.abc import Iterable
 
 import typer
 
 from . import commands
 
-app = typer.Typer(
-    name="lanemap",
-    help="Lane-marking maps from aerial imagery, and vehicle localization against them.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+#: The module of :mod:`service.commands` that registers each top-level command.
+#: ``main`` imports only the one a command line names: the localizer, for one,
+#: takes half a second to import that ``lanemap maps list`` need not wait for.
+COMMAND_MODULES = {
+    "build": "build",
+    "db": "db",
+    "export": "exchange",
+    "from-lanelet2": "exchange",
+    "import": "exchange",
+    "localize": "localize",
+    "maps": "maps",
+    "serve": "serve",
+    "synth": "synth",
+    "train": "train",
+}
 
 
-@app.callback()
 def _root(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
 ) -> None:
@@ -37,21 +46,45 @@ def _root(
     )
 
 
-def _register_all() -> None:
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
-        module = importlib.import_module(f"{commands.__name__}.{info.name}")
-        register = getattr(module, "register", None)
+def make_app(modules: Iterable[str] | None = None) -> typer.Typer:
+    """The ``lanemap`` app with the commands of ``modules`` (names in
+    :mod:`service.commands`; every command module when None)."""
+    cli = typer.Typer(
+        name="lanemap",
+        help="Lane-marking maps from aerial imagery, and vehicle localization against them.",
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+    )
+    cli.callback()(_root)
+    if modules is None:
+        modules = [info.name for info in pkgutil.iter_modules(commands.__path__)]
+    for name in sorted(modules):
+        register = getattr(importlib.import_module(f"{commands.__name__}.{name}"), "register", None)
         if register is not None:
-            register(app)
+            register(cli)
+    return cli
 
 
-_register_all()
+def _named_module(args: list[str]) -> str | None:
+    """The command module of the command ``args`` names, if it is one of ours."""
+    first = next((a for a in args if not a.startswith("-")), None)
+    return COMMAND_MODULES.get(first) if first is not None else None
+
+
+def __getattr__(name: str):
+    # ``service.cli.app``: every command, built on first use (tests and embedding code).
+    if name == "app":
+        globals()["app"] = built = make_app()
+        return built
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main() -> None:
     """Entry point of the ``lanemap`` console script."""
+    module = _named_module(sys.argv[1:])
     try:
-        app()
+        make_app(None if module is None else [module])()
     except (ValueError, OSError) as exc:
         if os.environ.get("LANEMAP_DEBUG"):
             raise

@@ -248,3 +248,41 @@ def test_import_and_export_show_progress_when_asked(db_url, tmp_path):
     # Without the flag, on a pipe: nothing on stderr but errors.
     proc = run(["export", "m", "out.geojson"], db_url, tmp_path)
     assert proc.stderr == "" and len(json.loads((tmp_path / "out.geojson").read_text())["features"]) == n
+
+
+def _command_names(cli) -> set[str]:
+    return {c.name for c in cli.registered_commands} | {g.name for g in cli.registered_groups}
+
+
+def test_each_command_is_found_in_the_module_the_cli_imports_for_it():
+    from service.cli import COMMAND_MODULES, make_app
+
+    assert _command_names(make_app()) == set(COMMAND_MODULES)
+    for module in set(COMMAND_MODULES.values()):
+        assert _command_names(make_app([module])) == {
+            name for name, m in COMMAND_MODULES.items() if m == module
+        }, module
+
+
+def test_a_command_imports_only_what_it_needs(sqlite_url, tmp_path):
+    """``lanemap maps list`` does not wait for the localizer or the build pipeline to import;
+    ``lanemap localize`` does not wait for the build pipeline."""
+    probe = (
+        "import atexit, sys\n"
+        "atexit.register(lambda: print('LOADED', sorted(m for m in ('localizer', 'mapbuilder.build',"
+        " 'mapbuilder.cluster', 'rasterio') if m in sys.modules), file=sys.stderr))\n"
+        "sys.argv = ['lanemap', *sys.argv[1:]]\n"
+        "from service.cli import main\n"
+        "main()\n"
+    )
+    env = dict(os.environ, LANEMAP_DATABASE_URL=sqlite_url, LANEMAP_DATA_DIR=str(tmp_path / "data"))
+    loaded = {}
+    for args in (["maps", "list"], ["-v", "maps", "list"], ["localize", "--help"], ["--help"]):
+        proc = subprocess.run([sys.executable, "-c", probe, *args], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        line = next(x for x in proc.stderr.splitlines() if x.startswith("LOADED"))
+        loaded[" ".join(args)] = line.split(" ", 1)[1]
+    assert loaded["maps list"] == loaded["-v maps list"] == "[]", loaded
+    assert loaded["localize --help"] == "['localizer']", loaded
+    assert "mapbuilder.build" in loaded["--help"], loaded  # the full help lists every command
