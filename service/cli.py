@@ -88,7 +88,12 @@ def main() -> None:
     except (ValueError, OSError) as exc:
         if os.environ.get("LANEMAP_DEBUG"):
             raise
-        typer.echo(f"error: {exc or exc.__class__.__name__}", err=True)
+        from pydantic import ValidationError
+
+        from .cli_errors import validation_error_line
+
+        message = validation_error_line(exc) if isinstance(exc, ValidationError) else exc
+        typer.echo(f"error: {message or exc.__class__.__name__}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)

@@ -79,17 +79,17 @@ class ServiceSettings(BaseSettings):
     api_tokens: str = ""
     read_token_required: bool = False
     cors_origins: str = ""
-    max_body_bytes: int = 16 * 1024 * 1024
-    max_upload_bytes: int = 2 * 1024 * 1024 * 1024
-    items_default_limit: int = 100
-    items_max_limit: int = 10_000
-    max_observations: int = 500
+    max_body_bytes: int = Field(16 * 1024 * 1024, ge=1)
+    max_upload_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1)
+    items_default_limit: int = Field(100, ge=1)
+    items_max_limit: int = Field(10_000, ge=1)
+    max_observations: int = Field(500, ge=1)
     max_drive_observations: int = Field(5_000, ge=1)
     localize_max_pending: int = Field(8, ge=0)
-    build_workers: int = 1
+    build_workers: int = Field(1, ge=1)
     dask_scheduler: str = ""
-    dask_timeout_s: float = 20.0
-    health_timeout_s: float = 2.0
+    dask_timeout_s: float = Field(20.0, gt=0, allow_inf_nan=False)
+    health_timeout_s: float = Field(2.0, gt=0, allow_inf_nan=False)
 
     def cors_origin_list(self) -> list[str]:
         return [o.strip() for o in self.cors_origins.split(",") if o.strip()]

@@ -297,3 +297,22 @@ def test_busy_port_is_one_line_error(tmp_path):
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]
     assert proc.stderr.startswith("error: cannot listen on 127.0.0.1:") and "Traceback" not in proc.stderr
+
+
+def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
+    """A value the server cannot run with is refused at start, as the variable it came from."""
+    cases = {
+        "LANEMAP_MAX_OBSERVATIONS": ("abc", "unable to parse string as an integer (got 'abc')"),
+        "LANEMAP_ITEMS_MAX_LIMIT": ("0", "greater than or equal to 1 (got '0')"),
+        "LANEMAP_BUILD_WORKERS": ("0", "greater than or equal to 1 (got '0')"),
+        "LANEMAP_HEALTH_TIMEOUT_S": ("nan", "(got 'nan')"),
+        "LANEMAP_READ_TOKEN_REQUIRED": ("perhaps", "valid boolean"),
+    }
+    for name, (value, says) in cases.items():
+        env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
+        env.update(LANEMAP_DATA_DIR=str(tmp_path / "data"), LANEMAP_API_TOKENS="x", **{name: value})
+        proc = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--port", "0"],
+                              capture_output=True, text=True, env=env, cwd=tmp_path, timeout=60)  # fmt: skip
+        assert proc.returncode == 1, (name, proc.stdout)
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {name}: ") and says in lines[0], lines
