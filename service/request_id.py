@@ -9,13 +9,12 @@ cannot forge log lines); anything else is replaced by a fresh one.
 The ID lives in a context variable, which the localization thread inherits
 (``anyio.to_thread`` runs in a copy of the request's context), and
 :class:`RequestIdFilter` writes it into every log record as ``request_id``
-(``-`` outside a request). :func:`log_config` is uvicorn's logging
-configuration with the ID in its formats, for ``lanemap serve``.
+(``-`` outside a request); :mod:`service.logs` puts it into the server's
+log lines.
 """
 
 from __future__ import annotations
 
-import copy
 import logging
 import re
 import uuid
@@ -69,23 +68,3 @@ class RequestIdFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         record.request_id = current.get()
         return True
-
-
-def log_config() -> dict:
-    """uvicorn's logging configuration with the request ID in the server's and the access log's lines.
-
-    The service's own loggers (``service.*``) log at INFO through the same
-    handler as uvicorn's, in every server process.
-    """
-    from uvicorn.config import LOGGING_CONFIG
-
-    config = copy.deepcopy(LOGGING_CONFIG)
-    config["filters"] = {"request_id": {"()": RequestIdFilter}}
-    for handler in config["handlers"].values():
-        handler.setdefault("filters", []).append("request_id")
-    config["formatters"]["default"]["fmt"] = "%(levelprefix)s [%(request_id)s] %(message)s"
-    config["formatters"]["access"]["fmt"] = (
-        '%(levelprefix)s [%(request_id)s] %(client_addr)s - "%(request_line)s" %(status_code)s'
-    )
-    config["loggers"]["service"] = {"handlers": ["default"], "level": "INFO", "propagate": False}
-    return config

@@ -12,6 +12,7 @@ import os
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -72,6 +73,9 @@ class ServiceSettings(BaseSettings):
         How long a build tries to reach the scheduler, seconds.
     health_timeout_s : float
         How long ``/health`` waits for the database, seconds.
+    log_format : {"text", "json"}
+        ``LANEMAP_LOG_FORMAT``: the server's log as uvicorn's text lines, or
+        as one JSON object per line for a log collector (:mod:`service.logs`).
     """
 
     model_config = SettingsConfigDict(env_prefix="LANEMAP_", extra="ignore")
@@ -90,6 +94,7 @@ class ServiceSettings(BaseSettings):
     dask_scheduler: str = ""
     dask_timeout_s: float = Field(20.0, gt=0, allow_inf_nan=False)
     health_timeout_s: float = Field(2.0, gt=0, allow_inf_nan=False)
+    log_format: Literal["text", "json"] = "text"
 
     def cors_origin_list(self) -> list[str]:
         return [o.strip() for o in self.cors_origins.split(",") if o.strip()]

@@ -316,3 +316,43 @@ def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
         assert proc.returncode == 1, (name, proc.stdout)
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"error: {name}: ") and says in lines[0], lines
+
+
+def test_json_log_lines_carry_the_request_and_its_access_fields(tmp_path):
+    """``LANEMAP_LOG_FORMAT=json``: every line the server writes, in its parent and in both
+    server processes, is a JSON object; access lines carry method, path, status and the
+    request's ID, and so do the lines the localization thread logs for that request."""
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                          env={"LANEMAP_LOG_FORMAT": "json"}, args=("--workers", "2"))  # fmt: skip
+    try:
+        map_id = server.new_map()
+        lon, lat = 8.4280, 49.0071
+        feats = [feature(lon + 1e-5 * k, lat, kind="dash") for k in range(30)]
+        r = httpx.post(f"{server.base_url}/collections/{map_id}/import", headers=server.auth, timeout=60,
+                       json={"type": "FeatureCollection", "features": feats})  # fmt: skip
+        assert r.status_code == 201, r.text
+        body = {"gps": {"lat": lat, "lon": lon, "heading_deg": 90.0}, "observations": [{"x": 10.0, "y": 0.0}]}
+        for k in range(4):  # both processes build their index of the map; each logs it
+            r = httpx.post(f"{server.base_url}/collections/{map_id}/localize", json=body, timeout=60,
+                           headers={"X-Request-ID": f"json-{k}"})  # fmt: skip
+            assert r.status_code == 200
+        assert httpx.get(f"{server.base_url}/collections/no-such-map", timeout=30,
+                         headers={"X-Request-ID": "json-404"}).status_code == 404  # fmt: skip
+    finally:
+        server.stop()
+    records = []
+    for line in server.log().splitlines():
+        if line.strip():
+            record = json.loads(line)  # fails on any line that is not JSON
+            assert {"time", "level", "logger", "pid", "request_id", "message"} <= record.keys(), record
+            assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", record["time"]), record
+            records.append(record)
+    access = {r["request_id"]: r for r in records if r["logger"] == "uvicorn.access"}
+    assert access["json-404"]["method"] == "GET" and access["json-404"]["status"] == 404
+    assert access["json-404"]["path"] == "/collections/no-such-map"
+    assert access["json-0"]["method"] == "POST" and access["json-0"]["status"] == 200
+    built = [r for r in records if f"map {map_id}: spatial index" in r["message"]]
+    assert built and all(r["request_id"].startswith("json-") for r in built), built
+    assert any(r["message"].startswith("lanemap API:") for r in records)
+    ready = [r for r in records if "localizer kernels ready" in r["message"]]
+    assert len(ready) == 2 and ready[0]["pid"] != ready[1]["pid"], ready

@@ -57,6 +57,20 @@ def _share_metrics(workers: int) -> None:
     atexit.register(shutil.rmtree, path, ignore_errors=True)
 
 
+def _announcer(log_format: str):
+    """How the server says where it listens: printed lines, or records of the JSON log
+    (so that a log collector reads every line the server writes as JSON)."""
+    if log_format != "json":
+        return lambda line, err=False: typer.echo(line, err=err)
+    import logging.config
+
+    from ..logs import log_config
+
+    logging.config.dictConfig(log_config("json"))
+    log = logging.getLogger("service.serve")
+    return lambda line, err=False: log.info("%s", line)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("serve")
     def serve(
@@ -75,7 +89,7 @@ def register(app: typer.Typer) -> None:
 
         from .. import multiprocess
         from ..app import create_app
-        from ..request_id import log_config
+        from ..logs import log_config
         from ..settings import ServiceSettings, ensure_token_file, parse_tokens, token_path
 
         settings = ServiceSettings()
@@ -97,32 +111,31 @@ def register(app: typer.Typer) -> None:
             token_note = (
                 f"write token ({'generated, ' if created else ''}kept in {token_path(data_dir)}): {token}"
             )
+        say = _announcer(settings.log_format)
         if demo:
             from ..demo import ensure_demo
 
-            typer.echo("preparing the demo map (first start takes a little while)...", err=True)
+            say("preparing the demo map (first start takes a little while)...", err=True)
             info = ensure_demo(store, data_dir)
             state = "created" if info.created else "found"
-            typer.echo(f"demo map {info.map_id} {state}: {info.markings} markings", err=True)
+            say(f"demo map {info.map_id} {state}: {info.markings} markings", err=True)
         base = f"http://{'[' + host + ']' if ':' in host else host}:{port}"
-        typer.echo(f"lanemap API:  {base}/")
-        typer.echo(f"API docs:     {base}/docs")
-        typer.echo(f"map editor:   {base}/editor/")
+        say(f"lanemap API:  {base}/")
+        say(f"API docs:     {base}/docs")
+        say(f"map editor:   {base}/editor/")
         if demo:
-            typer.echo(f"demo map:     {base}/collections/karlsruhe/items")
-            typer.echo(f"localize:     POST {base}/collections/karlsruhe/localize "
-                       "(an example body: docs/examples/frame.json in the repository)")
-        if token_note:
-            typer.echo(token_note)
-        else:
-            typer.echo("write tokens: from LANEMAP_API_TOKENS")
+            say(f"demo map:     {base}/collections/karlsruhe/items")
+            say(f"localize:     POST {base}/collections/karlsruhe/localize "
+                "(an example body: docs/examples/frame.json in the repository)")
+        say(token_note or "write tokens: from LANEMAP_API_TOKENS")
+        logs = log_config(settings.log_format)
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
-                        log_level=log_level, log_config=log_config())  # fmt: skip
+                        log_level=log_level, log_config=logs)  # fmt: skip
         elif sockets is not None:
             store.close()
             config = uvicorn.Config("service.app:app_from_env", factory=True, host=host, port=port,
-                                    log_level=log_level, log_config=log_config())  # fmt: skip
+                                    log_level=log_level, log_config=logs)  # fmt: skip
             try:
                 multiprocess.serve(config, sockets)
             except multiprocess.WorkerStartError as exc:
@@ -130,4 +143,4 @@ def register(app: typer.Typer) -> None:
         else:
             store.close()
             uvicorn.run("service.app:app_from_env", factory=True, host=host, port=port, workers=workers,
-                        log_level=log_level, log_config=log_config())  # fmt: skip
+                        log_level=log_level, log_config=logs)  # fmt: skip
