@@ -70,9 +70,8 @@ def build(
     was interrupted resumes from the tiles already done when run again with
     the same map, images and parameters.
     """
-    from mapbuilder.store import Store
-
     from mapbuilder.classify import ModelError
+    from mapbuilder.store import Store
 
     try:
         if threshold is None:

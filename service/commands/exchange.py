@@ -14,7 +14,6 @@ from mapbuilder.store import Store
 
 from ..cli_errors import fail
 
-
 _PROGRESS = typer.Option(None, "--progress/--no-progress",
                          help="Show progress bars (rate, ETA) on stderr; default: when stderr is a terminal.")
 
