@@ -879,15 +879,88 @@ class Store:
         with self._read() as conn:
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
-    def iter_markings(self, map_id: str, batch: int = 5000) -> Iterator[Marking]:
-        """Every marking of a map, by id, in batches (keyset pagination)."""
+    def _lonlat_clause(self, info: MapInfo, lonlat_box: tuple[float, float, float, float]):
+        """Markings of ``info``'s map whose centroid lies in a lon/lat box (degrees), or None
+        when none can (the box misses the map, or the map has no CRS yet).
+
+        The box becomes a larger one in the storage CRS (its edges are curves there); the grid
+        keys narrow the search to that, and the stored ``lon``/``lat`` keep exactly the
+        markings inside the requested box, so that counts and pages agree with what is read.
+        """
+        mb = info.bounds_wgs84()
+        if mb is None or info.crs is None:
+            return None
+        w, s, e, n = (max(lonlat_box[0], mb[0]), max(lonlat_box[1], mb[1]),
+                      min(lonlat_box[2], mb[2]), min(lonlat_box[3], mb[3]))  # fmt: skip
+        if w > e or s > n:
+            return None
+        minx, miny, maxx, maxy = from_wgs84(info.crs).transform_bounds(w, s, e, n, densify_pts=21)
+        if not all(math.isfinite(v) for v in (minx, miny, maxx, maxy)):
+            return None
+        c = markings.c
+        return and_(self._bbox_clause(info.id, minx, miny, maxx, maxy),
+                    c.lon.between(w, e), c.lat.between(s, n))  # fmt: skip
+
+    def _selection(self, conn: Connection, map_id: str, statuses, lonlat_box):
+        """The WHERE clause of a map's markings with these statuses inside ``lonlat_box``
+        (either None: all), or None when no marking can match."""
+        row = self._map_row(conn, map_id)
+        where = markings.c.map_id == map_id
+        if lonlat_box is not None:
+            where = self._lonlat_clause(self._map_info(row), lonlat_box)
+            if where is None:
+                return None
+        if statuses:
+            where = and_(where, markings.c.status.in_(list(statuses)))
+        return where
+
+    def query_lonlat_box(
+        self,
+        map_id: str,
+        lonlat_box: tuple[float, float, float, float],
+        statuses: Sequence[str] | None = None,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> tuple[list[Marking], int]:
+        """A page of the markings whose centroid lies in ``lonlat_box`` (minLon, minLat, maxLon,
+        maxLat; degrees), by id, and how many there are in all."""
+        with self._read() as conn:
+            where = self._selection(conn, map_id, statuses, lonlat_box)
+            if where is None:
+                return [], 0
+            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            rows = conn.execute(
+                select(*_READ_COLUMNS).where(where).order_by(markings.c.id).limit(limit).offset(offset)
+            ).all()
+        return _markings_from_rows(rows), total
+
+    def count_markings(
+        self, map_id: str, statuses: Sequence[str] | None = None,
+        lonlat_box: tuple[float, float, float, float] | None = None,
+    ) -> int:  # fmt: skip
+        """How many of a map's markings :meth:`iter_markings` would give for the same filters."""
+        with self._read() as conn:
+            where = self._selection(conn, map_id, statuses, lonlat_box)
+            if where is None:
+                return 0
+            return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+
+    def iter_markings(
+        self, map_id: str, batch: int = 5000, *, statuses: Sequence[str] | None = None,
+        lonlat_box: tuple[float, float, float, float] | None = None,
+    ) -> Iterator[Marking]:  # fmt: skip
+        """A map's markings by id, in batches (keyset pagination): all of them, or those with
+        one of ``statuses`` and a centroid inside ``lonlat_box`` (minLon, minLat, maxLon,
+        maxLat; degrees)."""
         last = -1
         while True:
             with self._read() as conn:
-                self._map_row(conn, map_id)
+                where = self._selection(conn, map_id, statuses, lonlat_box)
+                if where is None:
+                    return
                 rows = conn.execute(
                     select(*_READ_COLUMNS)
-                    .where(markings.c.map_id == map_id, markings.c.id > last)
+                    .where(where, markings.c.id > last)
                     .order_by(markings.c.id)
                     .limit(batch)
                 ).all()

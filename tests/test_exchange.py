@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pyogrio
 import pytest
 
@@ -286,3 +287,44 @@ def test_a_command_imports_only_what_it_needs(sqlite_url, tmp_path):
     assert loaded["maps list"] == loaded["-v maps list"] == "[]", loaded
     assert loaded["localize --help"] == "['localizer']", loaded
     assert "mapbuilder.build" in loaded["--help"], loaded  # the full help lists every command
+
+
+def test_export_keeps_what_status_and_bbox_select(db_url, tmp_path, cli):
+    """``--status`` and ``--bbox`` export exactly the markings they select, in both formats;
+    bad values are one line each and write nothing."""
+    rng = np.random.default_rng(5)
+    statuses = ["unreviewed", "accepted", "rejected"]
+    points = [(8.40 + rng.uniform(0, 0.02), 49.0 + rng.uniform(0, 0.01), statuses[k % 3]) for k in range(300)]
+    fc = _fc(*[_pt(lon, lat, status=st, kind="dash", weight=10) for lon, lat, st in points])
+    (tmp_path / "in.geojson").write_text(json.dumps(fc))
+    cli(["import", "m", "in.geojson", "--create"], db_url, tmp_path)
+    box = (8.405, 49.002, 8.413, 49.0075)
+    inside = {(round(lon, 7), round(lat, 7), st) for lon, lat, st in points
+              if box[0] <= lon <= box[2] and box[1] <= lat <= box[3]}  # fmt: skip
+    assert 20 < len(inside) < 150
+    bbox = ",".join(map(str, box))
+    cases = [
+        ([], {(round(lo, 7), round(la, 7), st) for lo, la, st in points}),
+        (["--status", "accepted,unreviewed"],
+         {(round(lo, 7), round(la, 7), st) for lo, la, st in points if st != "rejected"}),
+        (["--bbox", bbox], inside),
+        (["--bbox", bbox, "--status", "rejected"], {p for p in inside if p[2] == "rejected"}),
+        (["--bbox", "1,1,2,2"], set()),
+    ]
+    for args, want in cases:
+        out = cli(["export", "m", "out.geojson", *args], db_url, tmp_path)
+        got = json.loads((tmp_path / "out.geojson").read_text())["features"]
+        assert {(round(f["geometry"]["coordinates"][0], 7), round(f["geometry"]["coordinates"][1], 7),
+                 f["properties"]["status"]) for f in got} == want, args  # fmt: skip
+        assert out.stdout.strip() == f"exported {len(want)} markings to out.geojson"
+    cli(["export", "m", "out.gpkg", "--bbox", bbox, "--status", "accepted"], db_url, tmp_path)
+    info = pyogrio.read_info(tmp_path / "out.gpkg")
+    assert info["features"] == sum(p[2] == "accepted" for p in inside)
+    (tmp_path / "out.geojson").unlink()
+    for args, says in ((["--status", "approved"], "--status: 'approved' is not one of"),
+                       (["--bbox", "8.4,49.0,8.3,49.1"], "--bbox: minLon is greater than maxLon"),
+                       (["--bbox", "8.4,49.0"], "--bbox: give 4 numbers")):  # fmt: skip
+        proc = cli(["export", "m", "out.geojson", *args], db_url, tmp_path, check=False)
+        assert proc.returncode == 1 and proc.stderr.strip() == proc.stderr.strip().splitlines()[0]
+        assert says in proc.stderr, proc.stderr
+        assert not (tmp_path / "out.geojson").exists()

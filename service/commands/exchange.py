@@ -13,6 +13,7 @@ from mapbuilder.lanelet2 import layout_markings, read_lanelet2
 from mapbuilder.store import Store
 
 from ..cli_errors import fail
+from ..filters import parse_bbox, parse_statuses
 
 _PROGRESS = typer.Option(None, "--progress/--no-progress",
                          help="Show progress bars (rate, ETA) on stderr; default: when stderr is a terminal.")
@@ -69,18 +70,32 @@ def register(app: typer.Typer) -> None:
     def export(
         map_id: str = typer.Argument(..., metavar="MAP"),
         file: Path = typer.Argument(..., help="Output .geojson (WGS84) or .gpkg (storage CRS)."),
+        status: str | None = typer.Option(
+            None, "--status", metavar="STATUS,...",
+            help="Only markings with these review statuses (unreviewed, accepted, rejected), e.g. "
+            "'accepted,unreviewed' for the markings the localizer uses."),
+        bbox: str | None = typer.Option(
+            None, "--bbox", metavar="MINLON,MINLAT,MAXLON,MAXLAT",
+            help="Only markings whose centroid lies in this box (WGS84 degrees)."),
         progress: bool | None = _PROGRESS,
     ) -> None:
-        """Export a map's markings to GeoJSON or GeoPackage."""
+        """Export a map's markings to GeoJSON or GeoPackage: all of them, or those --status and
+        --bbox select."""
         suffix = file.suffix.lower()
         if suffix not in (".geojson", ".json", ".gpkg"):
             fail(f"cannot export to {file.name}: use a .geojson or .gpkg file name")
+        try:
+            statuses = parse_statuses(status)
+            box = parse_bbox(bbox) if bbox is not None else None
+        except ValueError as exc:
+            fail(f"--{exc}")
         store = Store()
-        info = store.get_map(map_id, with_count=True)
+        info = store.get_map(map_id)
         if suffix == ".gpkg" and info.crs is None:
             fail(f"map {map_id} is empty and has no CRS yet")
-        with _bar(progress, info.count or 0, "marking", f"export {map_id}") as bar:
-            items = _counted(store.iter_markings(map_id), bar)
+        total = store.count_markings(map_id, statuses, box)
+        with _bar(progress, total, "marking", f"export {map_id}") as bar:
+            items = _counted(store.iter_markings(map_id, statuses=statuses, lonlat_box=box), bar)
             if suffix == ".gpkg":
                 n = write_gpkg(file, items, info.crs)
             else:

@@ -19,7 +19,7 @@ from mapbuilder.store import Change, ConflictError, MapInfo, Marking, UnknownMar
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
-from ..queries import markings_in_lonlat_box
+from ..filters import parse_bbox, parse_statuses
 from ._common import (
     CRS84,
     GEOJSON,
@@ -194,40 +194,18 @@ def import_features(
 
 
 # ---------------------------------------------------------------------------- items (Part 1)
-def parse_bbox(text: str) -> tuple[float, float, float, float]:
-    parts = text.split(",")
-    if len(parts) not in (4, 6):
-        raise Problem(400, "bbox: give 4 numbers (minLon,minLat,maxLon,maxLat) or 6 with heights",
-                      "invalid-bbox")  # fmt: skip
+def _bbox(text: str) -> tuple[float, float, float, float]:
     try:
-        vals = [float(p) for p in parts]
-    except ValueError:
-        raise Problem(400, f"bbox: {text[:80]!r} has a value that is not a number", "invalid-bbox") from None
-    if not all(math.isfinite(v) for v in vals):
-        raise Problem(400, "bbox: values must be finite numbers", "invalid-bbox")
-    if len(vals) == 6:
-        vals = [vals[0], vals[1], vals[3], vals[4]]
-    w, s, e, n = vals
-    if not (-180 <= w <= 180 and -180 <= e <= 180):
-        raise Problem(400, "bbox: longitudes must be within [-180, 180]", "invalid-bbox")
-    if not (-90 <= s <= 90 and -90 <= n <= 90):
-        raise Problem(400, "bbox: latitudes must be within [-90, 90]", "invalid-bbox")
-    if s > n:
-        raise Problem(400, "bbox: minLat is greater than maxLat", "invalid-bbox")
-    if w > e:
-        raise Problem(400, "bbox: minLon is greater than maxLon (boxes across the antimeridian are not supported)",
-                      "invalid-bbox")  # fmt: skip
-    return w, s, e, n
+        return parse_bbox(text)
+    except ValueError as exc:
+        raise Problem(400, str(exc), "invalid-bbox") from None
 
 
-def parse_statuses(text: str | None) -> list[str] | None:
-    if not text:
-        return None
-    out = [s.strip() for s in text.split(",") if s.strip()]
-    bad = [s for s in out if s not in STATUSES]
-    if bad:
-        raise Problem(400, f"status: {bad[0][:40]!r} is not one of {', '.join(STATUSES)}", "invalid-parameter")
-    return out or None
+def _statuses(text: str | None) -> list[str] | None:
+    try:
+        return parse_statuses(text)
+    except ValueError as exc:
+        raise Problem(400, str(exc), "invalid-parameter") from None
 
 
 @router.get(
@@ -245,10 +223,9 @@ def get_items(
 ):
     s = ctx.settings
     lim = min(limit if limit is not None else s.items_default_limit, s.items_max_limit)
-    statuses = parse_statuses(status)
+    statuses = _statuses(status)
     if bbox is not None:
-        info = ctx.store.get_map(mapId)
-        items, matched = markings_in_lonlat_box(ctx.store, info, parse_bbox(bbox), statuses, lim, offset)
+        items, matched = ctx.store.query_lonlat_box(mapId, _bbox(bbox), statuses, lim, offset)
     else:
         items, matched = ctx.store.list_markings(mapId, limit=lim, offset=offset, statuses=statuses)
     url = request.url
