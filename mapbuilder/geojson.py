@@ -18,7 +18,7 @@ import shutil
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, TextIO
 
 import numpy as np
 
@@ -167,13 +167,23 @@ def read_geojson_file(path: str | Path, progress: Callable[[int, int], None] | N
         raise GeoJSONError(f"cannot read {path}: {exc.strerror}") from None
     if size > MAX_FILE_BYTES:
         raise GeoJSONError(f"{path} is larger than {MAX_FILE_BYTES} bytes")
+    with open(path, "rb") as fh:
+        return read_geojson_stream(fh, str(path), progress)
+
+
+def read_geojson_stream(fh: BinaryIO, name: str,
+                        progress: Callable[[int, int], None] | None = None) -> list[Marking]:  # fmt: skip
+    """Read markings from GeoJSON bytes read from ``fh`` (a file, standard input), at most
+    ``MAX_FILE_BYTES`` of them; ``name`` names the source in errors."""
+    data = fh.read(MAX_FILE_BYTES + 1)
+    if len(data) > MAX_FILE_BYTES:
+        raise GeoJSONError(f"{name} is larger than {MAX_FILE_BYTES} bytes")
     try:
-        text = path.read_text(encoding="utf-8")
-        obj = json.loads(text, parse_constant=_reject_constant)
+        obj = json.loads(data.decode("utf-8"), parse_constant=_reject_constant)
     except UnicodeDecodeError:
-        raise GeoJSONError(f"{path} is not UTF-8 text") from None
+        raise GeoJSONError(f"{name} is not UTF-8 text") from None
     except json.JSONDecodeError as exc:
-        raise GeoJSONError(f"{path} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+        raise GeoJSONError(f"{name} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
     return read_feature_collection(obj, progress)
 
 
@@ -230,15 +240,20 @@ def _atomic_target(path: Path, suffix: str) -> Iterator[Path]:
 def write_geojson(path: str | Path, items: Iterable[Marking]) -> int:
     """Write markings as a GeoJSON FeatureCollection, atomically (temp file + rename)."""
     path = Path(path)
-    n = 0
     with _atomic_target(path, ".part") as tmp, open(tmp, "w", encoding="utf-8") as fh:
-        fh.write('{"type": "FeatureCollection", "features": [\n')
-        for m in items:
-            if n:
-                fh.write(",\n")
-            fh.write(json.dumps(marking_to_feature(m), allow_nan=False))
-            n += 1
-        fh.write("\n]}\n")
+        return write_geojson_stream(fh, items)
+
+
+def write_geojson_stream(fh: TextIO, items: Iterable[Marking]) -> int:
+    """Write markings as a GeoJSON FeatureCollection to an open text stream; returns how many."""
+    n = 0
+    fh.write('{"type": "FeatureCollection", "features": [\n')
+    for m in items:
+        if n:
+            fh.write(",\n")
+        fh.write(json.dumps(marking_to_feature(m), allow_nan=False))
+        n += 1
+    fh.write("\n]}\n")
     return n
 
 

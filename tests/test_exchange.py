@@ -328,3 +328,31 @@ def test_export_keeps_what_status_and_bbox_select(db_url, tmp_path, cli):
         assert proc.returncode == 1 and proc.stderr.strip() == proc.stderr.strip().splitlines()[0]
         assert says in proc.stderr, proc.stderr
         assert not (tmp_path / "out.geojson").exists()
+
+
+def test_export_to_standard_output_pipes_into_import(sqlite_url, tmp_path):
+    """``lanemap export MAP -`` writes GeoJSON to standard output (its count to standard
+    error), which ``lanemap import OTHER -`` reads from standard input."""
+    fc = _fc(*[_pt(8.43 + 1e-4 * k, 49.0, status="accepted" if k % 2 else "rejected", weight=5 + k)
+               for k in range(40)])  # fmt: skip
+    (tmp_path / "in.geojson").write_text(json.dumps(fc))
+    run(["import", "a", "in.geojson", "--create"], sqlite_url, tmp_path)
+    env = dict(os.environ, LANEMAP_DATABASE_URL=sqlite_url, LANEMAP_DATA_DIR=str(tmp_path / "data"))
+    env.pop("LANEMAP_DEBUG", None)
+    out = subprocess.run([*LANEMAP, "export", "a", "-", "--status", "accepted"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert out.stderr.strip() == "exported 20 markings to standard output"
+    exported = json.loads(out.stdout)
+    assert len(exported["features"]) == 20
+    into = subprocess.run([*LANEMAP, "import", "b", "-", "--create"], input=out.stdout, cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert into.returncode == 0 and into.stdout.strip() == "imported 20 markings into b", into.stderr
+    back = subprocess.run([*LANEMAP, "export", "b", "-"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert sorted(f["properties"]["weight"] for f in json.loads(back.stdout)["features"]) == list(
+        range(6, 45, 2))
+    bad = subprocess.run([*LANEMAP, "import", "b", "-"], input="{not json", cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert bad.returncode == 1
+    assert bad.stderr.startswith("error: standard input is not valid JSON") and len(bad.stderr.splitlines()) == 1

@@ -47,6 +47,13 @@ def test_cli_localizes_against_a_stored_map(stored_map, tmp_path, monkeypatch):
     out = json.loads(res.stdout)
     assert out["status"] == "ok" and out["crs"] == "EPSG:25832"
     assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.3
+    # "-" reads the observations from standard input: the same answer
+    piped = CliRunner().invoke(app, [
+        "localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+        "--observations", "-", "--position-sigma", "2", "--heading-sigma", "8",
+    ], input=path.read_text())  # fmt: skip
+    assert piped.exit_code == 0, piped.output
+    assert json.loads(piped.stdout) == out
     # Five markings leave a little doubt in most places (the first such frame
     # of a few is taken): asking for more than the answer's probability makes
     # it ambiguous, with the same pose.

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import typer
 
-from mapbuilder.geojson import read_geojson_file, write_geojson, write_gpkg
+from mapbuilder.geojson import (
+    read_geojson_file, read_geojson_stream, write_geojson, write_geojson_stream, write_gpkg,
+)  # fmt: skip
 from mapbuilder.lanelet2 import layout_markings, read_lanelet2
 from mapbuilder.store import Store
 
@@ -49,27 +51,34 @@ def register(app: typer.Typer) -> None:
     @app.command("import")
     def import_(
         map_id: str = typer.Argument(..., metavar="MAP", help="Target map (created if --create)."),
-        file: Path = typer.Argument(..., help="GeoJSON FeatureCollection of marking centroids (WGS84)."),
+        file: Path = typer.Argument(
+            ..., help="GeoJSON FeatureCollection of marking centroids (WGS84); - reads standard input."),
         create: bool = typer.Option(False, "--create", help="Create the map if it does not exist."),
         comment: str = typer.Option("", "--comment", help="Comment for the edit log."),
         progress: bool | None = _PROGRESS,
     ) -> None:
         """Import markings from GeoJSON in one transaction: all of them or none."""
         # Parse and check everything before touching the database.
-        with _bar(progress, None, "feature", f"read {file.name}") as bar:
-            items = read_geojson_file(file, progress=_follow(bar))
+        stdin = str(file) == "-"
+        name = "standard input" if stdin else file.name
+        with _bar(progress, None, "feature", f"read {name}") as bar:
+            if stdin:
+                items = read_geojson_stream(sys.stdin.buffer, name, progress=_follow(bar))
+            else:
+                items = read_geojson_file(file, progress=_follow(bar))
         store = Store()
         if create and not any(m.id == map_id for m in store.list_maps()):
             store.create_map(map_id)
         with _bar(progress, len(items), "marking", f"import {map_id}") as bar:
-            ids = store.add_markings(map_id, items, who="cli", comment=comment or f"import {file.name}",
+            ids = store.add_markings(map_id, items, who="cli", comment=comment or f"import {name}",
                                      lonlat=True, progress=_follow(bar))  # fmt: skip
         typer.echo(f"imported {len(ids)} markings into {map_id}")
 
     @app.command("export")
     def export(
         map_id: str = typer.Argument(..., metavar="MAP"),
-        file: Path = typer.Argument(..., help="Output .geojson (WGS84) or .gpkg (storage CRS)."),
+        file: Path = typer.Argument(
+            ..., help="Output .geojson (WGS84) or .gpkg (storage CRS); - writes GeoJSON to standard output."),
         status: str | None = typer.Option(
             None, "--status", metavar="STATUS,...",
             help="Only markings with these review statuses (unreviewed, accepted, rejected), e.g. "
@@ -81,7 +90,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Export a map's markings to GeoJSON or GeoPackage: all of them, or those --status and
         --bbox select."""
-        suffix = file.suffix.lower()
+        stdout = str(file) == "-"
+        suffix = ".geojson" if stdout else file.suffix.lower()
         if suffix not in (".geojson", ".json", ".gpkg"):
             fail(f"cannot export to {file.name}: use a .geojson or .gpkg file name")
         try:
@@ -96,11 +106,14 @@ def register(app: typer.Typer) -> None:
         total = store.count_markings(map_id, statuses, box)
         with _bar(progress, total, "marking", f"export {map_id}") as bar:
             items = _counted(store.iter_markings(map_id, statuses=statuses, lonlat_box=box), bar)
-            if suffix == ".gpkg":
+            if stdout:
+                n = write_geojson_stream(sys.stdout, items)
+            elif suffix == ".gpkg":
                 n = write_gpkg(file, items, info.crs)
             else:
                 n = write_geojson(file, items)
-        typer.echo(f"exported {n} markings to {file}")
+        # On standard output the GeoJSON is the output; the count goes with the messages.
+        typer.echo(f"exported {n} markings to {'standard output' if stdout else file}", err=stdout)
 
     @app.command("from-lanelet2")
     def from_lanelet2(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,8 @@ def _ready_kernels() -> None:
 
 def _read_json(path: Path):
     try:
+        if str(path) == "-":
+            return json.load(sys.stdin)
         return json.loads(path.read_text())
     except OSError as exc:
         fail(f"cannot read {path}: {exc.strerror or exc}")
@@ -139,12 +142,12 @@ def register(app: typer.Typer) -> None:
         ),
         observations: Path = typer.Option(
             None, "--observations", help="JSON file: {\"observations\": [{\"x\", \"y\", \"weight\"}]} "
-            "in the vehicle frame (x forward, y left, metres).",
+            "in the vehicle frame (x forward, y left, metres); - reads standard input.",
         ),
         frames: Path = typer.Option(
             None, "--frames", help="JSON file of consecutive frames with odometry, oldest first: "
             "{\"frames\": [{\"observations\": [...], \"motion\": {\"dx\", \"dy\", \"dyaw_deg\"}}]}; "
-            "the GPS fix is the first frame's. Prints the pose of every frame.",
+            "the GPS fix is the first frame's. Prints the pose of every frame. - reads standard input.",
         ),
         state_file: Path = typer.Option(
             None, "--state", help="With --frames: a file holding where the drive's filter stands. If it "
