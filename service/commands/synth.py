@@ -21,7 +21,8 @@ def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
 
 
 def synth(
-    out: Path = typer.Argument(..., help="GeoTIFF to write; the truth goes to OUT.truth.geojson."),
+    out: Path = typer.Argument(
+        ..., help="GeoTIFF to write; its true markings go beside it (out.tif: out.truth.geojson)."),
     lanelet2: Optional[Path] = typer.Option(
         None, "--lanelet2", help="Draw this Lanelet2 map (.osm) instead of a procedural scene."),
     bounds: Optional[str] = typer.Option(
