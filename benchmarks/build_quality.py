@@ -4,7 +4,8 @@ Each held-out scene (procedural seeds from 9000 and crops of the east half of
 the Karlsruhe Lanelet2 map; the default model trains on seeds 1000–1999 and
 the west half) is rendered to a GeoTIFF, built into a map with
 :func:`mapbuilder.build.build_map` (tiles, workers, store), read back from
-the store and compared with the renderer's truth:
+the store and compared with the renderer's truth by
+:func:`mapbuilder.evaluate.evaluate_markings` (as ``lanemap evaluate`` does):
 
 * a detection matches a discrete true marking (dash, stop line, stall line)
   when the centroids are within 0.3 m (one-to-one, Hungarian assignment);
@@ -45,11 +46,11 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
-from scipy.optimize import linear_sum_assignment
 
 from mapbuilder.build import BuildParams, build_map, default_threshold_low
 from mapbuilder.classify import load_verifier
 from mapbuilder.cluster import CNN_PIXEL_THRESHOLD, ClusterParams
+from mapbuilder.evaluate import evaluate_markings
 from mapbuilder.lanelet2 import read_lanelet2
 from mapbuilder.store import Store
 from mapbuilder.synth import lanelet_scene, procedural_scene, render
@@ -88,76 +89,6 @@ def heldout_scenes(n: int, size_m: float, first_seed: int = HELDOUT_SEED):
                                                      bounds=(x - h, y - h, x + h, y + h))
         else:
             yield f"procedural-{seed}", procedural_scene((size_m, size_m), seed=seed)
-
-
-def _seg_dist(px, py, seg):
-    """Distance of points (P,) to segments (S, 4) as (P, S)."""
-    x0, y0, x1, y1 = (seg[:, i][None] for i in range(4))
-    dx, dy = x1 - x0, y1 - y0
-    l2 = np.maximum(dx * dx + dy * dy, 1e-12)
-    t = np.clip(((px[:, None] - x0) * dx + (py[:, None] - y0) * dy) / l2, 0, 1)
-    return np.hypot(px[:, None] - (x0 + t * dx), py[:, None] - (y0 + t * dy))
-
-
-def score(det, truth, bounds, border=2.0, min_visible=0.9,
-          whole_max_length_m: float = ClusterParams.whole_max_length_m) -> dict:
-    """Match detected markings to true ones (see the module docstring)."""
-    xmin, ymin, xmax, ymax = bounds
-
-    def inside(x, y):
-        return (x > xmin + border) & (x < xmax - border) & (y > ymin + border) & (y < ymax - border)
-
-    dx = np.array([m.x for m in det])
-    dy = np.array([m.y for m in det])
-    keep = inside(dx, dy) if len(det) else np.zeros(0, bool)
-    det = [m for m, k in zip(det, keep) if k]
-    dx, dy = dx[keep], dy[keep]
-    dseg = np.array([[m.x0, m.y0, m.x1, m.y1] for m in det], float).reshape(-1, 4)
-    tx = np.array([m.x for m in truth])
-    ty = np.array([m.y for m in truth])
-    cont = np.array([bool(m.extra.get("continuous")) or m.length_m > whole_max_length_m
-                     for m in truth], bool)
-    vis = np.array([float(m.extra.get("visible", 1.0)) for m in truth])
-    counted = inside(tx, ty) & (vis >= min_visible)
-    det_ok = np.zeros(len(det), bool)
-    det_kind = np.full(len(det), "", object)
-    found = np.zeros(len(truth), bool)
-    errors, cross, error_kinds = [], [], []
-    disc = np.flatnonzero(~cont)
-    if len(det) and len(disc):
-        d = np.hypot(dx[:, None] - tx[disc][None], dy[:, None] - ty[disc][None])
-        cost = np.where(d <= TOL, d, 1e6)
-        r, c = linear_sum_assignment(cost)
-        ok = cost[r, c] <= TOL
-        det_ok[r[ok]] = True
-        found[disc[c[ok]]] = True
-        cnt = counted[disc[c[ok]]]
-        errors = list(d[r[ok], c[ok]][cnt])
-        error_kinds = [truth[i].kind for i in disc[c[ok]][cnt]]
-    conti = np.flatnonzero(cont)
-    if len(det) and len(conti):
-        tseg = np.array([[truth[i].x0, truth[i].y0, truth[i].x1, truth[i].y1] for i in conti])
-        dist = _seg_dist(dx, dy, tseg).min(axis=1)
-        on_line = (~det_ok) & (dist <= TOL)
-        det_ok |= on_line
-        cross = list(dist[on_line])
-        found[conti] = _seg_dist(tx[conti], ty[conti], dseg).min(axis=1) <= TOL
-    det_kind[det_ok] = "tp"
-    det_kind[~det_ok] = "fp"
-    return {
-        "tp_det": int(det_ok.sum()),
-        "n_det": len(det),
-        "tp_truth": int((found & counted).sum()),
-        "n_truth": int(counted.sum()),
-        "tp_truth_discrete": int((found & counted & ~cont).sum()),
-        "n_truth_discrete": int((counted & ~cont).sum()),
-        "errors": errors,
-        "error_kinds": error_kinds,
-        "cross": cross,
-        "_det": det,
-        "_det_kind": det_kind,
-        "_missed": [t for t, f, c in zip(truth, found, counted) if c and not f],
-    }
 
 
 def overlay(path_png: Path, image: Path, det, kinds, missed, title: str, window=None) -> None:
@@ -275,19 +206,24 @@ def main() -> None:
             det = list(store.iter_markings(name))
             with rasterio.open(tif) as ds:
                 bounds = tuple(ds.bounds)
-            s = score(det, r.markings, bounds)
-            for k in totals:
-                totals[k] += s[k]
-            errors += s["errors"]
-            error_kinds += s["error_kinds"]
-            cross += s["cross"]
-            p = s["tp_det"] / max(s["n_det"], 1)
-            rc = s["tp_truth"] / max(s["n_truth"], 1)
-            per_scene.append((name, s["n_det"], s["n_truth"], round(p, 3), round(rc, 3)))
-            print(f"{name:>18}: {s['n_det']:4d} detections, {s['n_truth']:4d} true, "
+            ev = evaluate_markings(det, r.markings, bounds, tolerance_m=TOL)
+            totals["tp_det"] += ev.n_correct
+            totals["n_det"] += ev.n_detected
+            totals["tp_truth"] += ev.n_found
+            totals["n_truth"] += ev.n_true
+            totals["tp_truth_discrete"] += int((ev.found & ev.counted & ~ev.is_line).sum())
+            totals["n_truth_discrete"] += int((ev.counted & ~ev.is_line).sum())
+            errors += list(ev.centroid_errors_m)
+            error_kinds += ev.centroid_error_kinds
+            cross += list(ev.cross_track_m)
+            p = ev.n_correct / max(ev.n_detected, 1)
+            rc = ev.n_found / max(ev.n_true, 1)
+            per_scene.append((name, ev.n_detected, ev.n_true, round(p, 3), round(rc, 3)))
+            print(f"{name:>18}: {ev.n_detected:4d} detections, {ev.n_true:4d} true, "
                   f"precision {p:.3f}, recall {rc:.3f}")
-            overlay(OUT / f"build_quality{tag}_{name}.png", tif, s["_det"], s["_det_kind"],
-                    s["_missed"], f"{name}, 10 cm")
+            kinds = np.where(ev.detection_ok, "tp", "fp").astype(object)
+            overlay(OUT / f"build_quality{tag}_{name}.png", tif, ev.detected, kinds, ev.missed,
+                    f"{name}, 10 cm")
         usgs = run_usgs(store, params, args.workers, tag)
         store.close()
     errors, cross = np.array(errors), np.array(cross)

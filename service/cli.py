@@ -26,6 +26,7 @@ from . import commands
 COMMAND_MODULES = {
     "build": "build",
     "db": "db",
+    "evaluate": "evaluate",
     "export": "exchange",
     "from-lanelet2": "exchange",
     "import": "exchange",

@@ -1,0 +1,150 @@
+"""``lanemap evaluate``: how well a map agrees with surveyed (or rendered) true markings."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from ..cli_errors import fail
+from ..filters import parse_statuses
+
+#: Exit code when the map misses --min-precision or --min-recall.
+BELOW_TARGET = 3
+
+
+def _read_truth(path: Path):
+    from mapbuilder.geojson import read_geojson_file, read_geojson_stream
+
+    if str(path) == "-":
+        return read_geojson_stream(sys.stdin.buffer, "standard input")
+    return read_geojson_file(path)
+
+
+def _summary(map_id: str, source: str, ev, width_m: float, height_m: float) -> list[str]:
+    def share(v: float) -> str:
+        return "n/a" if not math.isfinite(v) else f"{v:.3f}"
+
+    def cm(v: float) -> str:
+        return "n/a" if not math.isfinite(v) else f"{100 * v:.1f} cm"
+
+    lines = [
+        f"map {map_id} against {source} ({ev.n_true} true markings counted, "
+        f"{width_m:.0f} m x {height_m:.0f} m):",
+        f"  precision {share(ev.precision)}  ({ev.n_correct} of {ev.n_detected} markings of the map "
+        "lie on a true one)",
+        f"  recall    {share(ev.recall)}  ({ev.n_found} of {ev.n_true} true markings found)",
+        f"  centroid error  {cm(ev.centroid_rmse_m)} RMS over {ev.centroid_errors_m.size} matched "
+        "dashes, stop lines and other discrete markings",
+        f"  across lines    {cm(ev.cross_track_rmse_m)} RMS over {ev.cross_track_m.size} markings "
+        "on solid lines",
+    ]
+    for kind, d in ev.recall_by_kind().items():
+        lines.append(f"  {kind:>10}: {d['found']} of {d['true']} found")
+    return lines
+
+
+def evaluate(
+    map_id: str = typer.Argument(..., metavar="MAP"),
+    truth: Path = typer.Argument(
+        ..., metavar="TRUTH",
+        help="True markings as GeoJSON (Points in WGS84 with length_m and bearing_deg, as "
+        "'lanemap synth' and 'lanemap export' write them); - reads standard input."),
+    tolerance: float = typer.Option(0.3, "--tolerance", help="Largest centroid (or axis) distance of a "
+                                    "match, metres."),
+    border: float = typer.Option(
+        0.0, "--border", help="Leave out markings this close to the edge of the truth's extent, metres."),
+    status: str = typer.Option(
+        "unreviewed,accepted", "--status", metavar="STATUS,...",
+        help="The map's markings to score, by review status (default: those the localizer uses)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON."),
+    errors: Path | None = typer.Option(
+        None, "--errors", help="Write the map's false markings and the missed true ones to this "
+        "GeoJSON file (property 'error': 'false' or 'missed'), to review them in the editor or QGIS."),
+    min_precision: float | None = typer.Option(
+        None, "--min-precision", help=f"Exit with code {BELOW_TARGET} if precision is lower."),
+    min_recall: float | None = typer.Option(
+        None, "--min-recall", help=f"Exit with code {BELOW_TARGET} if recall is lower."),
+) -> None:
+    """Score MAP against true markings: precision, recall and centroid errors.
+
+    The truth is taken as complete over its extent (the box around its
+    markings): every marking of the map there should match one of it. A
+    dash, stop line or stall line matches when the centroids are within
+    --tolerance (one to one); a solid line is cut into pieces anywhere, so a
+    marking on one is right when it lies within --tolerance of its axis.
+    """
+    from mapbuilder.crs import from_wgs84, meridian_convergence_deg, to_wgs84
+    from mapbuilder.evaluate import evaluate_markings
+    from mapbuilder.geojson import write_geojson
+    from mapbuilder.store import Store
+
+    if not (math.isfinite(tolerance) and tolerance > 0):
+        fail(f"--tolerance must be a positive number of metres, got {tolerance}")
+    if not (math.isfinite(border) and border >= 0):
+        fail(f"--border must be a number of metres, 0 or more, got {border}")
+    for name, v in (("--min-precision", min_precision), ("--min-recall", min_recall)):
+        if v is not None and not 0 <= v <= 1:
+            fail(f"{name} must be within [0, 1], got {v}")
+    try:
+        statuses = parse_statuses(status)
+    except ValueError as exc:
+        fail(f"--{exc}")
+    true = _read_truth(truth)
+    source = "standard input" if str(truth) == "-" else truth.name
+    if not true:
+        fail(f"{source} holds no markings")
+    store = Store()
+    info = store.get_map(map_id)
+    if info.crs is None:
+        fail(f"map {map_id} is empty and has no CRS yet")
+    crs = info.crs
+    lon = np.array([m.lon for m in true], float)
+    lat = np.array([m.lat for m in true], float)
+    x, y = from_wgs84(crs).transform(lon, lat)
+    for m, a, b in zip(true, x, y):
+        m.x, m.y = float(a), float(b)
+        m.x0 = m.y0 = m.x1 = m.y1 = None  # any given ends are in another CRS; rebuilt from the axis
+    true_grid = np.array([m.bearing_deg for m in true]) - meridian_convergence_deg(crs, lon, lat)
+    half = 0.5 * max((m.length_m for m in true), default=0.0)
+    bounds = (float(x.min()) - half - tolerance, float(y.min()) - half - tolerance,
+              float(x.max()) + half + tolerance, float(y.max()) + half + tolerance)  # fmt: skip
+    box = to_wgs84(crs).transform_bounds(*bounds, densify_pts=21)
+    detected = list(store.iter_markings(map_id, statuses=statuses, lonlat_box=box))
+    store.close()
+    det_grid = None
+    if detected:
+        dlon = np.array([m.lon for m in detected], float)
+        dlat = np.array([m.lat for m in detected], float)
+        det_grid = np.array([m.bearing_deg for m in detected]) - meridian_convergence_deg(crs, dlon, dlat)
+    ev = evaluate_markings(detected, true, bounds, tolerance_m=tolerance, border_m=border,
+                           detected_grid_bearing_deg=det_grid, truth_grid_bearing_deg=true_grid)  # fmt: skip
+    if errors is not None:
+        # the error kind rides in each marking's extra, which becomes a property
+        flagged = []
+        for kind, items in (("false", ev.false_detections), ("missed", ev.missed)):
+            for m in items:
+                m.extra = {**(m.extra or {}), "error": kind}
+                flagged.append(m)
+        write_geojson(errors, flagged)
+    if as_json:
+        figures = {"map": map_id, "truth": source, "tolerance_m": tolerance, "border_m": border,
+                   "statuses": statuses, **ev.to_dict()}  # fmt: skip
+        typer.echo(json.dumps(figures, indent=2))
+    else:
+        for line in _summary(map_id, source, ev, bounds[2] - bounds[0], bounds[3] - bounds[1]):
+            typer.echo(line)
+    below = [f"{name} {value:.3f} is below {target}" for name, value, target in
+             (("precision", ev.precision, min_precision), ("recall", ev.recall, min_recall))
+             if target is not None and not value >= target]  # fmt: skip
+    if below:
+        typer.echo(f"warning: {'; '.join(below)}", err=True)
+        raise typer.Exit(BELOW_TARGET)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("evaluate")(evaluate)
