@@ -2,9 +2,10 @@
 
 Feature commands live in :mod:`service.commands`, one module each with a
 ``register(app)`` function; :data:`COMMAND_MODULES` says which module holds
-which command, so that a command line imports only its own. Any error derived from ``ValueError`` or ``OSError``
-that escapes a command is reported as one line on stderr with exit code 1; a
-traceback is shown only with ``LANEMAP_DEBUG=1``.
+which command, so that a command line imports only its own. Any error
+derived from ``ValueError`` or ``OSError`` that escapes a command is reported
+as one line on stderr with exit code 1 (a settings error names its
+``LANEMAP_`` variable); a traceback is shown only with ``LANEMAP_DEBUG=1``.
 """
 
 from __future__ import annotations
