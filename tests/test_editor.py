@@ -535,6 +535,60 @@ def test_review_queue_steps_through_detections_by_score(editor, fx):
     assert set(editor.pending()) == {q[0]}
 
 
+def lanemapEditor_zoom(page) -> int:
+    return page.evaluate("lanemapEditor.map.getZoom()")
+
+
+def test_a_list_of_places_is_reviewed_in_its_order(editor, fx, tmp_path):
+    """A GeoJSON list such as ``lanemap evaluate --errors`` writes: a point whose id is a
+    marking of the map selects it for A / R; another is a place to look at (a missed
+    marking); each is ringed on the map until the review ends."""
+    editor.open().enter_token()
+    page = editor.page
+    false_id = fx.detected[0]
+    lon0, lat0 = fx.lonlat(false_id)
+    missed = (lon0 + 4e-5, lat0 + 2e-5)
+    places = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "id": false_id, "geometry": {"type": "Point", "coordinates": [lon0, lat0]},
+         "properties": {"error": "false", "kind": "dash"}},
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": list(missed)},
+         "properties": {"error": "missed", "kind": "stop_line", "length_m": 3.5}},
+        {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]},
+         "properties": {}},
+    ]}  # fmt: skip
+    path = tmp_path / "errors.geojson"
+    path.write_text(json.dumps(places))
+    page.set_input_files("#review-file", str(path))
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{false_id}')")
+    status = page.text_content("#review-status")
+    assert "1 of 2 in errors.geojson" in status and f"marking {false_id} matches nothing true" in status
+    rings = "lanemapEditor.state.review.overlay.getLayers().length"
+    assert page.evaluate(rings) == 2
+    editor.key("r")  # rejects the false marking and goes on to the missed one
+    assert editor.pending()[false_id]["cur"]["status"] == "rejected"
+    assert editor.selection() == set()
+    # the view pans there (Leaflet may animate it)
+    page.wait_for_function(
+        """([lon, lat]) => { const c = lanemapEditor.map.getCenter();
+             return Math.hypot((c.lng - lon) * 73000, (c.lat - lat) * 111000) < 0.05; }""", arg=list(missed))
+    assert lanemapEditor_zoom(page) == 21
+    assert "2 of 2 in errors.geojson: a stop_line, 3.50 m the map misses" in page.text_content("#review-status")
+    editor.key("a")  # nothing to accept here: the review stays on this place
+    assert "2 of 2" in page.text_content("#review-status")
+    page.evaluate("(globalThis.listRings = lanemapEditor.state.review.overlay, true)")
+    assert page.evaluate("lanemapEditor.map.hasLayer(listRings)")
+    editor.key(" ")
+    assert "Review done: 2 places of errors.geojson" in page.text_content("#review-status")
+    assert page.evaluate("lanemapEditor.state.review") is None
+    assert not page.evaluate("lanemapEditor.map.hasLayer(listRings)")
+    # a file that is not GeoJSON says so and starts nothing
+    bad = tmp_path / "bad.geojson"
+    bad.write_text("{no")
+    page.set_input_files("#review-file", str(bad))
+    page.wait_for_function("document.getElementById('review-status').textContent.includes('could not be read')")
+    assert page.evaluate("lanemapEditor.state.review") is None
+
+
 def test_box_selection_attributes_and_revert(editor, fx, server):
     editor.open().enter_token()
     page = editor.page

@@ -64,7 +64,8 @@ def evaluate(
     as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON."),
     errors: Path | None = typer.Option(
         None, "--errors", help="Write the map's false markings and the missed true ones to this "
-        "GeoJSON file (property 'error': 'false' or 'missed'), to review them in QGIS (a false one keeps its marking id)."),
+        "GeoJSON file (property 'error': 'false' or 'missed'), to step through them in the web "
+        "editor (review a list) or QGIS."),
     min_precision: float | None = typer.Option(
         None, "--min-precision", help=f"Exit with code {BELOW_TARGET} if precision is lower."),
     min_recall: float | None = typer.Option(

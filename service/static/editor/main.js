@@ -26,7 +26,7 @@ const state = {
   selection: new Set(),
   conflicts: new Map(), // id -> conflict from the server
   mode: 'select',
-  review: null, // {queue: [marking], index}
+  review: null, // {queue: [marking], index} or, for a list, {queue: [place], index, list, overlay}
   lengthDoubts: new Map(), // id -> typical length (m) of detections whose length the localizer doubts
   gesture: null, // a drag, box or dash being drawn
   afterGesture: false, // the click that ends a drag is not a click
@@ -664,9 +664,88 @@ async function startReview() {
   }
 }
 
+/** Centre the view on ``latlng`` at ``zoom``, after a running zoom animation (Leaflet drops a
+ * new view asked for during one, as when a reviewer decides faster than the map zooms). */
+function goTo(latlng, zoom) {
+  if (map._animatingZoom) map.once('zoomend', () => map.setView(latlng, zoom));
+  else map.setView(latlng, zoom);
+}
+
+// A list of places from a GeoJSON file: its points are visited in order. A point whose
+// feature id is a marking of this map selects it (A / R decide on it); any other point
+// is a place to look at, for instance a marking the map misses (N adds one there).
+const LIST_COLOURS = { false: '#ff3b30', missed: '#0a84ff' };
+
+function listPlaces(fc) {
+  const feats = fc && fc.type === 'FeatureCollection' && Array.isArray(fc.features) ? fc.features : null;
+  if (!feats) throw new Error('not a GeoJSON FeatureCollection');
+  return feats
+    .filter((f) => f && f.geometry && f.geometry.type === 'Point' && Array.isArray(f.geometry.coordinates)
+      && f.geometry.coordinates.slice(0, 2).every(Number.isFinite))
+    .map((f) => ({
+      lon: f.geometry.coordinates[0],
+      lat: f.geometry.coordinates[1],
+      id: f.id == null ? null : String(f.id),
+      props: f.properties || {},
+    }));
+}
+
+async function startListReview(file) {
+  if (!state.mapId || !file) return;
+  let places;
+  try {
+    places = listPlaces(JSON.parse(await file.text()));
+  } catch (err) {
+    $('review-status').textContent = `${file.name} could not be read: ${err.message}`;
+    return;
+  }
+  if (!places.length) {
+    $('review-status').textContent = `${file.name} has no points to visit.`;
+    return;
+  }
+  stopReview();
+  const overlay = L.layerGroup(places.map((p) => L.circleMarker([p.lat, p.lon], {
+    radius: 12, weight: 2, fill: false, interactive: false,
+    color: LIST_COLOURS[p.props.error] || '#ff9f0a',
+  }))).addTo(map);
+  state.review = { queue: places, index: -1, list: file.name, overlay };
+  $('review-start').hidden = true;
+  $('review-stop').hidden = false;
+  setMode('select');
+  nextReview();
+}
+
+function placeText(p, m) {
+  const kind = p.props.kind || 'marking';
+  const length = Number.isFinite(p.props.length_m) ? `, ${p.props.length_m.toFixed(2)} m` : '';
+  if (p.props.error === 'missed') return `a ${kind}${length} the map misses: add it with N`;
+  if (m && p.props.error === 'false') return `marking ${m.id} matches nothing true: reject or delete it`;
+  if (m) return `marking ${m.id}`;
+  return p.id ? `marking ${p.id}, not in this map (any more)` : `a place (${kind}${length})`;
+}
+
+function nextListPlace(r) {
+  r.index += 1;
+  if (r.index >= r.queue.length) {
+    $('review-status').textContent = `Review done: ${r.queue.length} places of ${r.list}.`;
+    stopReview(false);
+    return;
+  }
+  const p = r.queue[r.index];
+  const m = p.id ? current(p.id) : null;
+  state.selection = new Set(m ? [String(m.id)] : []);
+  goTo([p.lat, p.lon], REVIEW_ZOOM);
+  render();
+  $('review-status').textContent = `${r.index + 1} of ${r.queue.length} in ${r.list}: ${placeText(p, m)}`;
+}
+
 function nextReview() {
   const r = state.review;
   if (!r) return;
+  if (r.list) {
+    nextListPlace(r);
+    return;
+  }
   do r.index += 1;
   while (r.index < r.queue.length && (current(r.queue[r.index].id)?.status ?? 'gone') !== 'unreviewed');
   if (r.index >= r.queue.length) {
@@ -676,7 +755,7 @@ function nextReview() {
   }
   const m = current(r.queue[r.index].id);
   state.selection = new Set([String(m.id)]);
-  map.setView([m.lat, m.lon], REVIEW_ZOOM);
+  goTo([m.lat, m.lon], REVIEW_ZOOM);
   render();
   const typical = state.lengthDoubts.get(String(m.id));
   const doubt = typical === undefined ? ''
@@ -687,11 +766,18 @@ function nextReview() {
 function reviewDecide(status) {
   const r = state.review;
   if (!r || r.index >= r.queue.length) return;
-  if (status && !setStatus([String(r.queue[r.index].id)], status)) return;
+  const id = r.list ? r.queue[r.index].id : String(r.queue[r.index].id);
+  if (status && r.list && !(id && current(id))) {
+    toast('No marking of this map here to decide on: Space goes on.');
+    return;
+  }
+  if (status && !setStatus([id], status)) return;
   nextReview();
 }
 
 function stopReview(clearText = true) {
+  if (state.review?.overlay) state.review.overlay.remove();
+  $('review-file').value = '';
   state.review = null;
   $('review-start').hidden = false;
   $('review-stop').hidden = true;
@@ -699,6 +785,7 @@ function stopReview(clearText = true) {
 }
 
 $('review-start').addEventListener('click', startReview);
+$('review-file').addEventListener('change', (e) => startListReview(e.target.files[0]));
 $('review-stop').addEventListener('click', () => stopReview());
 
 // ---------------------------------------------------------------- history
