@@ -139,7 +139,8 @@ def evaluate(
     else:
         for line in _summary(map_id, source, ev, bounds[2] - bounds[0], bounds[3] - bounds[1]):
             typer.echo(line)
-    below = [f"{name} {value:.3f} is below {target}" for name, value, target in
+    below = [f"{name} {'n/a' if math.isnan(value) else f'{value:.3f}'} is below {target}"
+             for name, value, target in
              (("precision", ev.precision, min_precision), ("recall", ev.recall, min_recall))
              if target is not None and not value >= target]  # fmt: skip
     if below:
