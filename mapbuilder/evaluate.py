@@ -21,14 +21,20 @@ Everything is in one metric CRS (metres).
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
+from .crs import from_wgs84, meridian_convergence_deg, to_wgs84
 from .model import Marking
+from .store import Store
 
 #: Markings longer than this are lines for scoring, metres (the builder's
 #: ``ClusterParams.whole_max_length_m``: it cuts longer ones into pieces).
@@ -111,6 +117,18 @@ class Evaluation:
     def missed(self) -> list[Marking]:
         return [t for t, f, c in zip(self.truth, self.found, self.counted) if c and not f]
 
+    def error_markings(self) -> list[Marking]:
+        """The false detections and the missed true markings, copies with
+        ``extra["error"]`` set to ``"false"`` or ``"missed"`` (a GeoJSON property once
+        written)."""
+        out = []
+        for kind, items in (("false", self.false_detections), ("missed", self.missed)):
+            for m in items:
+                flagged = copy.copy(m)
+                flagged.extra = {**(m.extra or {}), "error": kind}
+                out.append(flagged)
+        return out
+
     def recall_by_kind(self) -> dict[str, dict[str, int]]:
         """``{kind: {"true": n, "found": k}}`` over the counted true markings."""
         out: dict[str, dict[str, int]] = {}
@@ -142,26 +160,66 @@ class Evaluation:
         }
 
 
-def segment_distances(px: np.ndarray, py: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Distances of points to line segments.
+def _assign(a: np.ndarray, b: np.ndarray, tolerance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One-to-one matches of points ``a`` (N, 2) to points ``b`` (M, 2) within ``tolerance_m``:
+    as many as can be made, then the smallest sum of distances among those.
 
-    Parameters
-    ----------
-    px, py : (P,) ndarray
-        Point coordinates, metres.
-    segments : (S, 4) ndarray
-        ``x0, y0, x1, y1`` of each segment, metres.
-
-    Returns
-    -------
-    (P, S) ndarray
-        Distances, metres.
+    Only pairs within the tolerance are ever compared (a k-d tree finds them), and each group
+    of points linked by such pairs is assigned on its own, so a city's markings need no
+    N x M matrix. Returns the indices into ``a`` (ascending), into ``b``, and the distances.
     """
-    x0, y0, x1, y1 = (segments[:, i][None] for i in range(4))
-    dx, dy = x1 - x0, y1 - y0
-    l2 = np.maximum(dx * dx + dy * dy, 1e-12)
-    t = np.clip(((px[:, None] - x0) * dx + (py[:, None] - y0) * dy) / l2, 0, 1)
-    return np.hypot(px[:, None] - (x0 + t * dx), py[:, None] - (y0 + t * dy))
+    pairs = cKDTree(a).sparse_distance_matrix(cKDTree(b), tolerance_m, output_type="ndarray")
+    if pairs.size == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    i, j, d = pairs["i"], pairs["j"], pairs["v"]
+    n = len(a)
+    graph = coo_matrix((np.ones(i.size), (i, n + j)), shape=(n + len(b), n + len(b)))
+    _, label = connected_components(graph, directed=False)
+    rows, cols, dists = [], [], []
+    order = np.argsort(label[i], kind="stable")
+    i, j, d = i[order], j[order], d[order]
+    starts = np.flatnonzero(np.r_[True, label[i][1:] != label[i][:-1]])
+    for lo, hi in zip(starts, np.r_[starts[1:], i.size]):
+        ui, ri = np.unique(i[lo:hi], return_inverse=True)
+        uj, rj = np.unique(j[lo:hi], return_inverse=True)
+        # pairs beyond the tolerance cost more than any set of pairs within it
+        cost = np.full((ui.size, uj.size), 1e6)
+        cost[ri, rj] = d[lo:hi]
+        r, c = linear_sum_assignment(cost)
+        ok = cost[r, c] <= tolerance_m
+        rows.append(ui[r[ok]])
+        cols.append(uj[c[ok]])
+        dists.append(cost[r[ok], c[ok]])
+    rows, cols, dists = np.concatenate(rows), np.concatenate(cols), np.concatenate(dists)
+    order = np.argsort(rows, kind="stable")
+    return rows[order], cols[order], dists[order]
+
+
+def _nearest_segment(points: np.ndarray, segments: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """Distance of each point (N, 2) to the nearest of ``segments`` (S, 4), metres; ``inf`` where
+    none lies within ``tolerance_m``. Only segments whose middle is near enough to matter are
+    measured."""
+    out = np.full(len(points), np.inf)
+    if not len(points) or not len(segments):
+        return out
+    mid = 0.5 * (segments[:, :2] + segments[:, 2:])
+    half = 0.5 * np.hypot(*(segments[:, 2:] - segments[:, :2]).T)
+    reach = tolerance_m + float(half.max()) + 1e-9
+    near = cKDTree(points).sparse_distance_matrix(cKDTree(mid), reach, output_type="ndarray")
+    if near.size == 0:
+        return out
+    i, j = near["i"], near["j"]
+    keep = near["v"] <= tolerance_m + half[j] + 1e-9
+    i, j = i[keep], j[keep]
+    seg = segments[j]
+    x0, y0, x1, y1 = seg.T
+    dxs, dys = x1 - x0, y1 - y0
+    l2 = np.maximum(dxs * dxs + dys * dys, 1e-12)
+    px, py = points[i, 0], points[i, 1]
+    t = np.clip(((px - x0) * dxs + (py - y0) * dys) / l2, 0, 1)
+    dist = np.hypot(px - (x0 + t * dxs), py - (y0 + t * dys))
+    np.minimum.at(out, i, dist)
+    return out
 
 
 def _axes(items: Sequence[Marking], grid_bearing_deg: np.ndarray | None) -> np.ndarray:
@@ -258,26 +316,77 @@ def evaluate_markings(
     cross: list[float] = []
     disc = np.flatnonzero(~line)
     if len(det) and len(disc):
-        d = np.hypot(dx[:, None] - tx[disc][None], dy[:, None] - ty[disc][None])
-        cost = np.where(d <= tolerance_m, d, 1e6)
-        r, c = linear_sum_assignment(cost)
-        ok = cost[r, c] <= tolerance_m
-        det_ok[r[ok]] = True
-        found[disc[c[ok]]] = True
-        cnt = counted[disc[c[ok]]]
-        errors = list(d[r[ok], c[ok]][cnt])
-        error_kinds = [truth[i].kind for i in disc[c[ok]][cnt]]
+        r, c, dist = _assign(np.column_stack([dx, dy]), np.column_stack([tx[disc], ty[disc]]), tolerance_m)
+        det_ok[r] = True
+        found[disc[c]] = True
+        cnt = counted[disc[c]]
+        errors = list(dist[cnt])
+        error_kinds = [truth[i].kind for i in disc[c][cnt]]
     lines = np.flatnonzero(line)
     if len(det) and len(lines):
         tseg = _axes([truth[i] for i in lines],
                      None if truth_grid_bearing_deg is None else np.asarray(truth_grid_bearing_deg)[lines])
-        dist = segment_distances(dx, dy, tseg).min(axis=1)
+        dist = _nearest_segment(np.column_stack([dx, dy]), tseg, tolerance_m)
         on_line = (~det_ok) & (dist <= tolerance_m)
         det_ok |= on_line
         cross = list(dist[on_line])
-        found[lines] = segment_distances(tx[lines], ty[lines], dseg).min(axis=1) <= tolerance_m
+        found[lines] = _nearest_segment(np.column_stack([tx[lines], ty[lines]]), dseg, tolerance_m) <= tolerance_m
     return Evaluation(
         detected=det, truth=truth, detection_ok=det_ok, found=found, counted=counted, is_line=line,
         centroid_errors_m=np.array(errors, float), centroid_error_kinds=error_kinds,
         cross_track_m=np.array(cross, float),
     )
+
+
+def evaluate_map(
+    store: Store,
+    map_id: str,
+    truth: Sequence[Marking],
+    *,
+    tolerance_m: float = 0.3,
+    border_m: float = 0.0,
+    statuses: Sequence[str] | None = ("unreviewed", "accepted"),
+    min_visible: float = 0.9,
+) -> tuple[Evaluation, tuple[float, float, float, float]]:
+    """Score a stored map against true markings given in WGS84 (``lon``, ``lat``,
+    ``bearing_deg`` clockwise from true north), over the truth's extent.
+
+    The truth is taken as complete over the box around its markings (their
+    lengths and the tolerance included); the map's markings with one of
+    ``statuses`` inside it are scored. Returns the :class:`Evaluation`, whose
+    markings are in the map's CRS, and that box in the map's CRS.
+
+    Raises
+    ------
+    ValueError
+        Without true markings, or when the map has no CRS yet (nothing stored).
+    """
+    if not truth:
+        raise ValueError("no true markings to score against")
+    info = store.get_map(map_id)
+    if info.crs is None:
+        raise ValueError(f"map {map_id} is empty and has no CRS yet")
+    crs = info.crs
+    truth = [copy.copy(m) for m in truth]
+    lon = np.array([m.lon for m in truth], float)
+    lat = np.array([m.lat for m in truth], float)
+    if not (np.isfinite(lon).all() and np.isfinite(lat).all()):
+        raise ValueError("every true marking needs a finite lon/lat")
+    x, y = from_wgs84(crs).transform(lon, lat)
+    for m, a, b in zip(truth, x, y):
+        m.x, m.y = float(a), float(b)
+        m.x0 = m.y0 = m.x1 = m.y1 = None  # ends given in another CRS are rebuilt from the axis
+    truth_grid = np.array([m.bearing_deg for m in truth], float) - meridian_convergence_deg(crs, lon, lat)
+    reach = 0.5 * max(m.length_m for m in truth) + tolerance_m
+    bounds = (float(x.min()) - reach, float(y.min()) - reach, float(x.max()) + reach, float(y.max()) + reach)
+    box = to_wgs84(crs).transform_bounds(*bounds, densify_pts=21)
+    detected = list(store.iter_markings(map_id, statuses=statuses, lonlat_box=box))
+    det_grid = None
+    if detected:
+        dlon = np.array([m.lon for m in detected], float)
+        dlat = np.array([m.lat for m in detected], float)
+        det_grid = np.array([m.bearing_deg for m in detected], float) - meridian_convergence_deg(crs, dlon, dlat)
+    ev = evaluate_markings(detected, truth, bounds, tolerance_m=tolerance_m, border_m=border_m,
+                           min_visible=min_visible, detected_grid_bearing_deg=det_grid,
+                           truth_grid_bearing_deg=truth_grid)  # fmt: skip
+    return ev, bounds

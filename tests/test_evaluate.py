@@ -120,3 +120,35 @@ def test_cli_scores_a_map_against_its_truth(db_url, tmp_path):
         proc = _run(args, env, tmp_path)
         assert proc.returncode == 1 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
         assert says in proc.stderr, proc.stderr
+
+
+def test_matches_are_as_many_as_can_be_made_then_the_closest():
+    # A is nearest to T1, but only A can reach T2: the assignment pairs A-T2 and B-T1
+    truth = [dash(10.0, 10.0), dash(10.2, 10.0)]
+    detected = [dash(10.1, 10.0), dash(9.8, 10.0)]
+    ev = evaluate_markings(detected, truth, BOUNDS, border_m=0)
+    assert ev.n_correct == 2 and ev.n_found == 2
+    assert sorted(np.round(ev.centroid_errors_m, 6)) == [0.1, 0.2]
+
+
+def test_groups_of_near_markings_are_assigned_as_the_whole_set_would_be():
+    """The assignment runs on each group of markings linked by pairs within the tolerance;
+    a brute-force assignment over all of them agrees on the number of matches and their total
+    distance."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        centres = rng.uniform(0, 60, (10, 2))
+        a = centres[rng.integers(0, 10, rng.integers(1, 50))] + rng.normal(0, 0.2, (1, 2))
+        a = a + rng.normal(0, 0.2, a.shape)
+        b = centres[rng.integers(0, 10, rng.integers(1, 50))] + rng.normal(0, 0.2, (1, 2))
+        b = b + rng.normal(0, 0.2, b.shape)
+        ev = evaluate_markings([dash(x, y) for x, y in a], [dash(x, y) for x, y in b],
+                               (-10, -10, 70, 70), border_m=0)  # fmt: skip
+        d = np.hypot(*(a[:, None] - b[None]).transpose(2, 0, 1))
+        cost = np.where(d <= 0.3, d, 1e6)
+        r, c = linear_sum_assignment(cost)
+        ok = cost[r, c] <= 0.3
+        assert ev.n_correct == ok.sum()
+        assert ev.centroid_errors_m.sum() == pytest.approx(cost[r[ok], c[ok]].sum())

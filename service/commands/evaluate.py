@@ -7,7 +7,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 import typer
 
 from ..cli_errors import fail
@@ -79,8 +78,7 @@ def evaluate(
     --tolerance (one to one); a solid line is cut into pieces anywhere, so a
     marking on one is right when it lies within --tolerance of its axis.
     """
-    from mapbuilder.crs import from_wgs84, meridian_convergence_deg, to_wgs84
-    from mapbuilder.evaluate import evaluate_markings
+    from mapbuilder.evaluate import evaluate_map
     from mapbuilder.geojson import write_geojson
     from mapbuilder.store import Store
 
@@ -100,38 +98,13 @@ def evaluate(
     if not true:
         fail(f"{source} holds no markings")
     store = Store()
-    info = store.get_map(map_id)
-    if info.crs is None:
-        fail(f"map {map_id} is empty and has no CRS yet")
-    crs = info.crs
-    lon = np.array([m.lon for m in true], float)
-    lat = np.array([m.lat for m in true], float)
-    x, y = from_wgs84(crs).transform(lon, lat)
-    for m, a, b in zip(true, x, y):
-        m.x, m.y = float(a), float(b)
-        m.x0 = m.y0 = m.x1 = m.y1 = None  # any given ends are in another CRS; rebuilt from the axis
-    true_grid = np.array([m.bearing_deg for m in true]) - meridian_convergence_deg(crs, lon, lat)
-    half = 0.5 * max((m.length_m for m in true), default=0.0)
-    bounds = (float(x.min()) - half - tolerance, float(y.min()) - half - tolerance,
-              float(x.max()) + half + tolerance, float(y.max()) + half + tolerance)  # fmt: skip
-    box = to_wgs84(crs).transform_bounds(*bounds, densify_pts=21)
-    detected = list(store.iter_markings(map_id, statuses=statuses, lonlat_box=box))
-    store.close()
-    det_grid = None
-    if detected:
-        dlon = np.array([m.lon for m in detected], float)
-        dlat = np.array([m.lat for m in detected], float)
-        det_grid = np.array([m.bearing_deg for m in detected]) - meridian_convergence_deg(crs, dlon, dlat)
-    ev = evaluate_markings(detected, true, bounds, tolerance_m=tolerance, border_m=border,
-                           detected_grid_bearing_deg=det_grid, truth_grid_bearing_deg=true_grid)  # fmt: skip
+    try:
+        ev, bounds = evaluate_map(store, map_id, true, tolerance_m=tolerance, border_m=border,
+                                  statuses=statuses)  # fmt: skip
+    finally:
+        store.close()
     if errors is not None:
-        # the error kind rides in each marking's extra, which becomes a property
-        flagged = []
-        for kind, items in (("false", ev.false_detections), ("missed", ev.missed)):
-            for m in items:
-                m.extra = {**(m.extra or {}), "error": kind}
-                flagged.append(m)
-        write_geojson(errors, flagged)
+        write_geojson(errors, ev.error_markings())
     if as_json:
         figures = {"map": map_id, "truth": source, "tolerance_m": tolerance, "border_m": border,
                    "statuses": statuses, **ev.to_dict()}  # fmt: skip
