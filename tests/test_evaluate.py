@@ -152,3 +152,58 @@ def test_groups_of_near_markings_are_assigned_as_the_whole_set_would_be():
         ok = cost[r, c] <= 0.3
         assert ev.n_correct == ok.sum()
         assert ev.centroid_errors_m.sum() == pytest.approx(cost[r[ok], c[ok]].sum())
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def api(request):
+    from tests._api_helpers import shared_server
+
+    return shared_server(request.param)
+
+
+def test_api_scores_a_map_as_the_cli_does(api, tmp_path):
+    """``POST /collections/{id}/evaluate``: the figures and the false and missed markings of
+    the CLI, over HTTP, for a reader; bad input is a problem, not a 500."""
+    import httpx
+
+    from tests._localizer_helpers import KARLSRUHE_OSM
+
+    env = dict(os.environ, LANEMAP_DATABASE_URL=api.db_url, LANEMAP_DATA_DIR=str(tmp_path / "data"))
+    env.pop("LANEMAP_DEBUG", None)
+    assert _run(["from-lanelet2", KARLSRUHE_OSM, "truth.geojson"], env, tmp_path).returncode == 0
+    truth = json.loads((tmp_path / "truth.geojson").read_text())
+    window = {**truth, "features": truth["features"][:300]}
+    map_id = api.new_map(prefix="ev")
+    imported = {**truth, "features": truth["features"][3:300]}  # three missed
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/import", json=imported, headers=api.auth, timeout=60)
+    assert r.status_code == 201, r.text
+    url = f"{api.base_url}/collections/{map_id}/evaluate"
+    r = httpx.post(url, json=window, timeout=60)  # no token: reading is enough
+    assert r.status_code == 200, r.text
+    got = r.json()
+    assert (got["precision"], got["found"], got["true_markings"]) == (1.0, 297, 300)
+    missed = [f for f in got["errors"]["features"] if f["properties"]["error"] == "missed"]
+    assert len(missed) == 3 and len(got["errors"]["features"]) == 3
+    want = {tuple(round(c, 7) for c in f["geometry"]["coordinates"]) for f in truth["features"][:3]}
+    assert {tuple(round(c, 7) for c in f["geometry"]["coordinates"]) for f in missed} == want
+    (tmp_path / "window.geojson").write_text(json.dumps(window))
+    cli = _run(["evaluate", map_id, "window.geojson", "--json"], env, tmp_path)
+    assert cli.returncode == 0, cli.stderr
+    assert {k: v for k, v in json.loads(cli.stdout).items() if k not in ("truth",)} == \
+        {k: v for k, v in got.items() if k != "errors"}  # fmt: skip
+    assert "errors" not in httpx.post(url, json=window, params={"errors": "false"}, timeout=60).json()
+
+    empty = api.new_map(prefix="ev0", crs=None)
+    problems = [
+        (url, {"type": "FeatureCollection", "features": []}, {}, 422, "invalid-geojson"),
+        (url, {"type": "Nope"}, {}, 422, "invalid-geojson"),
+        (url, window, {"status": "approved"}, 400, "invalid-parameter"),
+        (url, window, {"tolerance": "0"}, 422, "validation-error"),
+        (f"{api.base_url}/collections/no-such-map/evaluate", window, {}, 404, "unknown-map"),
+        (f"{api.base_url}/collections/{empty}/evaluate", window, {}, 409, "map-empty"),
+    ]
+    for where, body, params, status, kind in problems:
+        r = httpx.post(where, json=body, params=params, timeout=60)
+        assert r.status_code == status and r.headers["content-type"].startswith("application/problem+json"), \
+            (kind, r.status_code, r.text)
+        assert r.json()["type"].endswith(kind), r.text
