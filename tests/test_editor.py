@@ -577,7 +577,10 @@ def test_a_list_of_places_is_reviewed_in_its_order(editor, fx, tmp_path):
     assert "2 of 2" in page.text_content("#review-status")
     page.evaluate("(globalThis.listRings = lanemapEditor.state.review.overlay, true)")
     assert page.evaluate("lanemapEditor.map.hasLayer(listRings)")
-    editor.key(" ")
+    editor.key("n")  # adds the missed marking as the list describes it, and goes on
+    added = [v["cur"] for k, v in editor.pending().items() if k != false_id]
+    assert len(added) == 1 and added[0]["kind"] == "stop_line" and added[0]["length_m"] == 3.5
+    assert (added[0]["lon"], added[0]["lat"]) == pytest.approx(missed, abs=1e-9)
     assert "Review done: 2 places of errors.geojson" in page.text_content("#review-status")
     assert page.evaluate("lanemapEditor.state.review") is None
     assert not page.evaluate("lanemapEditor.map.hasLayer(listRings)")

@@ -718,7 +718,7 @@ async function startListReview(file) {
 function placeText(p, m) {
   const kind = p.props.kind || 'marking';
   const length = Number.isFinite(p.props.length_m) ? `, ${p.props.length_m.toFixed(2)} m` : '';
-  if (p.props.error === 'missed') return `a ${kind}${length} the map misses: add it with N`;
+  if (p.props.error === 'missed') return `a ${kind}${length} the map misses: N adds it as listed`;
   if (m && p.props.error === 'false') return `marking ${m.id} matches nothing true: reject or delete it`;
   if (m) return `marking ${m.id}`;
   return p.id ? `marking ${p.id}, not in this map (any more)` : `a place (${kind}${length})`;
@@ -761,6 +761,23 @@ function nextReview() {
   const doubt = typical === undefined ? ''
     : `; ${m.length_m.toFixed(2)} m long where ${typical.toFixed(2)} m is typical: a dash cut short or run long? Fix its ends, or set its kind if it is right`;
   $('review-status').textContent = `${r.index + 1} of ${r.queue.length}: marking ${m.id}, score ${m.score == null ? '–' : m.score.toFixed(3)}${doubt}`;
+}
+
+/** At a listed place with no marking of the map, add the marking the list describes
+ * (its kind, length, width and bearing where given) and go on. False if there is none to add. */
+function addListedMarking() {
+  const r = state.review;
+  const p = r && r.list ? r.queue[r.index] : null;
+  if (!p || (p.id && current(p.id)) || !canEdit()) return false;
+  const props = { lon: p.lon, lat: p.lat };
+  if (typeof p.props.kind === 'string' && p.props.kind) props.kind = p.props.kind;
+  for (const key of ['length_m', 'width_m']) {
+    if (Number.isFinite(p.props[key]) && p.props[key] > 0) props[key] = p.props[key];
+  }
+  if (Number.isFinite(p.props.bearing_deg)) props.bearing_deg = ((p.props.bearing_deg % 360) + 360) % 360;
+  addMarking(props);
+  nextReview();
+  return true;
 }
 
 function reviewDecide(status) {
@@ -941,6 +958,8 @@ document.addEventListener('keydown', (e) => {
   } else if ((e.key === 'Delete' || e.key === 'Backspace') && state.selection.size) {
     e.preventDefault();
     deleteMarkings(state.selection);
+  } else if (k === 'n' && addListedMarking()) {
+    // a listed missing marking was added as described
   } else if (k === 'n') {
     setMode('add');
   } else if (k === 'v') {
