@@ -16,7 +16,8 @@ The rules (the same for ``lanemap evaluate`` and ``benchmarks/build_quality.py``
 * the centroid error is measured on matched discrete markings, the
   cross-track error on detections that lie on lines.
 
-Everything is in one metric CRS (metres).
+:func:`evaluate_markings` works in one metric CRS (metres);
+:func:`evaluate_map` takes the truth in WGS84 and scores a stored map with it.
 """
 
 from __future__ import annotations
@@ -32,13 +33,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .cluster import ClusterParams
 from .crs import from_wgs84, meridian_convergence_deg, to_wgs84
 from .model import Marking
 from .store import Store
 
-#: Markings longer than this are lines for scoring, metres (the builder's
-#: ``ClusterParams.whole_max_length_m``: it cuts longer ones into pieces).
-LINE_LENGTH_M = 8.0
+#: Markings longer than this are lines for scoring, metres: the builder cuts
+#: longer ones into pieces.
+LINE_LENGTH_M = ClusterParams.whole_max_length_m
 
 
 @dataclass
