@@ -592,6 +592,39 @@ def test_a_list_of_places_is_reviewed_in_its_order(editor, fx, tmp_path):
     assert page.evaluate("lanemapEditor.state.review") is None
 
 
+def test_the_map_is_scored_against_a_survey_and_its_errors_reviewed(editor, fx, server, tmp_path):
+    """A survey file is scored on the server (``POST .../evaluate``); the page shows the figures
+    and steps through the false and missed markings."""
+    editor.open().enter_token()
+    page = editor.page
+    kept = [f for f in fx.features.values() if f["properties"]["status"] != "rejected"]
+    false_id = fx.detected[0]
+    lon0, lat0 = fx.lonlat(false_id)
+    survey = [f for f in kept if f["id"] != false_id]
+    survey.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": [lon0 + 5e-5, lat0]},
+                   "properties": {"kind": "dash", "length_m": 3.0, "bearing_deg": 90.0}})  # fmt: skip
+    body = {"type": "FeatureCollection", "features": survey}
+    want = httpx.post(f"{server.base_url}/collections/{fx.map_id}/evaluate", json=body, timeout=60).json()
+    errs = want["errors"]["features"]
+    assert false_id in {str(f.get("id")) for f in errs if f["properties"]["error"] == "false"}
+    assert sum(f["properties"]["error"] == "missed" for f in errs) == 1
+    path = tmp_path / "survey.geojson"
+    path.write_text(json.dumps(body))
+    page.set_input_files("#score-file", str(path))
+    page.wait_for_function("document.getElementById('score-summary').textContent.startsWith('Against')")
+    summary = page.text_content("#score-summary")
+    assert (f"precision {want['precision']:.3f} ({want['correct_detections']} of {want['detections']}"
+            in summary), summary  # fmt: skip
+    assert f"recall {want['recall']:.3f} ({want['found']} of {want['true_markings']} found)" in summary
+    n = len(want["errors"]["features"])
+    page.wait_for_function("lanemapEditor.state.review !== null")
+    assert f"1 of {n} in the errors against survey.geojson" in page.text_content("#review-status")
+    firsts = want["errors"]["features"][0]
+    if firsts.get("id") is not None:
+        assert editor.selection() == {str(firsts["id"])}
+    assert page.evaluate("lanemapEditor.state.review.overlay.getLayers().length") == n
+
+
 def test_box_selection_attributes_and_revert(editor, fx, server):
     editor.open().enter_token()
     page = editor.page

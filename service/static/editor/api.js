@@ -97,6 +97,11 @@ export class Api {
     }
   }
 
+  /** The map as saved, scored against true markings (a GeoJSON FeatureCollection). */
+  evaluate(mapId, truth) {
+    return this.request('POST', `collections/${encodeURIComponent(mapId)}/evaluate`, { body: truth });
+  }
+
   saveChangeset(mapId, body) {
     return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`, { body });
   }

@@ -690,17 +690,61 @@ function listPlaces(fc) {
     }));
 }
 
-async function startListReview(file) {
+async function readJsonFile(file) {
+  try {
+    return JSON.parse(await file.text());
+  } catch (err) {
+    $('review-status').textContent = `${file.name} could not be read: ${err.message}`;
+    return null;
+  }
+}
+
+async function reviewFile(file) {
   if (!state.mapId || !file) return;
+  const fc = await readJsonFile(file);
+  if (fc === null) return;
   let places;
   try {
-    places = listPlaces(JSON.parse(await file.text()));
+    places = listPlaces(fc);
   } catch (err) {
     $('review-status').textContent = `${file.name} could not be read: ${err.message}`;
     return;
   }
+  startListReview(file.name, places);
+}
+
+/** Score the saved map against a survey on the server, then step through its false and missed markings. */
+async function scoreAgainst(file) {
+  if (!state.mapId || !file) return;
+  const truth = await readJsonFile(file);
+  $('score-file').value = '';
+  if (truth === null) return;
+  $('score-summary').textContent = `Scoring the saved map against ${file.name}…`;
+  let res;
+  try {
+    res = await api.evaluate(state.mapId, truth);
+  } catch (err) {
+    $('score-summary').textContent = `Scoring failed: ${problemText(err)}`;
+    return;
+  }
+  const share = (v) => (v == null ? 'n/a' : v.toFixed(3));
+  const unsaved = state.session.pending.size;
+  $('score-summary').textContent = `Against ${file.name}: precision ${share(res.precision)} `
+    + `(${res.correct_detections} of ${res.detections} markings on a true one), recall ${share(res.recall)} `
+    + `(${res.found} of ${res.true_markings} found)`
+    + (unsaved ? `; ${unsaved} unsaved edits are not in it` : '');
+  const places = listPlaces(res.errors);
   if (!places.length) {
-    $('review-status').textContent = `${file.name} has no points to visit.`;
+    stopReview();
+    $('review-status').textContent = `Nothing false or missed against ${file.name}.`;
+    return;
+  }
+  startListReview(`the errors against ${file.name}`, places);
+}
+
+function startListReview(name, places) {
+  if (!places.length) {
+    $('review-status').textContent = `${name} has no points to visit.`;
     return;
   }
   stopReview();
@@ -708,7 +752,7 @@ async function startListReview(file) {
     radius: 12, weight: 2, fill: false, interactive: false,
     color: LIST_COLOURS[p.props.error] || '#ff9f0a',
   }))).addTo(map);
-  state.review = { queue: places, index: -1, list: file.name, overlay };
+  state.review = { queue: places, index: -1, list: name, overlay };
   $('review-start').hidden = true;
   $('review-stop').hidden = false;
   setMode('select');
@@ -802,7 +846,8 @@ function stopReview(clearText = true) {
 }
 
 $('review-start').addEventListener('click', startReview);
-$('review-file').addEventListener('change', (e) => startListReview(e.target.files[0]));
+$('review-file').addEventListener('change', (e) => reviewFile(e.target.files[0]));
+$('score-file').addEventListener('change', (e) => scoreAgainst(e.target.files[0]));
 $('review-stop').addEventListener('click', () => stopReview());
 
 // ---------------------------------------------------------------- history
