@@ -200,7 +200,7 @@ def test_api_scores_a_map_as_the_cli_does(api, tmp_path):
         (url, window, {"status": "approved"}, 400, "invalid-parameter"),
         (url, window, {"tolerance": "0"}, 422, "validation-error"),
         (f"{api.base_url}/collections/no-such-map/evaluate", window, {}, 404, "unknown-map"),
-        (f"{api.base_url}/collections/{empty}/evaluate", window, {}, 409, "map-empty"),
+        (f"{api.base_url}/collections/{empty}/evaluate", window, {}, 409, "empty-map"),
     ]
     for where, body, params, status, kind in problems:
         r = httpx.post(where, json=body, params=params, timeout=60)

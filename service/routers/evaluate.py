@@ -53,7 +53,7 @@ def evaluate(
         ev, _ = evaluate_map(ctx.store, mapId, truth, tolerance_m=tolerance, border_m=border,
                              statuses=statuses)  # fmt: skip
     except ValueError as exc:
-        raise Problem(409, str(exc), "map-empty") from None
+        raise Problem(409, str(exc), "empty-map") from None
     out: dict[str, Any] = {"map": mapId, "tolerance_m": tolerance, "border_m": border,
                            "statuses": statuses, **ev.to_dict()}  # fmt: skip
     if errors:
