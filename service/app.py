@@ -147,7 +147,7 @@ def create_app(
             allow_origins=origins,
             allow_methods=["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"],
             allow_headers=["Authorization", "Content-Type", "If-Match", "If-None-Match", "X-Request-ID"],
-            expose_headers=["ETag", "Location", "Link", "X-Request-ID"],
+            expose_headers=["ETag", "Location", "Link", "X-Request-ID", "X-Map-Revision"],
         )
     # Outermost: every answer carries its ID, a CORS preflight's and a refused body's too.
     app.add_middleware(RequestId)

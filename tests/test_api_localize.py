@@ -131,7 +131,11 @@ def test_index_follows_map_edits(api, kmap):
     p, lon, lat, heading, obs = scene(feats, 10)
     body = {"gps": gps_near(p, heading), "observations": obs}
     url = f"{api.base_url}/collections/{map_id}/localize"
-    assert httpx.post(url, json=body, timeout=60).json()["status"] == "ok"
+    first = httpx.post(url, json=body, timeout=60)
+    assert first.json()["status"] == "ok"
+    # the answer names the revision of the map it was localized against
+    revision = httpx.get(f"{api.base_url}/collections/{map_id}", timeout=30).json()["revision"]
+    assert first.headers["x-map-revision"] == str(revision)
     # remove every marking within 60 m: the cached index must see it
     lon0, lat0 = to_wgs84(CRS).transform(p[0] - 60, p[1] - 60)
     lon1, lat1 = to_wgs84(CRS).transform(p[0] + 60, p[1] + 60)
@@ -141,8 +145,12 @@ def test_index_follows_map_edits(api, kmap):
     cs = httpx.post(f"{api.base_url}/collections/{map_id}/changesets", json={"changes": changes},
                     headers=api.auth, timeout=60)  # fmt: skip
     assert cs.status_code == 201
-    gone = httpx.post(url, json=body, timeout=60).json()
-    assert gone["status"] == "failed" and gone["reason"]
+    gone = httpx.post(url, json=body, timeout=60)
+    assert gone.json()["status"] == "failed" and gone.json()["reason"]
+    assert int(gone.headers["x-map-revision"]) > revision
+    drive = httpx.post(f"{url}/sequence", json={"gps": body["gps"], "frames": [{"observations": obs}]},
+                       timeout=60)  # fmt: skip
+    assert drive.headers["x-map-revision"] == gone.headers["x-map-revision"]
     # and the revert brings them back
     r = httpx.post(f"{api.base_url}/collections/{map_id}/changesets/{cs.json()['changeset']}/revert",
                    headers=api.auth, timeout=60)  # fmt: skip

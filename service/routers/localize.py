@@ -280,20 +280,24 @@ class SequenceOut(BaseModel):
                           "not be localized")
 
 
+#: The answer's header naming the revision of the map it was localized against.
+REVISION_HEADER = "X-Map-Revision"
+
+
 def map_index(ctx: Context, map_id: str):
-    """The map's spatial index, rebuilt when the map's revision moved on."""
+    """The map's spatial index, rebuilt when the map's revision moved on, and that revision."""
     revision = ctx.store.map_revision(map_id)
     with ctx.index_lock:
         cached = ctx.indexes.get(map_id)
         if cached is not None and cached[0] == revision:
-            return cached[1]
+            return cached[1], revision
         info = ctx.store.get_map(map_id)
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
         index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs)
         ctx.indexes[map_id] = (revision, index)
         log.info("map %s: spatial index of %d markings at revision %d", map_id, len(index), revision)
-        return index
+        return index, revision
 
 
 @router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map",
@@ -379,7 +383,7 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
     from localizer import localize
 
     t0 = time.perf_counter()
-    index = map_index(ctx, map_id)
+    index, revision = map_index(ctx, map_id)
     t1 = time.perf_counter()
     obs = _observations(body.observations)
     try:
@@ -390,9 +394,9 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
         _count(map_id, "frame", body.method, ["failed"], time.perf_counter() - t1)
         return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
                              "reason": f"numerical failure ({exc.__class__.__name__})"},
-                            headers=_server_timing(admitted, t0, t1))  # fmt: skip
+                            headers={**_server_timing(admitted, t0, t1), REVISION_HEADER: str(revision)})  # fmt: skip
     _count(map_id, "frame", body.method, [pose.status], time.perf_counter() - t1)
-    headers = _server_timing(admitted, t0, t1)
+    headers = {**_server_timing(admitted, t0, t1), REVISION_HEADER: str(revision)}
     return JSONResponse(_pose_json(pose), headers=headers)
 
 
@@ -405,7 +409,7 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
     them. The poses are those of one call (the filter goes on from where the
     last turn left it).
     """
-    (index, steps), t0, t1 = await _turn(ctx, _timed, _drive_steps, ctx, map_id, body)
+    (index, revision, steps), t0, t1 = await _turn(ctx, _timed, _drive_steps, ctx, map_id, body)
     frames = body.frames
     busy = 0.0
     try:
@@ -422,22 +426,23 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
         statuses = ["failed"] * len(frames)
         answer = JSONResponse({"poses": [failed] * len(frames), "tracks": 0, "state": None})
     _count(map_id, "drive", "default", statuses, busy)
-    answer.headers.update(_server_timing(admitted, t0, t1, busy))
+    answer.headers.update({**_server_timing(admitted, t0, t1, busy), REVISION_HEADER: str(revision)})
     return answer
 
 
 def _drive_steps(ctx: Context, map_id: str, body: SequenceIn):
-    """The map's index, and the drive's frames as a generator of their poses (:func:`localizer.iter_sequence`)."""
+    """The map's index and revision, and the drive's frames as a generator of their poses
+    (:func:`localizer.iter_sequence`)."""
     from localizer import Frame, TrackState, iter_sequence
 
-    index = map_index(ctx, map_id)
+    index, revision = map_index(ctx, map_id)
     frames = [
         Frame(_observations(f.observations),
               (0.0, 0.0, 0.0) if f.motion is None else (f.motion.dx, f.motion.dy, math.radians(f.motion.dyaw_deg)))
         for f in body.frames
     ]  # fmt: skip
     state = TrackState.from_dict(body.state.model_dump()) if body.state is not None else None
-    return index, iter_sequence(index, frames, _prior(body.gps) if body.gps is not None else None,
+    return index, revision, iter_sequence(index, frames, _prior(body.gps) if body.gps is not None else None,
                                 options=localize_options(body.min_probability), state=state)  # fmt: skip
 
 
