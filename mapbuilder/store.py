@@ -375,6 +375,9 @@ def _insert_many(conn: Connection, table, rows: list[dict[str, Any]]) -> None:
 
 #: What a Marking is read from in bulk: no timestamps (parsing them dominates big
 #: reads) and ``extra`` as raw text, decoded only when it holds something.
+#: Longest map title, characters.
+MAX_TITLE_LENGTH = 500
+
 _READ_COLUMNS = [
     type_coerce(c, Text).label("extra") if c.name == "extra" else c
     for c in markings.c
@@ -547,6 +550,8 @@ class Store:
     def create_map(self, map_id: str, title: str = "", crs: str | None = None) -> MapInfo:
         """Create an empty map. ``crs`` must be metric; None: chosen at the first import or build."""
         check_map_id(map_id)
+        if len(title or "") > MAX_TITLE_LENGTH:
+            raise StoreError(f"title: at most {MAX_TITLE_LENGTH} characters, got {len(title)}")
         if crs is not None:
             try:
                 metric_crs(crs)
@@ -563,6 +568,15 @@ class Store:
                 )  # fmt: skip
         except IntegrityError:
             raise MapExistsError(map_id) from None
+        return self.get_map(map_id)
+
+    def set_title(self, map_id: str, title: str) -> MapInfo:
+        """Give a map a new title (its id, which addresses it, stays)."""
+        if len(title) > MAX_TITLE_LENGTH:
+            raise StoreError(f"title: at most {MAX_TITLE_LENGTH} characters, got {len(title)}")
+        with self._write() as conn:
+            self._map_row(conn, map_id, lock=True)
+            conn.execute(update(maps).where(maps.c.id == map_id).values(title=title, updated_at=_now()))
         return self.get_map(map_id)
 
     def adopt_crs(self, map_id: str, crs: str) -> str:

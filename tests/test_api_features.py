@@ -79,6 +79,23 @@ def test_create_list_and_delete_collections(api):
         assert_problem(c.delete(f"/collections/{map_id}", headers=api.auth), 404)
 
 
+def test_a_map_is_retitled_and_nothing_else_changes(api):
+    map_id = api.new_map()
+    with api.client() as c:
+        before = c.get(f"/collections/{map_id}").json()
+        r = c.patch(f"/collections/{map_id}", json={"title": "Durlacher Tor, surveyed 2026"}, headers=api.auth)
+        assert r.status_code == 200, r.text
+        after = c.get(f"/collections/{map_id}").json()
+        assert after["title"] == r.json()["title"] == "Durlacher Tor, surveyed 2026"
+        assert {k: v for k, v in after.items() if k != "title"} == {k: v for k, v in before.items() if k != "title"}
+        assert_problem(c.patch(f"/collections/{map_id}", json={"title": "x"}), 401)
+        assert_problem(c.patch(f"/collections/{map_id}", json={"title": "x", "crs": "EPSG:25833"},
+                               headers=api.auth), 422, "crs")  # fmt: skip
+        assert_problem(c.patch(f"/collections/{map_id}", json={"title": "x" * 501}, headers=api.auth), 422)
+        assert_problem(c.patch("/collections/no-such-map", json={"title": "x"}, headers=api.auth), 404)
+        assert c.get(f"/collections/{map_id}").json()["title"] == "Durlacher Tor, surveyed 2026"
+
+
 def test_import_then_page_through_all_items(api, imported, karlsruhe_fc):
     map_id, result = imported
     n = len(karlsruhe_fc["features"])

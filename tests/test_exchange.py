@@ -212,6 +212,17 @@ def test_non_wgs84_crs_member_is_refused():
         read_feature_collection(fc)
 
 
+def test_retitle_map_cli(db_url, tmp_path, cli):
+    cli(["maps", "create", "m", "--title", "old"], db_url, tmp_path)
+    out = cli(["maps", "update", "m", "--title", "Karlsruhe, Kaiserstraße"], db_url, tmp_path)
+    assert out.stdout.strip() == "map m is now titled 'Karlsruhe, Kaiserstraße'"
+    assert json.loads(cli(["maps", "show", "m"], db_url, tmp_path).stdout)["title"] == "Karlsruhe, Kaiserstraße"
+    bad = cli(["maps", "update", "nope", "--title", "x"], db_url, tmp_path, check=False)
+    assert bad.returncode == 1 and bad.stderr.strip() == "error: unknown map 'nope'"
+    long = cli(["maps", "update", "m", "--title", "x" * 501], db_url, tmp_path, check=False)
+    assert long.returncode == 1 and "at most 500 characters" in long.stderr
+
+
 def test_delete_map_cli(sqlite_url, tmp_path, cli):
     run = cli
     (tmp_path / "g.geojson").write_text(json.dumps(_fc(_pt())))

@@ -1,4 +1,4 @@
-"""``lanemap maps``: create, list, show and delete maps."""
+"""``lanemap maps``: create, list, show, retitle and delete maps."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from mapbuilder.store import Store
 
 
 def register(app: typer.Typer) -> None:
-    maps = typer.Typer(help="Create, list, show and delete maps.", no_args_is_help=True)
+    maps = typer.Typer(help="Create, list, show, retitle and delete maps.", no_args_is_help=True)
 
     @maps.command("list")
     def list_(as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
@@ -42,6 +42,15 @@ def register(app: typer.Typer) -> None:
     def show(map_id: str = typer.Argument(..., metavar="MAP")) -> None:
         """Print a map's metadata as JSON."""
         typer.echo(json.dumps(_info_dict(Store().get_map(map_id, with_count=True)), indent=2))
+
+    @maps.command("update")
+    def update(
+        map_id: str = typer.Argument(..., metavar="MAP"),
+        title: str = typer.Option(..., "--title", help="The map's new title."),
+    ) -> None:
+        """Change a map's title (its id, CRS and markings stay)."""
+        info = Store().set_title(map_id, title)
+        typer.echo(f"map {info.id} is now titled {info.title!r}")
 
     @maps.command("delete")
     def delete(

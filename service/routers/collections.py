@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mapbuilder.geojson import GeoJSONError, read_feature_collection
 from mapbuilder.model import STATUSES
-from mapbuilder.store import Change, ConflictError, MapInfo, Marking, UnknownMarkingError
+from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, Marking, UnknownMarkingError
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
@@ -86,7 +86,7 @@ class CollectionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     id: str = Field(..., description="1-64 letters, digits, '.', '_' or '-', starting with a letter or digit",
                     pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-    title: str = Field("", max_length=500)
+    title: str = Field("", max_length=MAX_TITLE_LENGTH)
     crs: str | None = Field(
         None, description="Metric storage CRS, e.g. EPSG:25832; default: the UTM zone of the first data",
         max_length=100,
@@ -145,6 +145,22 @@ def create_collection(
 @router.get("/collections/{mapId}", tags=["Maps"], summary="One map")
 def get_collection(request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx)) -> dict:
     return collection_of(ctx.store.get_map(mapId, with_count=True), request)
+
+
+class CollectionPatch(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    title: str = Field(..., max_length=MAX_TITLE_LENGTH, description="The map's new title")
+
+
+@router.patch("/collections/{mapId}", tags=["Maps"], summary="Retitle a map")
+def patch_collection(
+    body: CollectionPatch, request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+) -> dict:
+    """Change the map's title; its id, CRS and markings stay as they are."""
+    info = ctx.store.set_title(mapId, body.title)
+    log.info("map %s retitled by %s", mapId, who)
+    return collection_of(ctx.store.get_map(info.id, with_count=True), request)
 
 
 @router.delete("/collections/{mapId}", tags=["Maps"], summary="Delete a map", status_code=204)
