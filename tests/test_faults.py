@@ -75,6 +75,8 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
         wait_for(lambda: sum(s[0] == "up" for s in seen) >= 20, 30, what="requests before the outage")
         phase[0] = "stopping"
         pg.stop(mode)
+        # A stop that did not happen would read as answers that should have failed.
+        assert not pg.running(), "pg_ctl stop returned with PostgreSQL still running"
         phase[0] = "down"
         # Count what the assertions below count: requests sent while down, beyond
         # the server's own pages (half of what is seen, less those begun before).
