@@ -77,8 +77,15 @@ class PrivatePostgres:
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-o", opts, "-w", "-t", "60", "start")
 
     def stop(self, mode: str = "fast") -> None:
-        """Stop the server (``fast``: a clean shutdown; ``immediate``: as a crash)."""
-        self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "-t", "60", "stop", check=False)
+        """Stop the server (``fast``: a clean shutdown; ``immediate``: as a crash), and return
+        only once it is down: a ``fast`` stop that has not ended within a minute (on a loaded
+        machine) is made ``immediate``."""
+        out = self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "-t", "60", "stop", check=False)
+        if self.running() and mode != "immediate":
+            self._run("pg_ctl", "-D", str(self.data), "-m", "immediate", "-w", "-t", "60", "stop", check=False)
+        if self.running():
+            raise RuntimeError(f"PostgreSQL did not stop ({out.returncode}):\n{out.stdout}\n{out.stderr}\n"
+                               f"{self.server_log()}")
 
     def running(self) -> bool:
         return self._run("pg_ctl", "-D", str(self.data), "status", check=False).returncode == 0
