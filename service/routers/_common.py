@@ -10,9 +10,12 @@ from typing import Any
 from fastapi import Request
 
 from mapbuilder.crs import from_wgs84
-from mapbuilder.geojson import KNOWN_PROPERTIES, feature_to_marking, marking_to_feature
+from mapbuilder.geojson import (
+    KNOWN_PROPERTIES, GeoJSONError, feature_to_marking, marking_to_feature, read_feature_collection,
+)  # fmt: skip
 from mapbuilder.model import Marking
 
+from ..filters import parse_statuses
 from ..problems import Problem
 
 CRS84 = "http://www.opengis.net/def/crs/OGC/1.3/CRS84"
@@ -175,3 +178,22 @@ def patched_marking(current: Marking, patch: Any, crs: str, where: str = "body")
     base = marking_to_feature(current)
     merged = merge_patch(base, patch)
     return marking_from_feature(merged, crs, default_source=current.source, where=where)
+
+
+def markings_of_body(body: Any) -> list[Marking]:
+    """The markings of a request body that must be a non-empty GeoJSON FeatureCollection."""
+    try:
+        items = read_feature_collection(body)
+    except GeoJSONError as exc:
+        raise Problem(422, f"body: {exc}", "invalid-geojson") from None
+    if not items:
+        raise Problem(422, "body: the FeatureCollection has no features", "invalid-geojson")
+    return items
+
+
+def statuses_param(text: str | None) -> list[str] | None:
+    """A ``status`` query parameter: comma-separated review statuses (None: all)."""
+    try:
+        return parse_statuses(text)
+    except ValueError as exc:
+        raise Problem(400, str(exc), "invalid-parameter") from None

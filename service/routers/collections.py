@@ -13,13 +13,12 @@ from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapbuilder.geojson import GeoJSONError, read_feature_collection
 from mapbuilder.model import STATUSES
 from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, Marking, UnknownMarkingError
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
-from ..filters import parse_bbox, parse_statuses
+from ..filters import parse_bbox
 from ._common import (
     CRS84,
     GEOJSON,
@@ -31,8 +30,10 @@ from ._common import (
     if_match_versions,
     link,
     marking_from_feature,
+    markings_of_body,
     parse_id,
     patched_marking,
+    statuses_param,
     update_fields,
 )  # fmt: skip
 
@@ -195,12 +196,7 @@ def import_features(
     who: str = Depends(require_write),
 ):
     ctx.store.get_map(mapId)
-    try:
-        items = read_feature_collection(body)
-    except GeoJSONError as exc:
-        raise Problem(422, f"body: {exc}", "invalid-geojson") from None
-    if not items:
-        raise Problem(422, "body: the FeatureCollection has no features", "invalid-geojson")
+    items = markings_of_body(body)
     ids = ctx.store.add_markings(mapId, items, who=who, comment=comment or "import", lonlat=True)
     return JSONResponse(
         {"imported": len(ids), "first_id": str(min(ids)), "last_id": str(max(ids))},
@@ -217,11 +213,6 @@ def _bbox(text: str) -> tuple[float, float, float, float]:
         raise Problem(400, str(exc), "invalid-bbox") from None
 
 
-def _statuses(text: str | None) -> list[str] | None:
-    try:
-        return parse_statuses(text)
-    except ValueError as exc:
-        raise Problem(400, str(exc), "invalid-parameter") from None
 
 
 @router.get(
@@ -239,7 +230,7 @@ def get_items(
 ):
     s = ctx.settings
     lim = min(limit if limit is not None else s.items_default_limit, s.items_max_limit)
-    statuses = _statuses(status)
+    statuses = statuses_param(status)
     if bbox is not None:
         items, matched = ctx.store.query_lonlat_box(mapId, _bbox(bbox), statuses, lim, offset)
     else:

@@ -9,12 +9,10 @@ from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 
 from mapbuilder.evaluate import evaluate_map
-from mapbuilder.geojson import GeoJSONError, read_feature_collection
 
 from ..deps import Context, get_ctx, require_read
-from ..filters import parse_statuses
 from ..problems import Problem
-from ._common import GEOJSON, JSON, feature_of
+from ._common import GEOJSON, JSON, feature_of, markings_of_body, statuses_param
 
 router = APIRouter(tags=["Maps"], dependencies=[Depends(require_read)])
 
@@ -38,16 +36,8 @@ def evaluate(
     errors: bool = Query(True, description="Include the false and missed markings"),
     ctx: Context = Depends(get_ctx),
 ):
-    try:
-        statuses = parse_statuses(status)
-    except ValueError as exc:
-        raise Problem(400, str(exc), "invalid-parameter") from None
-    try:
-        truth = read_feature_collection(body)
-    except GeoJSONError as exc:
-        raise Problem(422, f"body: {exc}", "invalid-geojson") from None
-    if not truth:
-        raise Problem(422, "body: the FeatureCollection has no features", "invalid-geojson")
+    statuses = statuses_param(status)
+    truth = markings_of_body(body)
     ctx.store.get_map(mapId)
     try:
         ev, _ = evaluate_map(ctx.store, mapId, truth, tolerance_m=tolerance, border_m=border,
