@@ -373,11 +373,11 @@ def _insert_many(conn: Connection, table, rows: list[dict[str, Any]]) -> None:
                          f"VALUES ({', '.join('?' * len(keys))})", list(zip(*columns)))
 
 
-#: What a Marking is read from in bulk: no timestamps (parsing them dominates big
-#: reads) and ``extra`` as raw text, decoded only when it holds something.
 #: Longest map title, characters.
 MAX_TITLE_LENGTH = 500
 
+#: What a Marking is read from in bulk: no timestamps (parsing them dominates big
+#: reads) and ``extra`` as raw text, decoded only when it holds something.
 _READ_COLUMNS = [
     type_coerce(c, Text).label("extra") if c.name == "extra" else c
     for c in markings.c
