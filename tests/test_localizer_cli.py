@@ -133,6 +133,7 @@ def test_cli_failed_answer_prints_the_pose_json_and_exits_4(stored_map, tmp_path
     "content, extra, needle",
     [
         ("{not json", [], "not valid JSON"),
+        ("\udcff\udcfe", [], "is not valid JSON: not UTF-8 text"),
         ('{"obs": []}', [], "'observations'"),
         ('[{"x": 1, "y": "NaN", "weight": 1}]', [], "NaN"),
         ('[{"x": 1, "y": 2, "weight": 0}]', [], "weights must be positive"),
@@ -148,7 +149,7 @@ def test_cli_failed_answer_prints_the_pose_json_and_exits_4(stored_map, tmp_path
 def test_cli_bad_input_is_one_line(stored_map, tmp_path, monkeypatch, content, extra, needle):
     monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
     path = tmp_path / "obs.json"
-    path.write_text(content)
+    path.write_bytes(content.encode("utf-8", "surrogateescape"))  # the surrogates: bytes that are not UTF-8
     res = CliRunner().invoke(app, [
         "localize", "ka", "--lat", "49.0", "--lon", "8.43", "--heading", "90",
         "--observations", str(path), *extra,

@@ -44,14 +44,15 @@ def _ready_kernels() -> None:
 
 
 def _read_json(path: Path):
+    stdin = str(path) == "-"
+    name = "standard input" if stdin else str(path)
     try:
-        if str(path) == "-":
-            return json.load(sys.stdin)
-        return json.loads(path.read_text())
+        return json.load(sys.stdin) if stdin else json.loads(path.read_text())
     except OSError as exc:
-        fail(f"cannot read {path}: {exc.strerror or exc}")
-    except json.JSONDecodeError as exc:
-        fail(f"{path} is not valid JSON: {exc.msg} (line {exc.lineno})")
+        fail(f"cannot read {name}: {exc.strerror or exc}")
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        reason = f"{exc.msg} (line {exc.lineno})" if isinstance(exc, json.JSONDecodeError) else "not UTF-8 text"
+        fail(f"{name} is not valid JSON: {reason}")
 
 
 def load_observations(path: Path):
