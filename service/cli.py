@@ -39,8 +39,18 @@ COMMAND_MODULES = {
 }
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from . import package_version
+
+        typer.echo(f"lanemap {package_version()}")
+        raise typer.Exit()
+
+
 def _root(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the installed version and exit."),
 ) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -85,8 +95,12 @@ def __getattr__(name: str):
 def main() -> None:
     """Entry point of the ``lanemap`` console script."""
     module = _named_module(sys.argv[1:])
+    if module is None and "--version" in sys.argv[1:]:
+        modules: list[str] | None = []  # the version needs no command
+    else:
+        modules = None if module is None else [module]
     try:
-        make_app(None if module is None else [module])()
+        make_app(modules)()
     except (ValueError, OSError) as exc:
         if os.environ.get("LANEMAP_DEBUG"):
             raise

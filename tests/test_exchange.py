@@ -367,3 +367,11 @@ def test_export_to_standard_output_pipes_into_import(sqlite_url, tmp_path):
                          capture_output=True, text=True, timeout=120)  # fmt: skip
     assert bad.returncode == 1
     assert bad.stderr.startswith("error: standard input is not valid JSON") and len(bad.stderr.splitlines()) == 1
+
+
+def test_version_is_the_installed_distributions(tmp_path):
+    from importlib import metadata
+
+    proc = subprocess.run([*LANEMAP, "--version"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"lanemap {metadata.version('lanemap')}"

@@ -13,7 +13,6 @@ import functools
 import socket
 import time
 from dataclasses import asdict, dataclass
-from importlib import metadata
 from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Depends, Request
@@ -24,6 +23,7 @@ from sqlalchemy.exc import DBAPIError
 from mapbuilder import migrate
 from mapbuilder.store import Store, StoreError
 
+from .. import package_version
 from ..deps import Context, get_ctx
 from ..problems import problem_response
 
@@ -31,13 +31,6 @@ router = APIRouter(tags=["Health"])
 
 #: Seconds a client should wait before asking again while unhealthy.
 RETRY_AFTER_S = 5
-
-
-def package_version() -> str:
-    try:
-        return metadata.version("lanemap")
-    except metadata.PackageNotFoundError:
-        return "0+unknown"
 
 
 @dataclass
