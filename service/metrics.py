@@ -35,6 +35,7 @@ from prometheus_client import (
 from prometheus_client import multiprocess as _multiprocess
 
 from .deps import require_read
+from .middleware import HttpMiddleware
 from .settings import PROMETHEUS_MULTIPROC_ENV
 
 _SECONDS = (0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -74,16 +75,10 @@ def metrics() -> Response:
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
 
 
-class RequestMetrics:
+class RequestMetrics(HttpMiddleware):
     """ASGI middleware counting every HTTP request by route template and status, and timing it."""
 
-    def __init__(self, app) -> None:
-        self.app = app
-
-    async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def handle(self, scope, receive, send) -> None:
         t0 = time.perf_counter()
         status = [500]
 

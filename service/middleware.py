@@ -1,5 +1,7 @@
-"""ASGI middleware that checks request bodies before any route sees them.
+"""ASGI middleware: the shape they share, and the checks of request bodies.
 
+:class:`HttpMiddleware` passes everything but HTTP requests (lifespan
+events) straight through; the service's middleware act in its ``handle``.
 JSON bodies are limited in size, must be sent with a JSON content type, and
 must be strict JSON: ``NaN``, ``Infinity`` and numbers that overflow a double
 are refused (Python's ``json`` module would accept them).
@@ -41,7 +43,24 @@ def strict_json_loads(data: bytes | str) -> Any:
         raise ValueError("JSON is nested too deeply") from None
 
 
-class BodyGuard:
+class HttpMiddleware:
+    """ASGI middleware acting on HTTP requests only, in :meth:`handle`; anything else
+    (lifespan events) goes straight to the wrapped app."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        await self.handle(scope, receive, send)
+
+    async def handle(self, scope, receive, send) -> None:
+        raise NotImplementedError
+
+
+class BodyGuard(HttpMiddleware):
     """Buffer and check request bodies.
 
     Parameters
@@ -55,16 +74,12 @@ class BodyGuard:
     """
 
     def __init__(self, app, max_bytes: int, stream_paths: str = r"$^"):
-        self.app = app
+        super().__init__(app)
         self.max_bytes = max_bytes
         self.stream_paths = re.compile(stream_paths)
 
-    async def __call__(self, scope, receive, send):
-        if (
-            scope["type"] != "http"
-            or scope["method"] not in _BODY_METHODS
-            or self.stream_paths.search(scope["path"])
-        ):
+    async def handle(self, scope, receive, send):
+        if scope["method"] not in _BODY_METHODS or self.stream_paths.search(scope["path"]):
             return await self.app(scope, receive, send)
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         length = headers.get("content-length")
@@ -144,14 +159,11 @@ async def _problem(scope, send, status: int, detail: str) -> None:
     await send({"type": "http.response.body", "body": body})
 
 
-class HeadAsGet:
+class HeadAsGet(HttpMiddleware):
     """Answer ``HEAD`` like ``GET`` without the body (RFC 9110), for every GET route."""
 
-    def __init__(self, app):
-        self.app = app
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or scope["method"] != "HEAD":
+    async def handle(self, scope, receive, send):
+        if scope["method"] != "HEAD":
             return await self.app(scope, receive, send)
         scope = dict(scope, method="GET")
 

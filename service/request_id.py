@@ -20,6 +20,8 @@ import re
 import uuid
 from contextvars import ContextVar
 
+from .middleware import HttpMiddleware
+
 HEADER = b"x-request-id"
 _VALID = re.compile(r"[A-Za-z0-9._:/+=-]{1,128}")
 
@@ -37,16 +39,10 @@ def _from_client(headers) -> str | None:
     return None
 
 
-class RequestId:
+class RequestId(HttpMiddleware):
     """ASGI middleware: take the client's ``X-Request-ID`` or make one, and send it back."""
 
-    def __init__(self, app) -> None:
-        self.app = app
-
-    async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
+    async def handle(self, scope, receive, send) -> None:
         rid = _from_client(scope["headers"]) or uuid.uuid4().hex
         token = current.set(rid)
 
