@@ -386,18 +386,17 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
     index, revision = map_index(ctx, map_id)
     t1 = time.perf_counter()
     obs = _observations(body.observations)
+    pose, failure = None, None
     try:
         pose = localize(index, obs, _prior(body.gps), method=body.method,
                         options=localize_options(body.min_probability))  # fmt: skip
     except (ArithmeticError, np.linalg.LinAlgError) as exc:
         log.warning("localization on %s failed numerically: %r", map_id, exc)
-        _count(map_id, "frame", body.method, ["failed"], time.perf_counter() - t1)
-        return JSONResponse({"status": "failed", "crs": index.crs, "hypotheses": [],
-                             "reason": f"numerical failure ({exc.__class__.__name__})"},
-                            headers={**_server_timing(admitted, t0, t1), REVISION_HEADER: str(revision)})  # fmt: skip
-    _count(map_id, "frame", body.method, [pose.status], time.perf_counter() - t1)
+        failure = {"status": "failed", "crs": index.crs, "hypotheses": [],
+                   "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
+    _count(map_id, "frame", body.method, [pose.status if pose else "failed"], time.perf_counter() - t1)
     headers = {**_server_timing(admitted, t0, t1), REVISION_HEADER: str(revision)}
-    return JSONResponse(_pose_json(pose), headers=headers)
+    return JSONResponse(failure or _pose_json(pose), headers=headers)
 
 
 async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float) -> JSONResponse:
