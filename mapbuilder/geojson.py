@@ -212,26 +212,29 @@ def markings_to_feature_collection(items: Iterable[Marking]) -> dict[str, Any]:
 _FULL_DISK_BYTES = 1 << 20
 
 
+class WriteError(OSError):
+    """A file could not be written; the message names the file the caller asked for."""
+
+
 @contextmanager
 def _atomic_target(path: Path, suffix: str) -> Iterator[Path]:
     """A temporary file beside ``path`` that replaces it when the block succeeds.
 
     If the block fails (a full disk, an interrupt) the temporary file is removed
-    and ``path`` is left as it was. An ``OSError`` names ``path``, not the
-    temporary file.
+    and ``path`` is left as it was; an ``OSError`` becomes a :class:`WriteError`
+    that names ``path``, not the temporary file.
     """
+    if not path.parent.is_dir():
+        raise WriteError(f"cannot write {path}: folder {path.parent} does not exist")
     tmp = path.with_name(path.name + suffix)
     try:
-        if not path.parent.is_dir():
-            raise FileNotFoundError(f"cannot write {path}: folder {path.parent} does not exist")
         tmp.unlink(missing_ok=True)
         yield tmp
         tmp.replace(path)
     except BaseException as exc:
         tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError) and not str(exc).startswith("cannot write"):
-            reason = exc.strerror or str(exc)
-            named = OSError(f"cannot write {path}: {reason}")
+        if isinstance(exc, OSError) and not isinstance(exc, WriteError):
+            named = WriteError(f"cannot write {path}: {exc.strerror or exc}")
             named.errno = exc.errno
             raise named from exc
         raise
@@ -297,5 +300,5 @@ def write_gpkg(path: str | Path, items: Iterable[Marking], crs: str, layer: str 
             reason = str(exc)
             if shutil.disk_usage(tmp.parent).free < _FULL_DISK_BYTES:
                 reason = f"No space left on device ({reason})"
-            raise OSError(f"cannot write {path}: {reason}") from exc
+            raise WriteError(f"cannot write {path}: {reason}") from exc
     return len(items)
