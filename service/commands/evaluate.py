@@ -4,24 +4,16 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import typer
 
 from ..cli_errors import fail
+from ..cli_io import read_markings, source_name
 from ..filters import parse_statuses
 
 #: Exit code when the map misses --min-precision or --min-recall.
 BELOW_TARGET = 3
-
-
-def _read_truth(path: Path):
-    from mapbuilder.geojson import read_geojson_file, read_geojson_stream
-
-    if str(path) == "-":
-        return read_geojson_stream(sys.stdin.buffer, "standard input")
-    return read_geojson_file(path)
 
 
 def _summary(map_id: str, source: str, ev, width_m: float, height_m: float) -> list[str]:
@@ -93,8 +85,8 @@ def evaluate(
         statuses = parse_statuses(status)
     except ValueError as exc:
         fail(f"--{exc}")
-    true = _read_truth(truth)
-    source = "standard input" if str(truth) == "-" else truth.name
+    true = read_markings(truth)
+    source = source_name(truth)
     if not true:
         fail(f"{source} holds no markings")
     store = Store()

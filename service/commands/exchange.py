@@ -8,13 +8,12 @@ from pathlib import Path
 
 import typer
 
-from mapbuilder.geojson import (
-    read_geojson_file, read_geojson_stream, write_geojson, write_geojson_stream, write_gpkg,
-)  # fmt: skip
+from mapbuilder.geojson import write_geojson, write_geojson_stream, write_gpkg
 from mapbuilder.lanelet2 import layout_markings, read_lanelet2
 from mapbuilder.store import Store
 
 from ..cli_errors import fail
+from ..cli_io import is_stdio, read_markings, source_name
 from ..filters import parse_bbox, parse_statuses
 
 _PROGRESS = typer.Option(None, "--progress/--no-progress",
@@ -59,13 +58,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Import markings from GeoJSON in one transaction: all of them or none."""
         # Parse and check everything before touching the database.
-        stdin = str(file) == "-"
-        name = "standard input" if stdin else file.name
+        name = source_name(file)
         with _bar(progress, None, "feature", f"read {name}") as bar:
-            if stdin:
-                items = read_geojson_stream(sys.stdin.buffer, name, progress=_follow(bar))
-            else:
-                items = read_geojson_file(file, progress=_follow(bar))
+            items = read_markings(file, progress=_follow(bar))
         store = Store()
         if create and not any(m.id == map_id for m in store.list_maps()):
             store.create_map(map_id)
@@ -90,7 +85,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Export a map's markings to GeoJSON or GeoPackage: all of them, or those --status and
         --bbox select."""
-        stdout = str(file) == "-"
+        stdout = is_stdio(file)
         suffix = ".geojson" if stdout else file.suffix.lower()
         if suffix not in (".geojson", ".json", ".gpkg"):
             fail(f"cannot export to {file.name}: use a .geojson or .gpkg file name")

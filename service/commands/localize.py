@@ -12,6 +12,7 @@ import typer
 from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
 from localizer.robust import along_across_sigmas
 from service.cli_errors import fail
+from service.cli_io import is_stdio
 from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 
 #: Exit codes of ``lanemap localize`` by the answer's status (the last frame's
@@ -44,7 +45,7 @@ def _ready_kernels() -> None:
 
 
 def _read_json(path: Path):
-    stdin = str(path) == "-"
+    stdin = is_stdio(path)
     name = "standard input" if stdin else str(path)
     try:
         return json.load(sys.stdin) if stdin else json.loads(path.read_text())
