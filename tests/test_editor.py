@@ -592,6 +592,30 @@ def test_a_list_of_places_is_reviewed_in_its_order(editor, fx, tmp_path):
     assert page.evaluate("lanemapEditor.state.review") is None
 
 
+def test_a_listed_marking_the_page_has_not_loaded_is_fetched(editor, fx, tmp_path):
+    """A large map is loaded by view: a listed marking the page does not hold yet is asked
+    of the server, and only one the server does not have is called gone."""
+    editor.open().enter_token()
+    page = editor.page
+    fid = fx.detected[1]
+    page.evaluate(f"lanemapEditor.state.known.delete('{fid}')")
+    lon, lat = fx.lonlat(fid)
+    places = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "id": fid, "geometry": {"type": "Point", "coordinates": [lon, lat]}, "properties": {}},
+        {"type": "Feature", "id": "999999999", "geometry": {"type": "Point", "coordinates": [lon, lat]},
+         "properties": {}},
+    ]}  # fmt: skip
+    path = tmp_path / "places.geojson"
+    path.write_text(json.dumps(places))
+    page.set_input_files("#review-file", str(path))
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{fid}')")
+    assert f"1 of 2 in places.geojson: marking {fid}" in page.text_content("#review-status")
+    editor.key(" ")
+    page.wait_for_function("document.getElementById('review-status').textContent.startsWith('2 of 2')")
+    assert "marking 999999999, not in this map (any more)" in page.text_content("#review-status")
+    assert editor.selection() == set()
+
+
 def test_the_map_is_scored_against_a_survey_and_its_errors_reviewed(editor, fx, server, tmp_path):
     """A survey file is scored on the server (``POST .../evaluate``); the page shows the figures
     and steps through the false and missed markings."""

@@ -690,22 +690,11 @@ function listPlaces(fc) {
     }));
 }
 
-async function readJsonFile(file) {
-  try {
-    return JSON.parse(await file.text());
-  } catch (err) {
-    $('review-status').textContent = `${file.name} could not be read: ${err.message}`;
-    return null;
-  }
-}
-
 async function reviewFile(file) {
   if (!state.mapId || !file) return;
-  const fc = await readJsonFile(file);
-  if (fc === null) return;
   let places;
   try {
-    places = listPlaces(fc);
+    places = listPlaces(JSON.parse(await file.text()));
   } catch (err) {
     $('review-status').textContent = `${file.name} could not be read: ${err.message}`;
     return;
@@ -716,9 +705,14 @@ async function reviewFile(file) {
 /** Score the saved map against a survey on the server, then step through its false and missed markings. */
 async function scoreAgainst(file) {
   if (!state.mapId || !file) return;
-  const truth = await readJsonFile(file);
   $('score-file').value = '';
-  if (truth === null) return;
+  let truth;
+  try {
+    truth = JSON.parse(await file.text());
+  } catch (err) {
+    $('review-status').textContent = `${file.name} could not be read: ${err.message}`;
+    return;
+  }
   $('score-summary').textContent = `Scoring the saved map against ${file.name}…`;
   let res;
   try {
@@ -768,7 +762,7 @@ function placeText(p, m) {
   return p.id ? `marking ${p.id}, not in this map (any more)` : `a place (${kind}${length})`;
 }
 
-function nextListPlace(r) {
+async function nextListPlace(r) {
   r.index += 1;
   if (r.index >= r.queue.length) {
     $('review-status').textContent = `Review done: ${r.queue.length} places of ${r.list}.`;
@@ -776,7 +770,18 @@ function nextListPlace(r) {
     return;
   }
   const p = r.queue[r.index];
-  const m = p.id ? current(p.id) : null;
+  let m = p.id ? current(p.id) : null;
+  if (p.id && !m) {
+    // A large map is loaded by view: ask the server before calling the marking gone.
+    try {
+      const found = await api.item(state.mapId, p.id);
+      if (found) state.known.set(found.id, found);
+    } catch (err) {
+      toast(`Marking ${p.id} could not be loaded: ${problemText(err)}`, 'error');
+    }
+    if (state.review !== r) return; // the review ended meanwhile
+    m = current(p.id);
+  }
   state.selection = new Set(m ? [String(m.id)] : []);
   goTo([p.lat, p.lon], REVIEW_ZOOM);
   render();
