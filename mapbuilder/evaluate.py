@@ -340,6 +340,10 @@ def evaluate_markings(
     )
 
 
+class EmptyMapError(ValueError):
+    """The map has nothing stored yet, so no CRS to score it in."""
+
+
 def evaluate_map(
     store: Store,
     map_id: str,
@@ -361,13 +365,15 @@ def evaluate_map(
     Raises
     ------
     ValueError
-        Without true markings, or when the map has no CRS yet (nothing stored).
+        Without true markings (or with one lacking a finite lon/lat).
+    EmptyMapError
+        When the map has no CRS yet (nothing stored).
     """
     if not truth:
         raise ValueError("no true markings to score against")
     info = store.get_map(map_id)
     if info.crs is None:
-        raise ValueError(f"map {map_id} is empty and has no CRS yet")
+        raise EmptyMapError(f"map {map_id} is empty and has no CRS yet")
     crs = info.crs
     truth = [copy.copy(m) for m in truth]
     lon = np.array([m.lon for m in truth], float)

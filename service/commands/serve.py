@@ -57,16 +57,14 @@ def _share_metrics(workers: int) -> None:
     atexit.register(shutil.rmtree, path, ignore_errors=True)
 
 
-def _announcer(log_format: str):
+def _announcer(log_format: str, logs: dict):
     """How the server says where it listens: printed lines, or records of the JSON log
-    (so that a log collector reads every line the server writes as JSON)."""
+    configured by ``logs`` (so that a log collector reads every line the server writes as JSON)."""
     if log_format != "json":
         return lambda line, err=False: typer.echo(line, err=err)
     import logging.config
 
-    from ..logs import log_config
-
-    logging.config.dictConfig(log_config("json"))
+    logging.config.dictConfig(logs)
     log = logging.getLogger("service.serve")
     return lambda line, err=False: log.info("%s", line)
 
@@ -111,7 +109,8 @@ def register(app: typer.Typer) -> None:
             token_note = (
                 f"write token ({'generated, ' if created else ''}kept in {token_path(data_dir)}): {token}"
             )
-        say = _announcer(settings.log_format)
+        logs = log_config(settings.log_format)
+        say = _announcer(settings.log_format, logs)
         if demo:
             from ..demo import ensure_demo
 
@@ -128,7 +127,6 @@ def register(app: typer.Typer) -> None:
             say(f"localize:     POST {base}/collections/karlsruhe/localize "
                 "(an example body: docs/examples/frame.json in the repository)")
         say(token_note or "write tokens: from LANEMAP_API_TOKENS")
-        logs = log_config(settings.log_format)
         if workers == 1:
             uvicorn.run(create_app(store=store, settings=settings, data_dir=data_dir), host=host, port=port,
                         log_level=log_level, log_config=logs)  # fmt: skip

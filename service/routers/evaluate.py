@@ -8,7 +8,7 @@ from fastapi import APIRouter, Body, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import JSONResponse
 
-from mapbuilder.evaluate import evaluate_map
+from mapbuilder.evaluate import EmptyMapError, evaluate_map
 
 from ..deps import Context, get_ctx, require_read
 from ..problems import Problem
@@ -38,11 +38,10 @@ def evaluate(
 ):
     statuses = statuses_param(status)
     truth = markings_of_body(body)
-    ctx.store.get_map(mapId)
     try:
         ev, _ = evaluate_map(ctx.store, mapId, truth, tolerance_m=tolerance, border_m=border,
                              statuses=statuses)  # fmt: skip
-    except ValueError as exc:
+    except EmptyMapError as exc:
         raise Problem(409, str(exc), "empty-map") from None
     out: dict[str, Any] = {"map": mapId, "tolerance_m": tolerance, "border_m": border,
                            "statuses": statuses, **ev.to_dict()}  # fmt: skip
