@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 
 from .cluster import ClusterParams
 from .crs import from_wgs84, meridian_convergence_deg, to_wgs84
+from .geojson import PROGRESS_STEP
 from .model import Marking
 from .store import Store
 
@@ -353,6 +354,7 @@ def evaluate_map(
     border_m: float = 0.0,
     statuses: Sequence[str] | None = ("unreviewed", "accepted"),
     min_visible: float = 0.9,
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Evaluation, tuple[float, float, float, float]]:
     """Score a stored map against true markings given in WGS84 (``lon``, ``lat``,
     ``bearing_deg`` clockwise from true north), over the truth's extent.
@@ -361,6 +363,8 @@ def evaluate_map(
     lengths and the tolerance included); the map's markings with one of
     ``statuses`` inside it are scored. Returns the :class:`Evaluation`, whose
     markings are in the map's CRS, and that box in the map's CRS.
+    ``progress``, optional, is called with the map's markings read so far and
+    their number, every :data:`PROGRESS_STEP` and at the end.
 
     Raises
     ------
@@ -388,7 +392,14 @@ def evaluate_map(
     reach = 0.5 * max(m.length_m for m in truth) + tolerance_m
     bounds = (float(x.min()) - reach, float(y.min()) - reach, float(x.max()) + reach, float(y.max()) + reach)
     box = to_wgs84(crs).transform_bounds(*bounds, densify_pts=21)
-    detected = list(store.iter_markings(map_id, statuses=statuses, lonlat_box=box))
+    total = store.count_markings(map_id, statuses, box) if progress is not None else 0
+    detected = []
+    for m in store.iter_markings(map_id, statuses=statuses, lonlat_box=box):
+        detected.append(m)
+        if progress is not None and len(detected) % PROGRESS_STEP == 0:
+            progress(len(detected), total)
+    if progress is not None:
+        progress(len(detected), max(total, len(detected)))
     det_grid = None
     if detected:
         dlon = np.array([m.lon for m in detected], float)

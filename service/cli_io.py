@@ -1,10 +1,13 @@
-"""Files named on the ``lanemap`` command line, where ``-`` means standard input or output."""
+"""Files named on the ``lanemap`` command line (``-`` means standard input or output), and the
+progress bars of the commands that read or write many markings."""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+
+import typer
 
 from mapbuilder.model import Marking
 
@@ -28,3 +31,36 @@ def read_markings(path: Path | str, progress: Callable[[int, int], None] | None 
     if is_stdio(path):
         return read_geojson_stream(sys.stdin.buffer, source_name(path), progress)
     return read_geojson_file(path, progress)
+
+
+#: The ``--progress/--no-progress`` option of the commands that show bars.
+PROGRESS_OPTION = typer.Option(
+    None, "--progress/--no-progress",
+    help="Show progress bars (rate, ETA) on stderr; default: when stderr is a terminal.")
+
+
+def progress_bar(progress: bool | None, total: int | None, unit: str, desc: str):
+    """A tqdm bar on stderr: asked for (``--progress``), or on a terminal once the work takes 0.5 s."""
+    from tqdm import tqdm
+
+    show = sys.stderr.isatty() if progress is None else progress
+    return tqdm(total=total, unit=unit, desc=desc, disable=not show, file=sys.stderr, dynamic_ncols=True,
+                unit_scale=True, delay=0.5 if progress is None else 0.0)
+
+
+def follow(bar) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback that moves ``bar``."""
+
+    def progress(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.total = total
+        bar.update(done - bar.n)
+
+    return progress
+
+
+def counted(items: Iterable, bar) -> Iterator:
+    """``items``, moving ``bar`` by one for each."""
+    for item in items:
+        yield item
+        bar.update(1)

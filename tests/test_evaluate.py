@@ -86,6 +86,11 @@ def test_cli_scores_a_map_against_its_truth(db_url, tmp_path):
     same = _run(["evaluate", "ka", "truth.geojson", "--json"], env, tmp_path)
     assert same.returncode == 0, same.stderr
     fig = json.loads(same.stdout)
+    assert same.stderr == ""  # no bars unless on a terminal or asked for
+    bars = _run(["evaluate", "ka", "truth.geojson", "--json", "--progress"], env, tmp_path)
+    assert json.loads(bars.stdout) == fig
+    lines = bars.stderr.replace("\r", "\n")
+    assert "read truth.geojson: 100%" in lines and f"{n}/{n}" in lines and "read ka: 100%" in lines, lines
     assert fig["precision"] == 1.0 and fig["recall"] == 1.0 and fig["true_markings"] == n
     assert fig["centroid_rmse_m"] < 1e-3 and fig["cross_track_rmse_m"] < 1e-3
 

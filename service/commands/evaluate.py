@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from ..cli_errors import fail
-from ..cli_io import read_markings, source_name
+from ..cli_io import PROGRESS_OPTION, follow, progress_bar, read_markings, source_name
 from ..filters import parse_statuses
 
 #: Exit code when the map misses --min-precision or --min-recall.
@@ -61,6 +61,7 @@ def evaluate(
         None, "--min-precision", help=f"Exit with code {BELOW_TARGET} if precision is lower."),
     min_recall: float | None = typer.Option(
         None, "--min-recall", help=f"Exit with code {BELOW_TARGET} if recall is lower."),
+    progress: bool | None = PROGRESS_OPTION,
 ) -> None:
     """Score MAP against true markings: precision, recall and centroid errors.
 
@@ -85,14 +86,16 @@ def evaluate(
         statuses = parse_statuses(status)
     except ValueError as exc:
         fail(f"--{exc}")
-    true = read_markings(truth)
     source = source_name(truth)
+    with progress_bar(progress, None, "feature", f"read {source}") as bar:
+        true = read_markings(truth, progress=follow(bar))
     if not true:
         fail(f"{source} holds no markings")
     store = Store()
     try:
-        ev, bounds = evaluate_map(store, map_id, true, tolerance_m=tolerance, border_m=border,
-                                  statuses=statuses)  # fmt: skip
+        with progress_bar(progress, None, "marking", f"read {map_id}") as bar:
+            ev, bounds = evaluate_map(store, map_id, true, tolerance_m=tolerance, border_m=border,
+                                      statuses=statuses, progress=follow(bar))  # fmt: skip
     finally:
         store.close()
     if errors is not None:

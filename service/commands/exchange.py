@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import typer
@@ -13,38 +12,10 @@ from mapbuilder.lanelet2 import layout_markings, read_lanelet2
 from mapbuilder.store import Store
 
 from ..cli_errors import fail
-from ..cli_io import is_stdio, read_markings, source_name
+from ..cli_io import (
+    PROGRESS_OPTION, counted, follow, is_stdio, progress_bar, read_markings, source_name,
+)  # fmt: skip
 from ..filters import parse_bbox, parse_statuses
-
-_PROGRESS = typer.Option(None, "--progress/--no-progress",
-                         help="Show progress bars (rate, ETA) on stderr; default: when stderr is a terminal.")
-
-
-def _bar(progress: bool | None, total: int | None, unit: str, desc: str):
-    """A tqdm bar on stderr: asked for (``--progress``), or on a terminal once the work takes 0.5 s."""
-    from tqdm import tqdm
-
-    show = sys.stderr.isatty() if progress is None else progress
-    return tqdm(total=total, unit=unit, desc=desc, disable=not show, file=sys.stderr, dynamic_ncols=True,
-                unit_scale=True, delay=0.5 if progress is None else 0.0)
-
-
-def _follow(bar) -> Callable[[int, int], None]:
-    """A ``progress(done, total)`` callback that moves ``bar``."""
-
-    def progress(done: int, total: int) -> None:
-        if bar.total != total:
-            bar.total = total
-        bar.update(done - bar.n)
-
-    return progress
-
-
-def _counted(items: Iterable, bar) -> Iterator:
-    for item in items:
-        yield item
-        bar.update(1)
-
 
 def register(app: typer.Typer) -> None:
     @app.command("import")
@@ -54,19 +25,19 @@ def register(app: typer.Typer) -> None:
             ..., help="GeoJSON FeatureCollection of marking centroids (WGS84); - reads standard input."),
         create: bool = typer.Option(False, "--create", help="Create the map if it does not exist."),
         comment: str = typer.Option("", "--comment", help="Comment for the edit log."),
-        progress: bool | None = _PROGRESS,
+        progress: bool | None = PROGRESS_OPTION,
     ) -> None:
         """Import markings from GeoJSON in one transaction: all of them or none."""
         # Parse and check everything before touching the database.
         name = source_name(file)
-        with _bar(progress, None, "feature", f"read {name}") as bar:
-            items = read_markings(file, progress=_follow(bar))
+        with progress_bar(progress, None, "feature", f"read {name}") as bar:
+            items = read_markings(file, progress=follow(bar))
         store = Store()
         if create and not any(m.id == map_id for m in store.list_maps()):
             store.create_map(map_id)
-        with _bar(progress, len(items), "marking", f"import {map_id}") as bar:
+        with progress_bar(progress, len(items), "marking", f"import {map_id}") as bar:
             ids = store.add_markings(map_id, items, who="cli", comment=comment or f"import {name}",
-                                     lonlat=True, progress=_follow(bar))  # fmt: skip
+                                     lonlat=True, progress=follow(bar))  # fmt: skip
         typer.echo(f"imported {len(ids)} markings into {map_id}")
 
     @app.command("export")
@@ -81,7 +52,7 @@ def register(app: typer.Typer) -> None:
         bbox: str | None = typer.Option(
             None, "--bbox", metavar="MINLON,MINLAT,MAXLON,MAXLAT",
             help="Only markings whose centroid lies in this box (WGS84 degrees)."),
-        progress: bool | None = _PROGRESS,
+        progress: bool | None = PROGRESS_OPTION,
     ) -> None:
         """Export a map's markings to GeoJSON or GeoPackage: all of them, or those --status and
         --bbox select."""
@@ -99,8 +70,8 @@ def register(app: typer.Typer) -> None:
         if suffix == ".gpkg" and info.crs is None:
             fail(f"map {map_id} is empty and has no CRS yet")
         total = store.count_markings(map_id, statuses, box)
-        with _bar(progress, total, "marking", f"export {map_id}") as bar:
-            items = _counted(store.iter_markings(map_id, statuses=statuses, lonlat_box=box), bar)
+        with progress_bar(progress, total, "marking", f"export {map_id}") as bar:
+            items = counted(store.iter_markings(map_id, statuses=statuses, lonlat_box=box), bar)
             if stdout:
                 n = write_geojson_stream(sys.stdout, items)
             elif suffix == ".gpkg":
