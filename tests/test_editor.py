@@ -535,6 +535,12 @@ def test_review_queue_steps_through_detections_by_score(editor, fx):
     assert set(editor.pending()) == {q[0]}
 
 
+def review_list(page, path, places: dict) -> None:
+    """Write a GeoJSON list of places to ``path`` and give it to the review panel's list field."""
+    path.write_text(json.dumps(places))
+    page.set_input_files("#review-file", str(path))
+
+
 def lanemapEditor_zoom(page) -> int:
     return page.evaluate("lanemapEditor.map.getZoom()")
 
@@ -556,9 +562,7 @@ def test_a_list_of_places_is_reviewed_in_its_order(editor, fx, tmp_path):
         {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]},
          "properties": {}},
     ]}  # fmt: skip
-    path = tmp_path / "errors.geojson"
-    path.write_text(json.dumps(places))
-    page.set_input_files("#review-file", str(path))
+    review_list(page, tmp_path / "errors.geojson", places)
     page.wait_for_function(f"lanemapEditor.state.selection.has('{false_id}')")
     status = page.text_content("#review-status")
     assert "1 of 2 in errors.geojson" in status and f"marking {false_id} matches nothing true" in status
@@ -605,9 +609,7 @@ def test_a_listed_marking_the_page_has_not_loaded_is_fetched(editor, fx, tmp_pat
         {"type": "Feature", "id": "999999999", "geometry": {"type": "Point", "coordinates": [lon, lat]},
          "properties": {}},
     ]}  # fmt: skip
-    path = tmp_path / "places.geojson"
-    path.write_text(json.dumps(places))
-    page.set_input_files("#review-file", str(path))
+    review_list(page, tmp_path / "places.geojson", places)
     page.wait_for_function(f"lanemapEditor.state.selection.has('{fid}')")
     assert f"1 of 2 in places.geojson: marking {fid}" in page.text_content("#review-status")
     editor.key(" ")
