@@ -43,5 +43,8 @@ def validation_error_line(exc: ValidationError) -> str:
             where = f"{prefix}{str(loc[0]).upper()}"
         else:
             where = ".".join(map(str, loc)) or exc.title
-        parts.append(f"{where}: {err['msg']} (got {_short(err.get('input'))})")
+        if where.endswith("_TOKENS"):
+            parts.append(f"{where}: {err['msg']}")  # the value is a secret
+        else:
+            parts.append(f"{where}: {err['msg']} (got {_short(err.get('input'))})")
     return "; ".join(parts)

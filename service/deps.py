@@ -16,7 +16,13 @@ from mapbuilder.store import Store
 from .problems import Problem
 from .settings import ServiceSettings, Token
 
-bearer = HTTPBearer(auto_error=False, description="A write token (LANEMAP_API_TOKENS)")
+#: The token of a write: one of ``LANEMAP_API_TOKENS`` (or the generated one).
+write_bearer = HTTPBearer(scheme_name="WriteToken", auto_error=False,
+                          description="A write token (LANEMAP_API_TOKENS, or the one `lanemap serve` generates)")
+#: The token of a read, needed only when ``LANEMAP_READ_TOKEN_REQUIRED=1``: any token.
+read_bearer = HTTPBearer(scheme_name="ReadToken", auto_error=False,
+                         description="Any token, a read token (LANEMAP_READ_TOKENS) or a write token; "
+                                     "needed only on a server with LANEMAP_READ_TOKEN_REQUIRED=1")
 
 
 @dataclass
@@ -41,7 +47,7 @@ async def get_ctx(request: Request) -> Context:
     return request.app.state.ctx
 
 
-def _who(ctx: Context, cred: HTTPAuthorizationCredentials | None) -> str | None:
+def _token(ctx: Context, cred: HTTPAuthorizationCredentials | None) -> Token | None:
     if cred is None or not cred.credentials:
         return None
     given = cred.credentials.encode()
@@ -49,7 +55,7 @@ def _who(ctx: Context, cred: HTTPAuthorizationCredentials | None) -> str | None:
     for t in ctx.tokens:
         # Compare against every token so timing does not tell which one matched.
         if hmac.compare_digest(given, t.secret.encode()) and match is None:
-            match = t.who
+            match = t
     return match
 
 
@@ -58,24 +64,31 @@ def _unauthorized(detail: str) -> Problem:
 
 
 async def require_write(
-    ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(bearer)
+    ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(write_bearer)
 ) -> str:
-    """Check the bearer token of a write; returns who is writing (for the edit log)."""
+    """Check the bearer token of a write; returns who is writing (for the edit log).
+
+    401 without a token or with an unknown one; 403 with a read token, which
+    the server knows but which may not change data.
+    """
     if cred is None:
         raise _unauthorized("this request changes data: send Authorization: Bearer <token>")
-    who = _who(ctx, cred)
-    if who is None:
+    token = _token(ctx, cred)
+    if token is None:
         raise _unauthorized("the bearer token is not valid")
-    return who
+    if not token.write:
+        raise Problem(403, f"the token of {token.who!r} may only read: this request changes data "
+                           "and needs a write token", "forbidden")  # fmt: skip
+    return token.who
 
 
 async def require_read(
-    ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(bearer)
+    ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(read_bearer)
 ) -> None:
-    """Reads are open unless ``LANEMAP_READ_TOKEN_REQUIRED=1``."""
+    """Reads are open unless ``LANEMAP_READ_TOKEN_REQUIRED=1``; then any token the server knows."""
     if not ctx.settings.read_token_required:
         return
     if cred is None:
         raise _unauthorized("reads need a token on this server: send Authorization: Bearer <token>")
-    if _who(ctx, cred) is None:
+    if _token(ctx, cred) is None:
         raise _unauthorized("the bearer token is not valid")

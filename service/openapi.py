@@ -13,6 +13,8 @@ give:
   database is busy or unreachable);
 * operations with a request body: 413 (too large) and 415 (wrong content type);
 * writes (POST, PUT, PATCH, DELETE): 409 (conflict with the stored state);
+* operations that need a write token (security scheme ``WriteToken``): 403
+  (a read token, ``LANEMAP_READ_TOKENS``, which may not change data);
 * operations taking ``If-Match``: 412 (stale version);
 * imagery uploads: 500 (the imagery folder is not writable) and 507 (the disk
   is full).
@@ -58,6 +60,8 @@ def problem_statuses(method: str, operation: dict[str, Any]) -> set[int]:
         codes |= {413, 415}
     if method in _WRITES:
         codes.add(409)
+    if any("WriteToken" in req for req in operation.get("security", [])):
+        codes.add(403)
     if any(p.get("in") == "header" and p.get("name", "").lower() == "if-match"
            for p in operation.get("parameters", [])):  # fmt: skip
         codes.add(412)
@@ -75,6 +79,9 @@ def add_problem_responses(schema: dict[str, Any]) -> dict[str, Any]:
         for method, op in ops.items():
             if method not in {"get", "head", "post", "put", "patch", "delete", "options"}:
                 continue
+            if any("WriteToken" in req for req in op.get("security", [])):
+                # The routers' read check runs on writes too; only a write token gets past both.
+                op["security"] = [{"WriteToken": []}]
             responses = op.setdefault("responses", {})
             for code in sorted(problem_statuses(method, op)):
                 resp = responses.setdefault(str(code), {})

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from mapbuilder.settings import Settings as StoreSettings
@@ -38,8 +38,14 @@ class ServiceSettings(BaseSettings):
         An entry ``name=token`` records ``name`` as the author of edits made
         with that token. Empty: ``serve`` generates one token at first start and
         keeps it in ``<data_dir>/api-token``.
+    read_tokens : str
+        ``LANEMAP_READ_TOKENS``: comma-separated bearer tokens that may only
+        read (``name=token`` entries too): for vehicles and tools that
+        localize and fetch maps, on a server whose reads need a token. A
+        write with one answers 403. A token may not be in both lists.
     read_token_required : bool
-        ``LANEMAP_READ_TOKEN_REQUIRED=1``: reads need a token too.
+        ``LANEMAP_READ_TOKEN_REQUIRED=1``: reads need a token too (a read
+        token or a write token).
     cors_origins : str
         ``LANEMAP_CORS_ORIGINS``: comma-separated origins allowed to call the
         API from a browser (``*`` for any).
@@ -81,6 +87,7 @@ class ServiceSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="LANEMAP_", extra="ignore")
 
     api_tokens: str = ""
+    read_tokens: str = ""
     read_token_required: bool = False
     cors_origins: str = ""
     max_body_bytes: int = Field(16 * 1024 * 1024, ge=1)
@@ -96,18 +103,31 @@ class ServiceSettings(BaseSettings):
     health_timeout_s: float = Field(2.0, gt=0, allow_inf_nan=False)
     log_format: Literal["text", "json"] = "text"
 
+    @field_validator("read_tokens")
+    @classmethod
+    def _read_tokens_do_not_write(cls, value: str, info: ValidationInfo) -> str:
+        writes = {t.secret for t in parse_tokens(info.data.get("api_tokens", ""))}
+        if any(t.secret in writes for t in parse_tokens(value)):
+            raise ValueError("a token is in LANEMAP_API_TOKENS too: a read token must differ from every write token")
+        return value
+
     def cors_origin_list(self) -> list[str]:
         return [o.strip() for o in self.cors_origins.split(",") if o.strip()]
 
 
 @dataclass(frozen=True)
 class Token:
+    """A bearer token the server takes: its secret, the name edits are recorded under,
+    and whether it may write (``LANEMAP_API_TOKENS``) or only read (``LANEMAP_READ_TOKENS``)."""
+
     secret: str
     who: str
+    write: bool = True
 
 
-def parse_tokens(text: str) -> list[Token]:
-    """Parse ``LANEMAP_API_TOKENS`` (``token`` or ``name=token`` entries, comma-separated)."""
+def parse_tokens(text: str, write: bool = True) -> list[Token]:
+    """Parse ``LANEMAP_API_TOKENS`` or ``LANEMAP_READ_TOKENS`` (``token`` or ``name=token``
+    entries, comma-separated); ``write`` says which."""
     out = []
     for entry in text.split(","):
         entry = entry.strip()
@@ -115,9 +135,9 @@ def parse_tokens(text: str) -> list[Token]:
             continue
         name, sep, secret = entry.partition("=")
         if sep and name.strip() and secret.strip():
-            out.append(Token(secret.strip(), name.strip()))
+            out.append(Token(secret.strip(), name.strip(), write))
         else:
-            out.append(Token(entry, "api"))
+            out.append(Token(entry, "api" if write else "reader", write))
     return out
 
 
@@ -159,12 +179,13 @@ def ensure_token_file(data_dir: Path) -> tuple[str, bool]:
 
 
 def resolve_tokens(settings: ServiceSettings, data_dir: Path) -> list[Token]:
-    """The tokens that may write: ``LANEMAP_API_TOKENS``, else the stored one (if any)."""
+    """The tokens the server takes: those that may write (``LANEMAP_API_TOKENS``, else the
+    stored one, if any), then those that may only read (``LANEMAP_READ_TOKENS``)."""
     tokens = parse_tokens(settings.api_tokens)
-    if tokens:
-        return tokens
-    stored = read_token_file(data_dir)
-    return [Token(stored, "api")] if stored else []
+    if not tokens:
+        stored = read_token_file(data_dir)
+        tokens = [Token(stored, "api")] if stored else []
+    return tokens + parse_tokens(settings.read_tokens, write=False)
 
 
 def store_settings() -> StoreSettings:

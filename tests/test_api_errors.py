@@ -15,6 +15,7 @@ from tests._api_helpers import feature, shared_server, start_server
 from tests.test_api_features import assert_problem
 
 PROBLEM = "application/problem+json"
+READ_TOKEN = "read-only-secret"
 
 
 @pytest.fixture(scope="module")
@@ -24,11 +25,12 @@ def api():
 
 @pytest.fixture(scope="module")
 def strict(tmp_path_factory):
-    """A server with small limits, tokens required for reads, and CORS for one origin."""
+    """A server with small limits, tokens required for reads, a read-only token, and CORS for one origin."""
     tmp = tmp_path_factory.mktemp("strict")
     server = start_server(
         f"sqlite:///{tmp / 'db.sqlite'}", tmp / "data",
-        env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_MAX_BODY_BYTES": "20000",
+        env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_READ_TOKENS": f"fleet={READ_TOKEN}",
+             "LANEMAP_MAX_BODY_BYTES": "20000",
              "LANEMAP_MAX_UPLOAD_BYTES": "100000", "LANEMAP_CORS_ORIGINS": "http://editor.example",
              "LANEMAP_MAX_OBSERVATIONS": "50", "LANEMAP_MAX_DRIVE_OBSERVATIONS": "120"},
     )  # fmt: skip
@@ -129,6 +131,63 @@ def test_limits_read_tokens_and_cors(strict):
     other = c.get(f"/collections/{map_id}", headers={**strict.auth, "Origin": "http://evil.example"})
     assert "access-control-allow-origin" not in other.headers
     assert c.get("/collections", headers=strict.auth).status_code == 200  # still serving
+
+
+def test_a_read_token_reads_and_localizes_but_never_writes(strict):
+    """``LANEMAP_READ_TOKENS``: a vehicle's token gets every read on a server whose reads need a
+    token, and a 403 on every write, which then changes nothing."""
+    c = httpx.Client(base_url=strict.base_url, timeout=30)
+    reader = {"Authorization": f"Bearer {READ_TOKEN}"}
+    map_id = strict.new_map()
+    lon, lat = 8.4280, 49.0071
+    feats = [feature(lon + 4e-5 * k, lat, kind="dash", length_m=3.0, bearing_deg=90.0) for k in range(12)]
+    r = c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats},
+               headers=strict.auth)  # fmt: skip
+    assert r.status_code == 201, r.text
+    fid = c.get(f"/collections/{map_id}/items", headers=reader).json()["features"][0]["id"]
+    before = c.get(f"/collections/{map_id}", headers=reader).json()
+    assert before["numberOfFeatures"] == 12
+    assert c.get(f"/collections/{map_id}/items/{fid}", headers=reader).status_code == 200
+    assert c.get(f"/collections/{map_id}/history", headers=reader).status_code == 200
+    body = {"gps": {"lat": lat, "lon": lon, "heading_deg": 90.0}, "observations": [{"x": 10.0, "y": 0.0}]}
+    r = c.post(f"/collections/{map_id}/localize", json=body, headers=reader)
+    assert r.status_code == 200 and r.json()["status"] in {"ok", "ambiguous", "failed"}, r.text
+    r = c.post(f"/collections/{map_id}/evaluate", json={"type": "FeatureCollection", "features": feats[:6]},
+               headers=reader)  # fmt: skip
+    assert r.status_code == 200 and r.json()["recall"] == 1.0, r.text
+    writes = [
+        ("POST", "/collections", {"json": {"id": "by-a-reader"}}),
+        ("PATCH", f"/collections/{map_id}", {"json": {"title": "renamed"}}),
+        ("POST", f"/collections/{map_id}/items", {"json": feature(lon, lat + 1e-4)}),
+        ("PATCH", f"/collections/{map_id}/items/{fid}",
+         {"json": {"properties": {"status": "rejected"}}, "headers": {"Content-Type": "application/merge-patch+json"}}),
+        ("DELETE", f"/collections/{map_id}/items/{fid}", {}),
+        ("POST", f"/collections/{map_id}/changesets",
+         {"json": {"comment": "x", "changes": [{"op": "delete", "id": fid}]}}),
+        ("POST", f"/collections/{map_id}/import", {"json": {"type": "FeatureCollection", "features": feats}}),
+        ("POST", f"/collections/{map_id}/imagery", {"content": b"II*\x00", "headers": {"Content-Type": "image/tiff"}}),
+        ("POST", f"/collections/{map_id}/builds", {"json": {"imagery": "1"}}),
+        ("DELETE", "/jobs/1", {}),
+        ("DELETE", f"/collections/{map_id}", {}),
+    ]  # fmt: skip
+    for method, path, kw in writes:
+        headers = {**reader, **kw.pop("headers", {})}
+        problem = assert_problem(c.request(method, path, headers=headers, **kw), 403, "'fleet' may only read")
+        assert problem["type"].endswith(":forbidden"), (method, path)
+    after = c.get(f"/collections/{map_id}", headers=reader).json()
+    assert (after["numberOfFeatures"], after["revision"], after["title"]) == (12, before["revision"], before["title"])
+    assert c.get("/collections/by-a-reader", headers=reader).status_code == 404
+    # A token the server does not know is still a 401, and the write token still writes.
+    assert_problem(c.delete(f"/collections/{map_id}/items/{fid}", headers={"Authorization": "Bearer nope"}), 401)
+    assert c.delete(f"/collections/{map_id}/items/{fid}", headers=strict.auth).status_code == 204
+    spec = c.get("/openapi.json", headers=reader).json()
+    schemes = spec["components"]["securitySchemes"]
+    assert schemes["WriteToken"]["scheme"] == schemes["ReadToken"]["scheme"] == "bearer"
+    ops = [op for item in spec["paths"].values() for m, op in item.items()]
+    writers = [op for op in ops if op.get("security") == [{"WriteToken": []}]]
+    assert len(writers) >= 14 and all("403" in op["responses"] for op in writers)
+    assert not any("403" in op["responses"] for op in ops if op not in writers)
+    assert {"ReadToken": []} in spec["paths"]["/collections/{mapId}/localize"]["post"]["security"]
 
 
 def test_every_answer_carries_a_request_id_that_the_log_shows(api, strict):

@@ -307,6 +307,7 @@ def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
         "LANEMAP_BUILD_WORKERS": ("0", "greater than or equal to 1 (got '0')"),
         "LANEMAP_HEALTH_TIMEOUT_S": ("nan", "(got 'nan')"),
         "LANEMAP_READ_TOKEN_REQUIRED": ("perhaps", "valid boolean"),
+        "LANEMAP_READ_TOKENS": ("car=x", "a read token must differ from every write token"),
     }
     for name, (value, says) in cases.items():
         env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
@@ -316,7 +317,7 @@ def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
         assert proc.returncode == 1, (name, proc.stdout)
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"error: {name}: ") and says in lines[0], lines
-
+        assert "car=x" not in lines[0]  # a token is never printed
 
 def test_json_log_lines_carry_the_request_and_its_access_fields(tmp_path):
     """``LANEMAP_LOG_FORMAT=json``: every line the server writes, in its parent and in both

@@ -726,7 +726,7 @@ def test_maps_are_picked_from_the_list(editor, fx, server):
 
 def test_a_server_that_wants_a_token_for_reads(browser, window, tmp_path):
     srv = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
-                       env={"LANEMAP_READ_TOKEN_REQUIRED": "1"})  # fmt: skip
+                       env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_READ_TOKENS": "fleet-secret"})  # fmt: skip
     try:
         fx = create_map(srv, window, "locked")
         ed = Editor(browser, srv, fx)
@@ -734,12 +734,29 @@ def test_a_server_that_wants_a_token_for_reads(browser, window, tmp_path):
         page.goto(f"{srv.base_url}/editor/")
         page.wait_for_function("document.getElementById('view-status').textContent.includes('token')")
         assert page.evaluate("lanemapEditor.layer.size") == 0
-        ed.enter_token()
+        # A read token (a vehicle's, say) shows the map and changes nothing.
+        page.fill("#token-input", "fleet-secret")
+        page.click("#token-use")
         ed.wait_loaded()
         assert page.evaluate("lanemapEditor.layer.size") == len(fx.features)
+        assert page.is_visible("#readonly") and "may only read" in page.text_content("#readonly")
+        assert page.text_content("#who") == "read-only token"
+        assert page.is_disabled("#mode-add")
+        fid = fx.isolated()[0]
+        ed.click_marking(fid)
+        assert ed.selection() == {fid}
+        ed.key("a")
+        assert ed.unsaved() == 0 and "may only read" in page.text_content("#toast")
         # Tiles are fetched with the token too.
         page.wait_for_function("document.querySelectorAll('.leaflet-tile-loaded').length >= 4")
         assert any(st == 200 and "/imagery/tiles/" in u for st, u in ed.responses)
+        # Forgotten, the write token takes its place; a reload keeps what each token may do.
+        page.click("#token-forget")
+        ed.enter_token()
+        assert page.text_content("#who") == "editing" and page.is_enabled("#mode-add")
+        page.reload()
+        ed.wait_loaded()
+        assert page.is_hidden("#readonly") and page.is_enabled("#mode-add")
         ed.close()
     finally:
         srv.stop()

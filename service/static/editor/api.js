@@ -120,23 +120,19 @@ export class Api {
   }
 
   /**
-   * Whether the server takes `token` for writes, without writing anything: an empty
-   * changeset is refused as unauthorized (401) before it is refused as invalid (422).
-   * With no map yet (a server that wants a token for reads), the list of maps tells.
+   * What the server lets `token` do, without writing anything: `'write'`, `'read'` (a read
+   * token, `LANEMAP_READ_TOKENS`) or `null` (unknown to the server). A map without an id is
+   * refused as unauthorized (401) or forbidden (403) before it is refused as invalid (422).
    */
-  async checkToken(mapId, token) {
+  async checkToken(token) {
     try {
-      if (!mapId) {
-        await this.request('GET', 'collections', { token });
-        return true;
-      }
-      await this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets`,
-        { body: { comment: '', changes: [] }, token });
+      await this.request('POST', 'collections', { body: {}, token });
     } catch (err) {
-      if (err instanceof ApiError && err.status === 401) return false;
-      if (err instanceof ApiError && err.status === 422) return true;
+      if (err instanceof ApiError && err.status === 401) return null;
+      if (err instanceof ApiError && err.status === 403) return 'read';
+      if (err instanceof ApiError && err.status === 422) return 'write';
       throw err;
     }
-    return true;
+    throw new Error('the server accepted a map without an id');
   }
 }

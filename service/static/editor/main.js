@@ -13,11 +13,13 @@ const MIN_LOAD_ZOOM = 17;
 const SMALL_MAP = 20000;
 const REVIEW_ZOOM = 21;
 const TOKEN_KEY = 'lanemap.token';
+const TOKEN_WRITES_KEY = 'lanemap.token.writes';
 
 const api = new Api(new URL('../', document.baseURI), () => state.token);
 
 const state = {
   token: sessionStorage.getItem(TOKEN_KEY),
+  tokenWrites: sessionStorage.getItem(TOKEN_WRITES_KEY) !== '0', // a read token may not edit
   mapId: null,
   collection: null,
   session: null,
@@ -71,8 +73,15 @@ const ImageryLayer = L.TileLayer.extend({
 
 const layer = new MarkingLayer(map, { onDown: onMarkingDown, onClick: onMarkingClick });
 
+/** Why nothing can be changed: no token, or a token that may only read. */
+function readOnlyText(what = 'edit this map') {
+  return state.token
+    ? `Read-only: this token may only read. Forget it and enter a write token to ${what}.`
+    : `Read-only: enter the API token to ${what}.`;
+}
+
 function canEdit() {
-  return Boolean(state.token && state.mapId);
+  return Boolean(state.token && state.tokenWrites && state.mapId);
 }
 
 function toast(text, kind = 'info') {
@@ -135,7 +144,7 @@ function render() {
 // ---------------------------------------------------------------- edits
 function edit(label, changes) {
   if (!canEdit()) {
-    toast('Read-only: enter the API token to edit.', 'error');
+    toast(readOnlyText('edit'), 'error');
     return false;
   }
   const done = state.session.apply(label, changes);
@@ -336,7 +345,7 @@ map.on('click', (e) => {
 
 function setMode(mode) {
   if (mode === 'add' && !canEdit()) {
-    toast('Read-only: enter the API token to add markings.', 'error');
+    toast(readOnlyText('add markings'), 'error');
     return;
   }
   state.mode = mode;
@@ -587,6 +596,9 @@ async function save(comment) {
       showConflict(err.problem);
     } else if (err instanceof ApiError && err.status === 401) {
       toast('The token was refused: enter it again. Your edits are kept.', 'error');
+      forgetToken();
+    } else if (err instanceof ApiError && err.status === 403) {
+      toast('This token may only read: enter a write token to save. Your edits are kept.', 'error');
       forgetToken();
     } else {
       toast(`Save failed, your edits are kept: ${problemText(err)}`, 'error');
@@ -937,22 +949,26 @@ $('history-more').addEventListener('click', () => loadHistory(false));
 // ---------------------------------------------------------------- the token
 function applyTokenState() {
   const has = Boolean(state.token);
-  $('readonly').hidden = has;
+  const writes = has && state.tokenWrites;
+  $('readonly').hidden = writes;
+  $('readonly').textContent = readOnlyText();
   $('token-form').hidden = has;
   $('token-forget').hidden = !has;
   $('who').hidden = !has;
-  $('who').textContent = has ? 'editing' : '';
-  document.body.classList.toggle('readonly', !has);
-  for (const id of ['mode-add']) $(id).disabled = !has;
-  for (const b of document.querySelectorAll('#history-list .revert')) b.disabled = !has;
-  if (!has && state.mode === 'add') setMode('select');
+  $('who').textContent = writes ? 'editing' : has ? 'read-only token' : '';
+  document.body.classList.toggle('readonly', !writes);
+  for (const id of ['mode-add']) $(id).disabled = !writes;
+  for (const b of document.querySelectorAll('#history-list .revert')) b.disabled = !writes;
+  if (!writes && state.mode === 'add') setMode('select');
   updateCounters();
   renderSelection();
 }
 
 function forgetToken() {
   state.token = null;
+  state.tokenWrites = true;
   sessionStorage.removeItem(TOKEN_KEY);
+  sessionStorage.removeItem(TOKEN_WRITES_KEY);
   applyTokenState();
 }
 
@@ -960,20 +976,24 @@ $('token-form').addEventListener('submit', async (e) => {
   e.preventDefault();
   const token = $('token-input').value.trim();
   if (!token) return;
+  let may;
   try {
-    if (!(await api.checkToken(state.mapId, token))) {
-      toast('The server does not accept this token.', 'error');
-      return;
-    }
+    may = await api.checkToken(token);
   } catch (err) {
     toast(`The token could not be checked: ${problemText(err)}`, 'error');
     return;
   }
+  if (!may) {
+    toast('The server does not accept this token.', 'error');
+    return;
+  }
   state.token = token;
+  state.tokenWrites = may === 'write';
   sessionStorage.setItem(TOKEN_KEY, token);
+  sessionStorage.setItem(TOKEN_WRITES_KEY, state.tokenWrites ? '1' : '0');
   $('token-input').value = '';
   applyTokenState();
-  toast('Token accepted: you can edit.');
+  toast(state.tokenWrites ? 'Token accepted: you can edit.' : 'Read token accepted: you can view this map, not edit it.');
   if (!state.mapId) start();
 });
 $('token-forget').addEventListener('click', forgetToken);
