@@ -83,6 +83,8 @@ markings = Table(
     Column("y1", Float),
     Column("extra", JSON, nullable=False, default=dict),
     Column("version", Integer, nullable=False, default=1),
+    # The map revision that last wrote the marking: what GET .../changes?since= selects.
+    Column("revision", Integer, nullable=False, default=0, server_default="0"),
     Column("created_at", DateTime(timezone=True), nullable=False),
     Column("updated_at", DateTime(timezone=True), nullable=False),
     CheckConstraint("source IN ('detected', 'manual', 'imported')", name="source"),
@@ -90,8 +92,21 @@ markings = Table(
     CheckConstraint("weight > 0", name="weight_positive"),
     Index("ix_markings_grid", "map_id", "gx", "gy", "x", "y"),
     Index("ix_markings_tile", "map_id", "tile_key", "source", "status"),
+    Index("ix_markings_revision", "map_id", "revision", "id"),
     # Never reuse the id of a deleted marking: ids are feature ids and ETag scopes.
     sqlite_autoincrement=True,
+)
+
+#: Markings deleted from a map, with the revision that deleted them, so that a
+#: copy of the map kept elsewhere learns of deletions as well as of changes. An
+#: id is live in ``markings`` or listed here, never both.
+removed_markings = Table(
+    "removed_markings",
+    metadata,
+    Column("map_id", String(64), ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True),
+    Column("marking_id", Integer, primary_key=True),
+    Column("revision", Integer, nullable=False),
+    Index("ix_removed_markings_revision", "map_id", "revision", "marking_id"),
 )
 
 changesets = Table(

@@ -32,7 +32,7 @@ from sqlalchemy.exc import DBAPIError, IntegrityError
 from . import migrate
 from .crs import CRSError, from_wgs84, metric_crs, to_wgs84, utm_crs_for
 from .model import SOURCES, STATUSES, Marking
-from .schema import GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings
+from .schema import GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings, removed_markings
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -140,6 +140,39 @@ class MapInfo:
         if self.bounds is None or self.crs is None:
             return None
         return to_wgs84(self.crs).transform_bounds(*self.bounds, densify_pts=21)
+
+
+class StaleRevisionError(StoreError):
+    """A change feed was asked for the changes since a revision the map has not reached
+    (the map was deleted and made anew since the copy was taken)."""
+
+
+@dataclass
+class Changes:
+    """A page of a map's changes since a revision (:meth:`Store.changes`), oldest first.
+
+    Attributes
+    ----------
+    revision : int
+        The map's revision this page was read at. After the last page (``more``
+        False) a copy that applied every page is at this revision.
+    changed : list of (int, Marking)
+        Markings written since, with the revision that wrote them last: what a
+        copy should now hold under their ids.
+    removed : list of (int, int)
+        ``(revision, id)`` of markings deleted since (or, with a status filter,
+        whose status left it): what a copy should no longer hold.
+    more : bool
+        Whether more changes follow; ask again from ``after``.
+    after : (int, int) or None
+        The ``(revision, id)`` of this page's last change: where the next page starts.
+    """
+
+    revision: int
+    changed: list[tuple[int, Marking]]
+    removed: list[tuple[int, int]]
+    more: bool
+    after: tuple[int, int] | None
 
 
 @dataclass
@@ -381,7 +414,7 @@ MAX_TITLE_LENGTH = 500
 _READ_COLUMNS = [
     type_coerce(c, Text).label("extra") if c.name == "extra" else c
     for c in markings.c
-    if c.name not in ("created_at", "updated_at", "map_id", "gx", "gy")
+    if c.name not in ("created_at", "updated_at", "map_id", "gx", "gy", "revision")
 ]
 _READ_NAMES = [c.name for c in _READ_COLUMNS]
 
@@ -668,9 +701,38 @@ class Store:
     def _revision_sql(self) -> str:
         return "SELECT revision FROM maps WHERE id = " + ("?" if self.dialect == "sqlite" else "%s")
 
+    def _next_revision(self, conn: Connection, map_id: str) -> int:
+        """Move the map on to its next revision and return it: the first write of a
+        transaction that changes markings, which stamp it on what they write.
+
+        The map's row stays locked until the transaction ends, so the writers of
+        a map take their revisions in the order they commit: once a revision is
+        visible, every marking stamped with it or an earlier one is too, and a
+        reader of the changes since a revision misses none.
+        """
+        rev = conn.execute(
+            update(maps).where(maps.c.id == map_id).values(revision=maps.c.revision + 1, updated_at=_now())
+            .returning(maps.c.revision)
+        ).scalar()  # fmt: skip
+        if rev is None:
+            raise UnknownMapError(map_id)
+        return int(rev)
+
+    def _removed(self, conn: Connection, map_id: str, ids: Sequence[int], revision: int) -> None:
+        """Record markings ``ids`` as deleted at ``revision`` (for the change feed)."""
+        if not ids:
+            return
+        rm = removed_markings.c
+        for k in range(0, len(ids), 5000):
+            chunk = list(ids[k:k + 5000])
+            conn.execute(delete(removed_markings).where(rm.map_id == map_id, rm.marking_id.in_(chunk)))
+            _insert_many(conn, removed_markings,
+                         [{"map_id": map_id, "marking_id": i, "revision": revision} for i in chunk])
+
     def _touch_map(self, conn: Connection, map_id: str, xs=(), ys=()) -> None:
+        """Widen the map's bounds to take in ``xs``, ``ys`` (its revision moved on already)."""
         row = self._map_row(conn, map_id)
-        values: dict[str, Any] = {"revision": maps.c.revision + 1, "updated_at": _now()}
+        values: dict[str, Any] = {"updated_at": _now()}
         if len(xs):
             b = _bounds_of(xs, ys)
             if row.minx is not None:
@@ -728,6 +790,7 @@ class Store:
                     float(np.mean([m.lat for m in items])),
                 )
             crs = self._crs_for_write(conn, map_id, hint)
+            rev = self._next_revision(conn, map_id)
             if lonlat:
                 xs, ys = from_wgs84(crs).transform(
                     np.array([m.lon for m in items], float), np.array([m.lat for m in items], float)
@@ -742,6 +805,7 @@ class Store:
                     raise InvalidMarkingError(f"marking {i}: {exc}") from None
                 row["map_id"] = map_id
                 row["version"] = 1
+                row["revision"] = rev
                 rows.append(row)
             ids = self._insert_rows(conn, rows, progress)
             cs = conn.execute(
@@ -822,12 +886,13 @@ class Store:
         n = 0
         with self._write() as conn:
             crs = self._crs_for_write(conn, map_id)
+            rev = self._next_revision(conn, map_id)
             buf: list[dict[str, Any]] = []
             minx = miny = math.inf
             maxx = maxy = -math.inf
             for m in items:
                 row = marking_row(m, crs, now)
-                row["map_id"], row["version"] = map_id, 1
+                row["map_id"], row["version"], row["revision"] = map_id, 1, rev
                 minx, miny = min(minx, row["x"]), min(miny, row["y"])
                 maxx, maxy = max(maxx, row["x"]), max(maxy, row["y"])
                 buf.append(row)
@@ -959,6 +1024,58 @@ class Store:
                 return 0
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
+    def changes(
+        self, map_id: str, since: int, *, statuses: Sequence[str] | None = None,
+        after: tuple[int, int] | None = None, limit: int = 1000,
+    ) -> Changes:  # fmt: skip
+        """What changed in a map after revision ``since``: the markings written and the
+        markings deleted, in the order of the revisions that did it, a page of up to
+        ``limit`` changes from ``after`` (a page's :attr:`Changes.after`) on.
+
+        With ``statuses``, a copy holds only markings of those statuses: a marking
+        written since whose status is another one is listed as removed.
+
+        Raises
+        ------
+        StaleRevisionError
+            If ``since`` is beyond the map's revision.
+        """
+        if since < 0:
+            raise StoreError(f"since must be >= 0, got {since}")
+        c, rm = markings.c, removed_markings.c
+        r0, i0 = after if after is not None else (since, -1)
+        with self._read() as conn:
+            upto = int(self._map_row(conn, map_id).revision)
+            if since > upto:
+                raise StaleRevisionError(
+                    f"map {map_id!r} is at revision {upto}, not yet at {since}: it was made anew "
+                    "since that copy was taken; read it whole")  # fmt: skip
+            window = [c.map_id == map_id, c.revision > since, c.revision <= upto,
+                      or_(c.revision > r0, and_(c.revision == r0, c.id > i0))]  # fmt: skip
+            rows = conn.execute(
+                select(c.revision, *_READ_COLUMNS).where(*window).order_by(c.revision, c.id).limit(limit + 1)
+            ).all()
+            gone = conn.execute(
+                select(rm.revision, rm.marking_id)
+                .where(rm.map_id == map_id, rm.revision > since, rm.revision <= upto,
+                       or_(rm.revision > r0, and_(rm.revision == r0, rm.marking_id > i0)))
+                .order_by(rm.revision, rm.marking_id).limit(limit + 1)
+            ).all()  # fmt: skip
+        written = [(int(r[0]), m) for r, m in zip(rows, _markings_from_rows([r[1:] for r in rows]))]
+        records = sorted([(rev, m.id, m) for rev, m in written] + [(int(rev), int(i), None) for rev, i in gone],
+                         key=lambda t: (t[0], t[1]))  # fmt: skip
+        more = len(records) > limit
+        records = records[:limit]
+        keep = set(statuses) if statuses else None
+        changed, removed = [], []
+        for rev, i, m in records:
+            if m is not None and (keep is None or m.status in keep):
+                changed.append((rev, m))
+            else:
+                removed.append((rev, i))
+        last = (records[-1][0], records[-1][1]) if records else None
+        return Changes(revision=upto, changed=changed, removed=removed, more=more, after=last)
+
     def iter_markings(
         self, map_id: str, batch: int = 5000, *, statuses: Sequence[str] | None = None,
         lonlat_box: tuple[float, float, float, float] | None = None,
@@ -1076,6 +1193,7 @@ class Store:
             if conflicts:
                 raise ConflictError(conflicts)
 
+            rev = self._next_revision(conn, map_id)
             cs_id = conn.execute(
                 insert(changesets).values(
                     map_id=map_id, who=who, at=now, comment=comment or "",
@@ -1088,7 +1206,7 @@ class Store:
             results, xs, ys, log_rows, written = [], [], [], [], {}
             for i, c in enumerate(changes):
                 try:
-                    res, before, after = self._apply_one(conn, map_id, crs, c, current, now)
+                    res, before, after = self._apply_one(conn, map_id, crs, c, current, now, rev)
                 except InvalidMarkingError as exc:
                     raise InvalidMarkingError(f"change {i} ({c.op}): {exc}") from None
                 results.append(res)
@@ -1107,7 +1225,7 @@ class Store:
             self._touch_map(conn, map_id, xs, ys)
         return ChangesetResult(changeset_id=cs_id, results=results, markings=written)
 
-    def _apply_one(self, conn, map_id, crs, c: Change, current, now):
+    def _apply_one(self, conn, map_id, crs, c: Change, current, now, rev: int):
         if c.op == "create":
             if c.marking is None:
                 raise StoreError("a create change needs a marking")
@@ -1117,6 +1235,7 @@ class Store:
             row = marking_row(m, crs, now)
             row["map_id"] = map_id
             row["version"] = 1
+            row["revision"] = rev
             if c.id is not None:
                 # Re-creating a deleted marking (a revert) keeps its id, and its
                 # version moves on so that old ETags stay stale.
@@ -1125,6 +1244,8 @@ class Store:
                 if taken is not None:
                     raise ConflictError([Conflict(id=c.id, reason="exists")])
                 row["version"] = (m.version or 0) + 1
+                conn.execute(delete(removed_markings).where(removed_markings.c.map_id == map_id,
+                                                            removed_markings.c.marking_id == c.id))
             new_id = conn.execute(insert(markings).values(**row).returning(markings.c.id)).scalar_one()
             after = marking_to_json(_marking_from_row(_row_obj(row, new_id)))
             return {"op": "create", "id": new_id, "version": row["version"]}, None, after
@@ -1133,6 +1254,7 @@ class Store:
         before = marking_to_json(before_m)
         if c.op == "delete":
             conn.execute(delete(markings).where(markings.c.id == c.id))
+            self._removed(conn, map_id, [c.id], rev)
             return {"op": "delete", "id": c.id, "version": None}, before, None
         unknown = set(c.fields) - EDITABLE_FIELDS
         if unknown:
@@ -1150,6 +1272,7 @@ class Store:
         values = marking_row(m, crs, now)
         values.pop("created_at")
         values["version"] = row.version + 1
+        values["revision"] = rev
         conn.execute(update(markings).where(markings.c.id == c.id).values(**values))
         after = marking_to_json(_marking_from_row(_row_obj({**values, "created_at": row.created_at}, c.id, map_id)))
         return {"op": "update", "id": c.id, "version": row.version + 1}, before, after
@@ -1245,12 +1368,14 @@ class Store:
         c = markings.c
         with self._write() as conn:
             crs = self._crs_for_write(conn, map_id)
-            conn.execute(
+            rev = self._next_revision(conn, map_id)
+            gone = conn.execute(
                 delete(markings).where(
                     c.map_id == map_id, c.tile_key == tile_key, c.source == "detected",
                     c.status == "unreviewed",
-                )
-            )  # fmt: skip
+                ).returning(c.id)
+            ).scalars().all()  # fmt: skip
+            self._removed(conn, map_id, gone, rev)
             rows = []
             for i, m in enumerate(items):
                 m.source, m.status, m.tile_key = "detected", "unreviewed", tile_key
@@ -1258,7 +1383,7 @@ class Store:
                     row = marking_row(m, crs, now)
                 except InvalidMarkingError as exc:
                     raise InvalidMarkingError(f"tile {tile_key}, marking {i}: {exc}") from None
-                row["map_id"], row["version"] = map_id, 1
+                row["map_id"], row["version"], row["revision"] = map_id, 1, rev
                 rows.append(row)
             if rows:
                 xs = np.array([r["x"] for r in rows])
@@ -1423,9 +1548,9 @@ def _marking_from_json(d: dict[str, Any]) -> Marking:
 
 
 __all__ = [
-    "Change", "ChangesetInfo", "ChangesetResult", "Conflict", "ConflictError", "EditInfo",
+    "Change", "Changes", "ChangesetInfo", "ChangesetResult", "Conflict", "ConflictError", "EditInfo",
     "ImageryInfo", "InvalidMarkingError", "JobInfo", "MapExistsError", "MapInfo", "MarkingArrays",
-    "SchemaError", "Store", "StoreError", "StoreUnavailableError", "UnknownChangesetError",
+    "SchemaError", "StaleRevisionError", "Store", "StoreError", "StoreUnavailableError", "UnknownChangesetError",
     "UnknownImageryError", "UnknownJobError", "UnknownMapError", "UnknownMarkingError",
     "marking_to_json",
 ]  # fmt: skip
