@@ -126,9 +126,9 @@ def create_app(
     document_problems(app)
 
     from . import metrics
-    from .routers import changesets, collections, evaluate, health, imagery, jobs, landing, localize
+    from .routers import changes, changesets, collections, evaluate, health, imagery, jobs, landing, localize
 
-    for module in (landing, collections, changesets, imagery, jobs, localize, evaluate, health, metrics):
+    for module in (landing, collections, changes, changesets, imagery, jobs, localize, evaluate, health, metrics):
         app.include_router(module.router)
 
     if EDITOR_DIR.is_dir():

@@ -83,7 +83,8 @@ def add_problem_responses(schema: dict[str, Any]) -> dict[str, Any]:
                 # The routers' read check runs on writes too; only a write token gets past both.
                 op["security"] = [{"WriteToken": []}]
             responses = op.setdefault("responses", {})
-            for code in sorted(problem_statuses(method, op)):
+            declared = {int(c) for c in responses if c.isdigit() and int(c) >= 400}
+            for code in sorted(problem_statuses(method, op) | declared):
                 resp = responses.setdefault(str(code), {})
                 resp.setdefault("description", HTTPStatus(code).phrase)
                 resp["content"] = {PROBLEM_JSON: {"schema": ref}}

@@ -94,6 +94,7 @@ ERROR_STATUS: list[tuple[type[BaseException], int, str]] = [
     (st.UnknownChangesetError, 404, "unknown-changeset"),
     (st.MapExistsError, 409, "map-exists"),
     (st.ConflictError, 409, "conflict"),
+    (st.StaleRevisionError, 409, "stale-revision"),
     (st.InvalidMarkingError, 422, "invalid-feature"),
     (st.SchemaError, 503, "schema-outdated"),
     (st.StoreUnavailableError, 503, "store-unavailable"),

@@ -224,3 +224,55 @@ def test_many_concurrent_writers_lose_nothing(api):
         tags = {(f["properties"].get("worker"), f["properties"].get("i")) for f in created}
         assert {(k, i) for k in range(8) for i in range(10)} <= tags
         assert c.get(f"/collections/{map_id}/history").json()["numberMatched"] == 8 + 80 + 80
+
+
+def _follow(c, map_id, since, **params):
+    """Apply every page of ``/changes`` since ``since`` to a fresh dict; (copy, revision, pages)."""
+    copy, url, pages = {}, f"/collections/{map_id}/changes", 0
+    query = {"since": since, **params}
+    while True:
+        r = c.get(url, params=query)
+        assert r.status_code == 200 and r.headers["content-type"].startswith("application/geo+json"), r.text
+        page = r.json()
+        pages += 1
+        for gone in page["removed"]:
+            copy[gone["id"]] = None
+        for f in page["features"]:
+            assert f["properties"]["revision"] > since
+            copy[f["id"]] = (f["properties"]["weight"], f["properties"]["status"], f["properties"]["version"])
+        nxt = [ln["href"] for ln in page["links"] if ln["rel"] == "next"]
+        if not nxt:
+            return copy, page["revision"], pages
+        url, query = nxt[0], None
+
+
+def test_a_copy_follows_the_map_through_its_changes(api):
+    """``GET /collections/{id}/changes?since=``: a copy applies the pages and holds what the map
+    holds; a fleet's copy (status filter) drops a rejected marking; paging by ``next`` links."""
+    map_id, ids = _seed(api, n=5)
+    with api.client(headers=api.auth) as c:
+        first, rev0, _ = _follow(c, map_id, 0)
+        assert {k for k, v in first.items() if v} == set(ids) and rev0 == c.get(f"/collections/{map_id}").json()["revision"]
+        r = c.post(f"/collections/{map_id}/changesets", json={"comment": "c", "changes": [
+            {"op": "update", "id": ids[0], "patch": {"properties": {"status": "rejected"}}},
+            {"op": "delete", "id": ids[1]},
+            {"op": "create", "feature": feature(8.4291, 49.0071, weight=7)}]})  # fmt: skip
+        assert r.status_code == 201, r.text
+        delta, rev1, _ = _follow(c, map_id, rev0)
+        assert rev1 == rev0 + 1
+        assert delta[ids[1]] is None and delta[ids[0]][1] == "rejected" and len(delta) == 3
+        copy = {k: v for k, v in first.items()}
+        copy.update(delta)
+        assert {k: v for k, v in copy.items() if v} == _state(c, map_id)
+        fleet, _, _ = _follow(c, map_id, rev0, status="accepted,unreviewed")
+        assert fleet[ids[0]] is None and fleet[ids[1]] is None
+        paged, rev, pages = _follow(c, map_id, 0, limit=2)
+        assert pages == 3 and rev == rev1 and {k: v for k, v in paged.items() if v} == _state(c, map_id)
+        assert _follow(c, map_id, rev1)[0] == {}
+        # a revision the map never reached, and bad parameters, are problems
+        assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": rev1 + 1}), 409, "made anew")
+        assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": -1}), 422)
+        assert_problem(c.get(f"/collections/{map_id}/changes"), 422, "since")
+        assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": 0, "after": "x"}), 400, "REVISION:ID")
+        assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": 0, "status": "gone"}), 400)
+        assert_problem(c.get("/collections/no-such-map/changes", params={"since": 0}), 404)
