@@ -438,6 +438,52 @@ def test_a_conflicting_save_is_shown_and_loses_nothing(editor, fx, server):
     assert (cs["comment"], cs["created"], cs["updated"], cs["deleted"]) == ("after the conflict", 0, 2, 1)
 
 
+def test_what_others_save_appears_and_conflicts_show_before_saving(browser, editor, fx, server):
+    """Two people on one map: what one saves appears on the other's page within a round of the
+    change feed (``?live=`` ms), deletions too; an unsaved edit of a marking the other saved is
+    flagged as a conflict at once, and is resolved as a refused save would be."""
+    editor.page.goto(f"{server.base_url}/editor/?live=300#map={fx.map_id}")
+    editor.wait_loaded()
+    editor.enter_token()
+    page = editor.page
+    other = Editor(browser, server, fx)
+    other.page.goto(f"{server.base_url}/editor/?live=300#map={fx.map_id}")
+    other.wait_loaded()  # read-only: it only watches
+    a, b, c = fx.isolated(source="detected")[:3]
+    editor.click_marking(b)
+    editor.key("a")  # an unsaved edit of b here
+
+    # Someone else accepts a, widens b and deletes c (through the API, as QGIS would).
+    body = {"comment": "elsewhere", "changes": [
+        {"op": "update", "id": a, "patch": {"properties": {"status": "accepted"}}},
+        {"op": "update", "id": b, "patch": {"properties": {"width_m": 0.3}}},
+        {"op": "delete", "id": c}]}  # fmt: skip
+    r = httpx.post(f"{server.base_url}/collections/{fx.map_id}/changesets", json=body, headers=server.auth)
+    assert r.status_code == 201, r.text
+    for p in (page, other.page):
+        p.wait_for_function(f"lanemapEditor.state.server.get('{a}')?.status === 'accepted'", timeout=10_000)
+        assert p.evaluate(f"lanemapEditor.state.server.has('{c}')") is False
+        assert "changed on the server" in p.text_content("#view-status")
+        p.wait_for_selector("#history-list li:has-text('elsewhere')")
+    # here, b is a conflict before any save; the watcher has none
+    page.wait_for_selector("#conflict", state="visible")
+    assert "Someone else changed" in page.text_content("#conflict-title")
+    assert page.evaluate("[...lanemapEditor.state.conflicts.keys()]") == [b]
+    assert other.page.is_hidden("#conflict")
+    assert editor.unsaved() == 1
+    page.click("#conflict-rebase")
+    page.wait_for_selector("#conflict", state="hidden")
+    editor.save("after theirs")
+    page.wait_for_function("document.getElementById('unsaved').textContent === '0 unsaved'")
+    got = httpx.get(f"{server.base_url}/collections/{fx.map_id}/items/{b}").json()["properties"]
+    assert (got["status"], got["width_m"]) == ("accepted", 0.3)
+    # and the watcher sees this save too, while the saver's own save is not someone else's
+    other.page.wait_for_function(f"lanemapEditor.state.server.get('{b}')?.status === 'accepted'", timeout=10_000)
+    page.wait_for_timeout(1000)
+    assert page.is_hidden("#conflict")
+    other.close()
+
+
 def test_a_server_error_names_the_request_to_report(editor, fx, server):
     """A 5xx on save keeps the edits and names the answer's X-Request-ID (what the server's log shows:
     tests/test_api_errors.py); the 503 is answered in the browser, as the store answers an outage."""

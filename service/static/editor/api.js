@@ -86,6 +86,25 @@ export class Api {
     return out;
   }
 
+  /**
+   * What changed in the map since `revision` (following the `next` links): the revision
+   * the map is now at, and each changed marking's id with its state now (null: deleted).
+   */
+  async changes(mapId, revision, { signal } = {}) {
+    let url = this.url(`collections/${encodeURIComponent(mapId)}/changes?since=${encodeURIComponent(revision)}`);
+    const now = new Map();
+    let at = revision;
+    while (url) {
+      const page = await this.request('GET', url, { signal });
+      for (const r of page.removed) now.set(String(r.id), null);
+      for (const f of page.features) now.set(String(f.id), fromFeature(f));
+      at = page.revision;
+      const next = (page.links || []).find((l) => l.rel === 'next');
+      url = next ? new URL(next.href) : null;
+    }
+    return { revision: at, now };
+  }
+
   /** The server's marking now, or null when it no longer exists. */
   async item(mapId, id) {
     try {

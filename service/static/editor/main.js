@@ -34,6 +34,11 @@ const state = {
   afterGesture: false, // the click that ends a drag is not a click
   loadAbort: null,
   loadedBounds: null, // the box whose markings are loaded (null: none, or the whole map)
+  revision: null, // the map's revision that the loaded markings are at least as new as
+  loadedAll: false, // the whole map is loaded (a small one), not a box of it
+  polling: false,
+  writes: 0, // saves and reverts under way: their own changes are not someone else's
+  writeSeq: 0,
   historyOffset: 0,
 };
 
@@ -372,7 +377,9 @@ async function loadMaps() {
 async function openMap(mapId, fromHash = false) {
   stopReview();
   state.mapId = mapId;
+  state.revision = null;
   state.collection = await api.collection(mapId);
+  state.revision = state.collection.revision;
   state.server.clear();
   state.known.clear();
   state.selection.clear();
@@ -416,6 +423,7 @@ async function loadView() {
   if (map.getZoom() < MIN_LOAD_ZOOM && total > SMALL_MAP) {
     state.server.clear();
     state.loadedBounds = null;
+    state.loadedAll = false;
     $('view-status').textContent = `Zoom in to see the markings (${total} in this map).`;
     render();
     return;
@@ -435,6 +443,7 @@ async function loadView() {
     if (ctl.signal.aborted || mapId !== state.mapId) return;
     state.server = new Map(items.map((m) => [m.id, m]));
     state.loadedBounds = bbox ? b : null;
+    state.loadedAll = !bbox;
     for (const m of items) state.known.set(m.id, m);
     $('view-status').textContent = `${items.length} markings ${bbox ? 'in view' : 'in this map'}.`;
     render();
@@ -577,6 +586,8 @@ async function save(comment) {
   const s = state.session;
   const { body, ids } = s.toChangeset(comment);
   $('save').disabled = true;
+  state.writes++;
+  state.writeSeq++;
   try {
     const res = await api.saveChangeset(state.mapId, body);
     const created = res.results.filter((r) => r.op === 'create').map((r) => r.id);
@@ -589,6 +600,7 @@ async function save(comment) {
     $('save-comment').value = '';
     toast(`Saved changeset ${res.changeset}: ${res.results.length} markings (${created.length} new).`);
     state.collection = await api.collection(state.mapId);
+    state.revision = state.collection.revision;
     await loadView();
     loadHistory(true);
   } catch (err) {
@@ -604,14 +616,18 @@ async function save(comment) {
       toast(`Save failed, your edits are kept: ${problemText(err)}`, 'error');
     }
   } finally {
+    state.writes--;
     updateCounters();
   }
 }
 
-function showConflict(problem) {
+function showConflict(problem, { live = false } = {}) {
   const list = problem.conflicts || (problem.conflicting_ids || []).map((id) => ({ id, reason: 'version' }));
   state.conflicts = new Map(list.map((c) => [String(c.id), c]));
-  $('conflict-text').textContent = `${list.length} of your edited markings changed on the server since you loaded them. Nothing was saved.`;
+  $('conflict-title').textContent = live ? 'Someone else changed markings you are editing' : 'Save refused: conflicting edits';
+  $('conflict-text').textContent = live
+    ? `${list.length} of your edited markings changed on the server since you loaded them; saving now would be refused.`
+    : `${list.length} of your edited markings changed on the server since you loaded them. Nothing was saved.`;
   $('conflict-list').replaceChildren(...list.map((c) => {
     const li = document.createElement('li');
     const a = document.createElement('a');
@@ -630,8 +646,70 @@ function showConflict(problem) {
   }));
   $('conflict').hidden = false;
   render();
-  toast('Save refused: some markings changed on the server. Your edits are kept.', 'error');
+  toast(live ? 'Someone else changed markings you are editing. Your edits are kept.'
+    : 'Save refused: some markings changed on the server. Your edits are kept.', 'error');
 }
+
+// ---------------------------------------------------------------- others' edits, as they are saved
+/** How often the editor asks for the map's changes since its revision, ms (`?live=` in the address). */
+const LIVE_MS = Number(new URLSearchParams(location.search).get('live')) || 5000;
+
+/** Whether a marking belongs to what is loaded: the whole map, or the loaded box. */
+function inLoaded(m) {
+  return state.loadedBounds ? state.loadedBounds.contains([m.lat, m.lon]) : state.loadedAll;
+}
+
+/**
+ * Take in what others saved since the loaded revision: their markings replace the loaded ones,
+ * deleted ones go, and a marking with an unsaved edit here that changed there is a conflict
+ * now, not at the next save.
+ */
+async function followChanges() {
+  if (!state.mapId || state.revision == null || state.polling || state.writes || document.hidden) return;
+  const mapId = state.mapId;
+  const seq = state.writeSeq;
+  state.polling = true;
+  try {
+    const { revision, now } = await api.changes(mapId, state.revision);
+    // A save or revert of this editor began meanwhile: the next round sees the map after it.
+    if (mapId !== state.mapId || revision === state.revision || seq !== state.writeSeq || state.writes) return;
+    const conflicts = new Map(state.conflicts);
+    for (const [id, m] of now) {
+      const e = state.session.pending.get(id);
+      if (e?.base && (!m || String(m.version) !== String(e.base.version))) {
+        conflicts.set(id, m ? { id, reason: 'version', expected_version: e.base.version, actual_version: m.version }
+          : { id, reason: 'missing', expected_version: e.base.version });
+      }
+      if (m) {
+        if (inLoaded(m)) state.server.set(id, m);
+        else state.server.delete(id);
+        if (state.known.has(id) || inLoaded(m)) state.known.set(id, m);
+      } else {
+        state.server.delete(id);
+        if (!e) {
+          state.known.delete(id);
+          state.selection.delete(id);
+        }
+      }
+    }
+    state.revision = revision;
+    $('view-status').textContent = `${now.size} marking${now.size === 1 ? '' : 's'} changed on the server; up to date with revision ${revision}.`;
+    if (conflicts.size > state.conflicts.size) showConflict({ conflicts: [...conflicts.values()] }, { live: true });
+    else render();
+    renderSelection();
+    loadHistory(true);
+  } catch (err) {
+    if (err instanceof ApiError && err.status === 409) {
+      toast(`Map ${mapId} was made anew on the server: loaded again.`, 'error');
+      openMap(mapId);
+    }
+    // Anything else (the network, a restart): the next round asks again.
+  } finally {
+    state.polling = false;
+  }
+}
+setInterval(followChanges, LIVE_MS);
+document.addEventListener('visibilitychange', () => { if (!document.hidden) followChanges(); });
 
 $('conflict-rebase').addEventListener('click', async () => {
   const ids = [...state.conflicts.keys()];
@@ -931,15 +1009,20 @@ async function revertChangeset(c) {
   if (!canEdit()) return;
   const comment = prompt(`Revert changeset #${c.id} (${c.comment || 'no comment'})? Comment:`, `revert #${c.id}`);
   if (comment === null) return;
+  state.writes++;
+  state.writeSeq++;
   try {
     const res = await api.revert(state.mapId, c.id, comment);
     toast(`Changeset #${c.id} reverted by #${res.changeset}.`);
     state.collection = await api.collection(state.mapId);
+    state.revision = state.collection.revision;
     await loadView();
     loadHistory(true);
   } catch (err) {
     const ids = err.problem?.conflicting_ids;
     toast(`Revert refused: ${problemText(err)}${ids ? ` (markings ${ids.join(', ')} changed since)` : ''}`, 'error');
+  } finally {
+    state.writes--;
   }
 }
 
