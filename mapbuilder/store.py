@@ -521,11 +521,15 @@ class Store:
         raise StoreError(f"unsupported database {parsed.get_backend_name()!r}: use sqlite or postgresql")
 
     @contextmanager
-    def _tx(self, write: bool) -> Iterator[Connection]:
+    def _tx(self, write: bool, snapshot: bool = False) -> Iterator[Connection]:
         try:
             with self.engine.connect() as conn:
                 conn = conn.execution_options(lanemap_write=write)
+                if snapshot and self.dialect == "postgresql":
+                    conn = conn.execution_options(isolation_level="REPEATABLE READ")
                 with conn.begin():
+                    if snapshot and self.dialect == "postgresql":
+                        conn.exec_driver_sql("SET TRANSACTION READ ONLY")
                     yield conn
         except DBAPIError as exc:
             if exc.connection_invalidated or isinstance(exc.orig, (OSError,)) or _is_connect_error(exc):
@@ -536,6 +540,15 @@ class Store:
         return self._tx(write=False)
 
     def _write(self):
+        return self._tx(write=True)
+
+    def snapshot(self):
+        """A read-only transaction that sees one state of the whole database throughout
+        (REPEATABLE READ on PostgreSQL; on SQLite in WAL mode every read transaction does)."""
+        return self._tx(write=False, snapshot=True)
+
+    def transaction(self):
+        """A write transaction: all that is written in it is committed together, or nothing."""
         return self._tx(write=True)
 
     def close(self) -> None:
@@ -549,6 +562,21 @@ class Store:
     def schema_revision(self) -> str | None:
         with self._read() as conn:
             return migrate.current_revision(conn)
+
+    @property
+    def display_url(self) -> str:
+        """The database's URL without its password, for messages."""
+        return self._safe_url()
+
+    def check_schema(self) -> None:
+        """Raise :class:`SchemaError` unless the database is at this lanemap's schema revision."""
+        head = migrate.head_revision(self.url)
+        current = self.schema_revision()
+        if current != head:
+            raise SchemaError(
+                f"database {self._safe_url()} is at schema revision {current or '(empty)'}, this lanemap "
+                f"needs {head}: run `lanemap db upgrade`"
+            )
 
     def _ensure_schema(self) -> None:
         head = migrate.head_revision(self.url)

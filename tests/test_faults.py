@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import resource
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -179,8 +181,6 @@ def test_a_database_that_never_answers_fails_within_the_connect_timeout():
 
 
 def test_serve_with_the_database_down_exits_with_one_clear_line(tmp_path):
-    import subprocess
-    import sys
 
     from tests._api_helpers import free_port
 
@@ -434,8 +434,6 @@ def test_export_to_a_full_disk_is_one_line_and_keeps_the_earlier_file(tmp_path):
     keeps what an earlier export wrote there."""
     _need_mount("a full disk is simulated with a small tmpfs, which needs mount as root or through sudo")
     import json
-    import subprocess
-    import sys
 
     rng = np.random.default_rng(0)
     features = [{"type": "Feature", "properties": {"kind": "dash", "weight": 40},
@@ -468,3 +466,32 @@ def test_export_to_a_full_disk_is_one_line_and_keeps_the_earlier_file(tmp_path):
             assert sorted(p.name for p in out.iterdir()) == [name], "a partial file was left"
             assert (out / name).read_bytes() == earlier
             (out / name).unlink()
+
+
+def test_a_database_copy_to_a_full_disk_is_one_line_and_leaves_no_map(tmp_path):
+    """``lanemap db copy`` into an SQLite file on a small tmpfs: the disk fills mid-copy; one
+    error line, and the target holds none of the copy (its one transaction rolled back)."""
+    _need_mount("a full disk is simulated with a small tmpfs, which needs mount as root or through sudo")
+    from mapbuilder.model import Marking
+    from mapbuilder.store import Store
+
+    live = f"sqlite:///{tmp_path / 'live.sqlite'}"
+    store = Store(live)
+    store.create_map("big", crs="EPSG:25832")
+    store.bulk_load("big", (Marking(x=457000.0 + k * 0.5, y=5428000.0, length_m=3.0, weight=40.0,
+                                    extra={"note": "x" * 200}) for k in range(5000)))  # fmt: skip
+    store.close()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
+    env.update(LANEMAP_DATABASE_URL=live, LANEMAP_DATA_DIR=str(tmp_path / "data"))
+    small = tmp_path / "small"
+    with tmpfs(small, 512 * 1024):
+        target = f"sqlite:///{small / 'copy.sqlite'}"
+        proc = subprocess.run([sys.executable, "-m", "service.cli", "db", "copy", target], env=env, cwd=tmp_path,
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert proc.returncode == 1, proc.stdout
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: the copy to {target} failed and wrote nothing: "), lines
+        assert "full" in lines[0] and "Traceback" not in proc.stderr
+        left = Store(target)
+        assert left.list_maps() == []
+        left.close()
