@@ -722,3 +722,48 @@ def test_default_thresholds_follow_the_verifier():
     # a pixel threshold at or below the hysteresis threshold leaves no room for it
     assert default_threshold_low(True, threshold=CNN_PIXEL_THRESHOLD_LOW) is None
     assert default_threshold_low(True, threshold=0.1) == CNN_PIXEL_THRESHOLD_LOW
+
+
+def test_a_build_saves_a_quicklook_of_its_markings_over_the_imagery(tmp_path, monkeypatch):
+    """``lanemap build --quicklook``: the real USGS crop at its own 15 cm (a picture never finer
+    than the imagery), its detections drawn where they lie, and only there."""
+    import matplotlib.image as mpimg
+    from typer.testing import CliRunner
+
+    from mapbuilder.quicklook import render_quicklook
+    from service.cli import app
+
+    url = f"sqlite:///{tmp_path / 'cli.sqlite'}"
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", url)
+    png = tmp_path / "look.png"
+    res = CliRunner().invoke(app, ["build", str(USGS_BASE), "--map", "usgs", "--no-progress", "--quicklook", str(png)])
+    assert res.exit_code == 0, res.output
+    assert f"quicklook: {png} (383 x 233 px, 0.15 m per pixel)" in res.stdout
+    store = Store(url)
+    found = store.list_markings("usgs", limit=100)[0]
+    crs = store.get_map("usgs").crs
+    store.close()
+    assert len(found) >= 4
+    drawn = mpimg.imread(png)[..., :3]
+    bare = render_quicklook([str(USGS_BASE)], [], crs, tmp_path / "bare.png", max_px=3000)
+    assert drawn.shape[:2] == bare.shape == (233, 383)  # square 0.1498 m pixels over 35 m
+    plain = mpimg.imread(tmp_path / "bare.png")[..., :3]
+    changed = np.abs(drawn - plain).max(axis=2) > 0.1
+    h, w = changed.shape
+    changed[:25, :330] = False  # the label (which counts the markings)
+    changed[-40:, int(0.65 * w):] = False  # the colour bar
+    minx, _, _, maxy = bare.bounds
+    rows, cols = np.nonzero(changed)
+    x = minx + (cols + 0.5) * bare.resolution_m
+    y = maxy - (rows + 0.5) * bare.resolution_m
+    # every changed pixel lies on a marking's axis (within its line's width) ...
+    d = np.full(x.shape, np.inf)
+    for m in found:
+        a, b = np.array([m.x0, m.y0]), np.array([m.x1, m.y1])
+        t = np.clip(((x - a[0]) * (b - a)[0] + (y - a[1]) * (b - a)[1]) / max(np.sum((b - a) ** 2), 1e-9), 0, 1)
+        d = np.minimum(d, np.hypot(x - (a[0] + t * (b - a)[0]), y - (a[1] + t * (b - a)[1])))
+    assert changed.sum() > 20 * len(found) and d.max() < 0.5
+    # ... and every marking's centroid is drawn
+    for m in found:
+        r, c = int((maxy - m.y) / bare.resolution_m), int((m.x - minx) / bare.resolution_m)
+        assert changed[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].any(), m

@@ -62,6 +62,11 @@ def build(
         False, "--restart", help="Start afresh instead of resuming an unfinished build."
     ),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+    quicklook: Optional[Path] = typer.Option(
+        None, "--quicklook", metavar="PNG",
+        help="Also save the map's markings over the images, downsampled, as this PNG."),
+    quicklook_px: int = typer.Option(3000, "--quicklook-size", min=64, max=20000,
+                                     help="Longest side of the quicklook, pixels."),
 ) -> None:
     """Detect lane markings in IMAGES and store them in the map MAP.
 
@@ -107,11 +112,26 @@ def build(
             resume=not restart,
             title=title,
         )
+        typer.echo(result.summary())
+        if quicklook is not None:
+            _save_quicklook(store, map_id, [str(p) for p in images], quicklook, quicklook_px)
     except ValueError as exc:
         fail(str(exc))
     finally:
         store.close()
-    typer.echo(result.summary())
+
+
+def _save_quicklook(store, map_id: str, images: list[str], path: Path, max_px: int) -> None:
+    from mapbuilder.quicklook import image_bounds, render_quicklook
+
+    crs = store.get_map(map_id).crs
+    box = image_bounds(images, crs)
+    shown = store.query_bbox(map_id, *box, statuses=("unreviewed", "accepted"))
+    try:
+        look = render_quicklook(images, shown, crs, path, max_px=max_px, title=f"map {map_id}")
+    except OSError as exc:
+        fail(f"cannot write {path}: {exc.strerror or exc}")
+    typer.echo(f"quicklook: {look.path} ({look.shape[1]} x {look.shape[0]} px, {look.resolution_m:.2f} m per pixel)")
 
 
 def register(app: typer.Typer) -> None:

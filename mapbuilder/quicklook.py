@@ -1,0 +1,159 @@
+"""A quicklook of a build: its markings drawn over the imagery, downsampled, as one PNG.
+
+After a build of a whole city, a look at one picture shows what no count
+does: a district with no markings (a dark image, a wrong model), kerbs along
+every street, a tile seam. Each marking is drawn as its axis, coloured by its
+score (the classifier's mean probability), over the images reprojected into
+the map's CRS at a resolution that keeps the long side of the picture within
+``max_px``. Pixel ``(col, row)`` of the PNG is at ``minx + (col + 0.5) * res``,
+``maxy - (row + 0.5) * res`` of :attr:`Quicklook.bounds` and
+:attr:`Quicklook.resolution_m`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .model import Marking
+
+
+@dataclass
+class Quicklook:
+    """Where a quicklook went and what it shows.
+
+    Attributes
+    ----------
+    path : Path
+    bounds : (minx, miny, maxx, maxy)
+        The picture's extent in the map's CRS, metres.
+    resolution_m : float
+        Metres per pixel of the picture.
+    shape : (rows, cols)
+    markings : int
+        Markings drawn.
+    """
+
+    path: Path
+    bounds: tuple[float, float, float, float]
+    resolution_m: float
+    shape: tuple[int, int]
+    markings: int
+
+
+def image_bounds(images: Sequence[str], crs: str) -> tuple[float, float, float, float]:
+    """The union of the images' footprints in ``crs``, metres."""
+    return _footprints(images, crs)[0]
+
+
+def _footprints(images: Sequence[str], crs: str) -> tuple[tuple[float, float, float, float], float]:
+    """The union of the images' footprints in ``crs`` and the finest of their pixel sizes there, metres."""
+    import rasterio
+    from rasterio.warp import transform_bounds
+
+    boxes, finest = [], math.inf
+    for path in images:
+        with rasterio.open(path) as ds:
+            box = transform_bounds(ds.crs, crs, *ds.bounds, densify_pts=21)
+            finest = min(finest, (box[2] - box[0]) / ds.width, (box[3] - box[1]) / ds.height)
+        boxes.append(box)
+    b = np.array(boxes)
+    return (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())), finest
+
+
+def _canvas(images: Sequence[str], crs: str, bounds, res: float, shape) -> np.ndarray:
+    """The images as one RGB array (uint8) on the picture's grid; black where none is."""
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.transform import from_origin
+    from rasterio.vrt import WarpedVRT
+
+    rows, cols = shape
+    out = np.zeros((rows, cols, 3), np.uint8)
+    transform = from_origin(bounds[0], bounds[3], res, res)
+    for path in images:
+        with rasterio.open(path) as ds, WarpedVRT(ds, crs=crs, transform=transform, width=cols, height=rows,
+                                                  resampling=Resampling.average) as vrt:  # fmt: skip
+            rgb = vrt.read(indexes=[1, 2, 3])
+            valid = vrt.dataset_mask() > 0
+            if rgb.dtype != np.uint8:  # 16-bit imagery: stretch its 2-98 % range
+                v = rgb[:, valid].astype(float)
+                lo, hi = (np.percentile(v, (2, 98)) if v.size else (0.0, 1.0))
+                rgb = np.clip((rgb - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
+            out[valid] = rgb.transpose(1, 2, 0)[valid]
+    return out
+
+
+def render_quicklook(
+    images: Sequence[str], markings: Sequence[Marking], crs: str, out: Path | str, *,
+    max_px: int = 3000, title: str = "",
+) -> Quicklook:  # fmt: skip
+    """Draw ``markings`` (in ``crs``) over ``images`` and save the picture as a PNG.
+
+    Parameters
+    ----------
+    images : sequence of str
+        GeoTIFFs, in any CRS (reprojected to ``crs``).
+    markings : sequence of Marking
+        Drawn as their axis (end points, else length and bearing), coloured by score.
+    crs : str
+        The map's CRS, metric.
+    max_px : int
+        Longest side of the picture, pixels (not finer than the imagery needs to be).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    bounds, finest = _footprints(images, crs)
+    width, height = bounds[2] - bounds[0], bounds[3] - bounds[1]
+    res = max(max(width, height) / max(int(max_px), 64), finest)
+    shape = (max(1, math.ceil(height / res - 1e-6)), max(1, math.ceil(width / res - 1e-6)))
+    bounds = (bounds[0], bounds[3] - shape[0] * res, bounds[0] + shape[1] * res, bounds[3])
+    canvas = _canvas(images, crs, bounds, res, shape)
+
+    dpi = 100
+    fig = plt.figure(figsize=(shape[1] / dpi, shape[0] / dpi), dpi=dpi)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_axis_off()
+    ax.imshow(canvas, extent=(bounds[0], bounds[2], bounds[1], bounds[3]), interpolation="nearest")
+    ax.set_xlim(bounds[0], bounds[2])
+    ax.set_ylim(bounds[1], bounds[3])
+    if markings:
+        seg = np.empty((len(markings), 2, 2))
+        score = np.full(len(markings), np.nan)
+        for i, m in enumerate(markings):
+            if None not in (m.x0, m.y0, m.x1, m.y1):
+                seg[i] = ((m.x0, m.y0), (m.x1, m.y1))
+            else:
+                b = math.radians(m.bearing_deg)
+                dx, dy = 0.5 * m.length_m * math.sin(b), 0.5 * m.length_m * math.cos(b)
+                seg[i] = ((m.x - dx, m.y - dy), (m.x + dx, m.y + dy))
+            if m.score is not None:
+                score[i] = m.score
+        # A marking shorter than a pixel still shows: at least two pixels long.
+        lw = max(1.0, min(3.0, 0.3 / res * 72 / dpi))
+        known = np.isfinite(score)
+        if known.any():
+            lines = LineCollection(seg[known], array=score[known], cmap="plasma", norm=plt.Normalize(0, 1),
+                                   linewidths=lw)  # fmt: skip
+            ax.add_collection(lines)
+            cax = fig.add_axes((0.78, 0.03, 0.18, 0.015))
+            bar = fig.colorbar(lines, cax=cax, orientation="horizontal")
+            bar.set_label("score", color="white", fontsize=8)
+            bar.ax.tick_params(colors="white", labelsize=7)
+        if (~known).any():
+            ax.add_collection(LineCollection(seg[~known], colors="cyan", linewidths=lw))
+    label = f"{title}  " if title else ""
+    ax.text(0.01, 0.99, f"{label}{len(markings):,} markings, {res:.2f} m per pixel", transform=ax.transAxes,
+            va="top", ha="left", fontsize=9, color="white", bbox={"facecolor": "black", "alpha": 0.6, "pad": 3})
+    out = Path(out)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return Quicklook(out, bounds, res, shape, len(markings))
