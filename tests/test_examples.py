@@ -141,3 +141,50 @@ def test_the_api_documents_the_example_frame_and_drive():
     drive = json.loads((REPO / "docs" / "examples" / "drive.json").read_text())
     assert example == {"gps": drive["gps"], "frames": drive["frames"][:2]}
     SequenceIn.model_validate(example)
+
+
+def test_the_mirror_example_keeps_a_copy_current(tmp_path):
+    """``docs/examples/mirror_map.py``: a full read, then only changes, a fleet's copy without
+    rejected markings, and a map made anew read whole again; the copy always equals the map."""
+    from tests._api_helpers import feature
+
+    api = shared_server("sqlite")
+    map_id = api.new_map()
+    script = REPO / "docs" / "examples" / "mirror_map.py"
+
+    def run(path, *extra):
+        proc = subprocess.run([sys.executable, str(script), api.base_url, map_id, str(path), *extra],
+                              capture_output=True, text=True, timeout=60)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        return proc.stdout.strip(), json.loads(path.read_text())
+
+    def items(status=None):
+        params = {"limit": 1000, **({"status": status} if status else {})}
+        fc = httpx.get(f"{api.base_url}/collections/{map_id}/items", params=params).json()
+        return {f["id"]: f["properties"]["version"] for f in fc["features"]}
+
+    def held(copy):
+        return {f["id"]: f["properties"]["version"] for f in copy["features"]}
+
+    feats = [feature(8.428 + k * 1e-4, 49.0071, kind="dash") for k in range(6)]
+    with api.client(headers=api.auth) as c:
+        assert c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats}).status_code == 201
+        full, fleet = tmp_path / "copy.geojson", tmp_path / "fleet.geojson"
+        line, copy = run(full)
+        assert line == f"{full}: 6 markings at revision 1 (6 written, 0 removed by this run)" and held(copy) == items()
+        ids = sorted(items(), key=int)
+        r = c.post(f"/collections/{map_id}/changesets", json={"comment": "x", "changes": [
+            {"op": "update", "id": ids[0], "patch": {"properties": {"status": "rejected"}}},
+            {"op": "delete", "id": ids[1]},
+            {"op": "create", "feature": feature(8.4291, 49.0071)}]})  # fmt: skip
+        assert r.status_code == 201, r.text
+        line, copy = run(full)
+        assert line.endswith("6 markings at revision 2 (2 written, 1 removed by this run)") and held(copy) == items()
+        line, copy = run(fleet, "accepted,unreviewed")
+        assert held(copy) == items("accepted,unreviewed") and ids[0] not in held(copy)
+        # the map made anew: a copy at a revision the new map never reached is read whole again
+        assert c.delete(f"/collections/{map_id}").status_code == 204
+        assert c.post("/collections", json={"id": map_id, "crs": "EPSG:25832"}).status_code == 201
+        assert c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats[:2]}).status_code == 201
+        line, copy = run(full)
+        assert line.endswith("2 markings at revision 1 (2 written, 0 removed by this run)") and held(copy) == items()
