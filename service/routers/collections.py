@@ -109,6 +109,7 @@ def collection_of(info: MapInfo, request: Request) -> dict[str, Any]:
         "links": [
             link(base, "self", JSON),
             link(f"{base}/items", "items", GEOJSON, "Markings"),
+            link(f"{base}/changes?since=0", "changes", GEOJSON, "Changes since a revision (keeping a copy)"),
             link(f"{base}/changesets", "changesets", JSON, "Changesets"),
             link(f"{base}/history", "history", JSON, "Edit history"),
             link(f"{base}/imagery", "imagery", JSON, "Imagery"),
