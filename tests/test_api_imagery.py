@@ -125,6 +125,27 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     assert {f["properties"]["source"] for f in items["features"]} == {"detected"}
     jobs = httpx.get(f"{api.base_url}/jobs", params={"map": map_id}).json()["jobs"]
     assert [j["jobID"] for j in jobs] == [job_id]
+    # the job's quicklook: a PNG of the imagery at its own 15 cm with the detections drawn on
+    preview = [ln["href"] for ln in job["links"] if ln["rel"] == "preview"]
+    assert preview == [f"{api.base_url}/jobs/{job_id}/quicklook.png"]
+    r = httpx.get(preview[0], timeout=60)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
+    assert r.content[:8] == b"\x89PNG\r\n\x1a\n" and r.headers["x-map-revision"]
+    width, height = int.from_bytes(r.content[16:20], "big"), int.from_bytes(r.content[20:24], "big")
+    assert (width, height) == (383, 233)
+    kept = sorted((api.data_dir / "quicklooks").glob(f"job-{job_id}-*.png"))
+    assert len(kept) == 1 and httpx.get(preview[0], timeout=60).content == r.content  # made once
+    small = httpx.get(preview[0], params={"size": 100}, timeout=60)
+    assert small.status_code == 200 and int.from_bytes(small.content[16:20], "big") == 100
+    assert len(list((api.data_dir / "quicklooks").glob(f"job-{job_id}-*.png"))) == 2  # one per size
+    # an edit of the map makes the next picture anew, at the map's new revision
+    fid = items["features"][0]["id"]
+    assert httpx.delete(f"{api.base_url}/collections/{map_id}/items/{fid}", headers=api.auth).status_code == 204
+    again = httpx.get(preview[0], timeout=60)
+    assert int(again.headers["x-map-revision"]) == int(r.headers["x-map-revision"]) + 1 and again.content != r.content
+    assert len(list((api.data_dir / "quicklooks").glob(f"job-{job_id}-*.png"))) == 1  # the older ones went
+    assert_problem(httpx.get(f"{api.base_url}/jobs/{job_id}/quicklook.png", params={"size": 10}), 422, "size")
+    assert_problem(httpx.get(f"{api.base_url}/jobs/987654/quicklook.png"), 404)
     # The default build verifies its clusters; without verification the same
     # imagery gives the kerbs and car outlines back. (This map is created
     # without a CRS: its first build gives it the image's.)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import threading
 from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi import Path as PathParam
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapbuilder.cluster import ClusterParams
@@ -66,6 +68,9 @@ def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
         "imagery": imagery_ids,
         "links": [link(f"{base_url(request)}/jobs/{job.id}", "self", JSON)],
     }
+    if images:
+        out["links"].append(link(f"{base_url(request)}/jobs/{job.id}/quicklook.png", "preview", "image/png",
+                                 "The map's markings over the build's imagery"))
     if job.status == "failed":
         out["error"] = job.error or "failed"
     if job.map_id is not None:
@@ -148,6 +153,59 @@ def list_jobs(
 @router.get("/jobs/{jobId}", summary="A job's status")
 def get_job(request: Request, jobId: str = PathParam(..., max_length=40), ctx: Context = Depends(get_ctx)):
     return job_json(ctx.store.get_job(parse_id(jobId, "jobId")), request)
+
+
+@router.get(
+    "/jobs/{jobId}/quicklook.png", summary="A build's quicklook: the map's markings over its imagery",
+    description="The build's images, reprojected to the map's CRS and downsampled to at most `size` pixels "
+    "on the long side (never finer than the imagery), with the map's unreviewed and accepted markings "
+    "over them, coloured by score: what `lanemap build --quicklook` saves. It shows the map as it is now, "
+    "so a running build's picture fills in as its tiles are stored. Made on first request and kept "
+    "until the map changes (`X-Map-Revision` names the revision it shows); a large build's first one "
+    "takes seconds.",
+    responses={200: {"content": {"image/png": {}}, "description": "A PNG picture"},
+               409: {"description": "The job has no imagery, or its files are missing on the server"}},
+    response_class=FileResponse,
+)  # fmt: skip
+def job_quicklook(
+    jobId: str = PathParam(..., max_length=40),
+    size: int = Query(1500, ge=64, le=4000, description="Longest side of the picture, pixels"),
+    ctx: Context = Depends(get_ctx),
+):
+    job = ctx.store.get_job(parse_id(jobId, "jobId"))
+    images = [i.get("path") for i in job.params.get("images", [])] if isinstance(job.params, dict) else []
+    if job.map_id is None or not images:
+        raise Problem(409, f"job {job.id} has no imagery to show", "no-imagery")
+    if not all(isinstance(p, str) and os.path.isfile(p) for p in images):
+        raise Problem(409, f"job {job.id}: its imagery is missing on the server", "imagery-missing")
+    revision = ctx.store.map_revision(job.map_id)
+    folder = ctx.data_dir / "quicklooks"
+    path = folder / f"job-{job.id}-r{revision}-{size}.png"
+    if not path.is_file():
+        _render_quicklook(ctx, job, images, path, size)
+    return FileResponse(path, media_type="image/png", headers={"X-Map-Revision": str(revision),
+                                                                "Cache-Control": "no-cache"})  # fmt: skip
+
+
+def _render_quicklook(ctx: Context, job: JobInfo, images: list[str], path, size: int) -> None:
+    """Render a job's quicklook into ``path`` (written whole, then renamed) and drop its older ones."""
+    from mapbuilder.quicklook import image_bounds, render_quicklook
+
+    crs = ctx.store.get_map(job.map_id).crs
+    shown = ctx.store.query_bbox(job.map_id, *image_bounds(images, crs), statuses=("unreviewed", "accepted"))
+    part = path.with_name(f"{path.stem}.{os.getpid()}.{threading.get_ident()}.part.png")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        render_quicklook(images, shown, crs, part, max_px=size, title=f"map {job.map_id}, job {job.id}")
+        part.replace(path)
+        current = path.name.rsplit("-", 1)[0] + "-"  # job-{id}-r{revision}-: other sizes stay
+        for old in path.parent.glob(f"job-{job.id}-r*.png"):
+            if not old.name.startswith(current) and ".part." not in old.name:
+                old.unlink(missing_ok=True)
+    except OSError as exc:
+        part.unlink(missing_ok=True)
+        raise Problem(500, f"the quicklook cannot be written in the server's data folder: "
+                           f"{exc.strerror or exc.__class__.__name__}", "storage-not-writable") from None
 
 
 @router.delete("/jobs/{jobId}", summary="Cancel (dismiss) a job")
