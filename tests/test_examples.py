@@ -188,3 +188,34 @@ def test_the_mirror_example_keeps_a_copy_current(tmp_path):
         assert c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats[:2]}).status_code == 201
         line, copy = run(full)
         assert line.endswith("2 markings at revision 1 (2 written, 0 removed by this run)") and held(copy) == items()
+
+
+def test_a_mirrored_copy_localizes_on_board_as_the_server_does(karlsruhe_fc, tmp_path):  # noqa: F811
+    """``mirror_map.py`` then ``localize_onboard.py``: the example frame answered from the copy,
+    without the server, at the true pose and where the server puts it."""
+    api = shared_server("sqlite")
+    map_id = api.new_map(prefix="onboard")
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=api.auth, timeout=60)
+    assert r.status_code == 201
+    copy = tmp_path / "copy.geojson"
+    examples = REPO / "docs" / "examples"
+    out = subprocess.run([sys.executable, str(examples / "mirror_map.py"), api.base_url, map_id, str(copy),
+                          "accepted,unreviewed"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    out = subprocess.run([sys.executable, str(examples / "localize_onboard.py"), str(copy),
+                          str(examples / "frame.json")], capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    onboard = json.loads(out.stdout)
+    served = httpx.post(f"{api.base_url}/collections/{map_id}/localize",
+                        content=(examples / "frame.json").read_bytes(),
+                        headers={"Content-Type": "application/json"}, timeout=60).json()  # fmt: skip
+    assert onboard["status"] == served["status"] == "ok", onboard
+    truth = {"lat": TRUTH["frame"]["lat"], "lon": TRUTH["frame"]["lon"]}
+    metres = 111_320.0
+    for pose in (onboard, served):
+        dn = (pose["lat"] - truth["lat"]) * metres
+        de = (pose["lon"] - truth["lon"]) * metres * math.cos(math.radians(truth["lat"]))
+        assert math.hypot(de, dn) < 0.3 and _heading_off(pose, TRUTH["frame"]) < 1.0, pose
+    dn = (onboard["lat"] - served["lat"]) * metres
+    de = (onboard["lon"] - served["lon"]) * metres * math.cos(math.radians(served["lat"]))
+    assert math.hypot(de, dn) < 0.05 and _heading_off(onboard, served) < 0.1
