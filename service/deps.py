@@ -14,6 +14,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from mapbuilder.store import Store
 
 from .problems import Problem
+from .request_id import set_client
 from .settings import ServiceSettings, Token
 
 #: The token of a write: one of ``LANEMAP_API_TOKENS`` (or the generated one).
@@ -76,6 +77,7 @@ async def require_write(
     token = _token(ctx, cred)
     if token is None:
         raise _unauthorized("the bearer token is not valid")
+    set_client(token.who)
     if not token.write:
         raise Problem(403, f"the token of {token.who!r} may only read: this request changes data "
                            "and needs a write token", "forbidden")  # fmt: skip
@@ -85,10 +87,17 @@ async def require_write(
 async def require_read(
     ctx: Context = Depends(get_ctx), cred: HTTPAuthorizationCredentials | None = Depends(read_bearer)
 ) -> None:
-    """Reads are open unless ``LANEMAP_READ_TOKEN_REQUIRED=1``; then any token the server knows."""
+    """Reads are open unless ``LANEMAP_READ_TOKEN_REQUIRED=1``; then any token the server knows.
+
+    A token sent where reads are open still names the request's client (its log line, the
+    localization metrics); one the server does not know is ignored there.
+    """
+    token = _token(ctx, cred)
+    if token is not None:
+        set_client(token.who)
     if not ctx.settings.read_token_required:
         return
     if cred is None:
         raise _unauthorized("reads need a token on this server: send Authorization: Bearer <token>")
-    if _token(ctx, cred) is None:
+    if token is None:
         raise _unauthorized("the bearer token is not valid")

@@ -3,7 +3,8 @@
 ``LANEMAP_LOG_FORMAT=text`` (the default) gives uvicorn's lines with the
 request ID (``INFO:     [3f2c…] 127.0.0.1:50412 - "GET / HTTP/1.1" 200``);
 ``json`` gives one JSON object per line, for a log collector: ``time`` (UTC,
-ISO 8601), ``level``, ``logger``, ``pid`` (the server process), ``request_id``, ``message``, an access
+ISO 8601), ``level``, ``logger``, ``pid`` (the server process), ``request_id``, ``token`` (the
+name of the token the request came with, ``-`` without one), ``message``, an access
 line's ``client``, ``method``, ``path``, ``http_version`` and ``status``, and
 an error's ``exception`` (its traceback as text).
 """
@@ -35,6 +36,7 @@ class JsonFormatter(logging.Formatter):
             "logger": record.name,
             "pid": record.process,
             "request_id": getattr(record, "request_id", "-"),
+            "token": getattr(record, "client_name", "-"),
             "message": record.getMessage(),
         }
         if record.name == "uvicorn.access" and isinstance(record.args, tuple) \

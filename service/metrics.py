@@ -51,9 +51,11 @@ http_seconds = Histogram(
 # By map too: a map whose share of failed or ambiguous answers rises is one whose
 # road has changed. Only maps that exist are counted (an unknown one is a 404
 # before any localization), so the series grow with the maps, not the requests.
+# By token: which fleet (one read token each) sends what, and how its answers fare;
+# the names are the configured ones ("-" without a token), so they stay few.
 localizations = Counter(
-    "lanemap_localizations", "Localization answers by map, endpoint (frame, or each frame of a drive), method "
-    "and status", ["map", "endpoint", "method", "status"],
+    "lanemap_localizations", "Localization answers by map, endpoint (frame, or each frame of a drive), method, "
+    "status and the name of the request's token", ["map", "endpoint", "method", "status", "token"],
 )
 localizer_seconds = Histogram(
     "lanemap_localizer_duration_seconds", "Time the localizer took per request, without HTTP and queueing, "

@@ -26,6 +26,23 @@ HEADER = b"x-request-id"
 _VALID = re.compile(r"[A-Za-z0-9._:/+=-]{1,128}")
 
 current: ContextVar[str] = ContextVar("lanemap_request_id", default="-")
+#: The name of the token a request came with (``-`` without one), in a holder that the
+#: request's middleware makes: the token is checked deeper down (a route's dependency, in
+#: a copy of this context), and the access line and the metrics read it back up here.
+_client: ContextVar[list[str] | None] = ContextVar("lanemap_client", default=None)
+
+
+def set_client(name: str) -> None:
+    """Record the name of the token the current request came with."""
+    holder = _client.get()
+    if holder is not None:
+        holder[0] = name
+
+
+def client() -> str:
+    """The name of the token the current request came with, ``-`` without one."""
+    holder = _client.get()
+    return "-" if holder is None else holder[0]
 
 
 def _from_client(headers) -> str | None:
@@ -45,6 +62,7 @@ class RequestId(HttpMiddleware):
     async def handle(self, scope, receive, send) -> None:
         rid = _from_client(scope["headers"]) or uuid.uuid4().hex
         token = current.set(rid)
+        who = _client.set(["-"])
 
         async def send_with_id(message) -> None:
             if message["type"] == "http.response.start":
@@ -55,12 +73,15 @@ class RequestId(HttpMiddleware):
         try:
             await self.app(scope, receive, send_with_id)
         finally:
+            _client.reset(who)
             current.reset(token)
 
 
 class RequestIdFilter(logging.Filter):
-    """Adds ``request_id`` to every record a handler emits (``-`` outside a request)."""
+    """Adds ``request_id`` and ``client`` (the token's name) to every record a handler emits
+    (``-`` outside a request, or for a request without a token)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         record.request_id = current.get()
+        record.client_name = client()
         return True

@@ -482,15 +482,21 @@ def test_metrics_count_localizations_by_outcome(api, kmap):
     assert nope.status_code == 404
     frames, _ = drive_frames(feats, 3)
     drive = httpx.post(f"{url}/sequence", json={"gps": gps_near(p, heading), "frames": frames}, timeout=60).json()
+    # a request with a token is counted under the token's name (the server's one is "api")
+    assert httpx.post(url, json={"gps": gps_near(p, heading), "observations": obs}, headers=api.auth,
+                      timeout=60).json()["status"] == "ok"  # fmt: skip
     after = scrape()
 
     def delta(name, **labels):
         key = (name, tuple(sorted(labels.items())))
         return after.get(key, 0.0) - before.get(key, 0.0)
 
-    assert delta("lanemap_localizations_total", map=map_id, endpoint="frame", method="default", status="ok") == 2
+    assert delta("lanemap_localizations_total", map=map_id, endpoint="frame", method="default", status="ok",
+                 token="-") == 2
     assert delta("lanemap_localizations_total", map=map_id, endpoint="frame", method="default",
-                 status="failed") == 1
+                 status="failed", token="-") == 1
+    assert delta("lanemap_localizations_total", map=map_id, endpoint="frame", method="default", status="ok",
+                 token="api") == 1
     # A map that does not exist is a 404, and makes no series of its own.
     assert not any(("map", "no-such-map") in labels for _, labels in after)
     by_status = {}
@@ -498,16 +504,16 @@ def test_metrics_count_localizations_by_outcome(api, kmap):
         by_status[pose["status"]] = by_status.get(pose["status"], 0) + 1
     for status, n in by_status.items():
         assert delta("lanemap_localizations_total", map=map_id, endpoint="drive", method="default",
-                     status=status) == n
-    assert delta("lanemap_localizer_duration_seconds_count", endpoint="frame") == 3
+                     status=status, token="-") == n
+    assert delta("lanemap_localizer_duration_seconds_count", endpoint="frame") == 4
     assert delta("lanemap_localizer_duration_seconds_count", endpoint="drive") == 1
     assert delta("lanemap_localizer_duration_seconds_sum", endpoint="frame") > 0
     route = "/collections/{mapId}/localize"
-    assert delta("lanemap_http_requests_total", method="POST", route=route, status="200") == 3
+    assert delta("lanemap_http_requests_total", method="POST", route=route, status="200") == 4
     assert delta("lanemap_http_requests_total", method="POST", route=route, status="422") == 1
     assert delta("lanemap_http_requests_total", method="POST", route=route, status="404") == 1
     assert delta("lanemap_http_requests_total", method="POST", route=route + "/sequence", status="200") == 1
-    assert delta("lanemap_http_request_duration_seconds_count", route=route) == 5
+    assert delta("lanemap_http_request_duration_seconds_count", route=route) == 6
     assert delta("lanemap_http_requests_total", method="GET", route="/metrics", status="200") == 1
 
 

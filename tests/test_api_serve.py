@@ -339,6 +339,8 @@ def test_json_log_lines_carry_the_request_and_its_access_fields(tmp_path):
             assert r.status_code == 200
         assert httpx.get(f"{server.base_url}/collections/no-such-map", timeout=30,
                          headers={"X-Request-ID": "json-404"}).status_code == 404  # fmt: skip
+        assert httpx.get(f"{server.base_url}/collections/{map_id}", timeout=30,
+                         headers={"X-Request-ID": "json-token", **server.auth}).status_code == 200  # fmt: skip
     finally:
         server.stop()
     records = []
@@ -352,6 +354,7 @@ def test_json_log_lines_carry_the_request_and_its_access_fields(tmp_path):
     assert access["json-404"]["method"] == "GET" and access["json-404"]["status"] == 404
     assert access["json-404"]["path"] == "/collections/no-such-map"
     assert access["json-0"]["method"] == "POST" and access["json-0"]["status"] == 200
+    assert access["json-0"]["token"] == "-" and access["json-token"]["token"] == "api"  # the token's name
     built = [r for r in records if f"map {map_id}: spatial index" in r["message"]]
     assert built and all(r["request_id"].startswith("json-") for r in built), built
     assert any(r["message"].startswith("lanemap API:") for r in records)

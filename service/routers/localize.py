@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from localizer import Options
 
-from .. import metrics
+from .. import metrics, request_id
 from ..deps import Context, get_ctx, require_read
 from ..map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
 from ..problems import Problem
@@ -469,8 +469,9 @@ def _advance(steps) -> tuple[tuple[list[str], JSONResponse] | None, float]:
 def _count(map_id: str, endpoint: str, method: str, statuses: list[str], seconds: float) -> None:
     """Count a request's answers by map and status, and the ``seconds`` its localizer took."""
     metrics.localizer_seconds.labels(endpoint).observe(seconds)
+    token = request_id.client()
     for status in statuses:
-        metrics.localizations.labels(map_id, endpoint, method, status).inc()
+        metrics.localizations.labels(map_id, endpoint, method, status, token).inc()
 
 
 def _prior(g: GpsIn):
