@@ -53,6 +53,8 @@ maps = Table(
     Column("maxx", Float),
     Column("maxy", Float),
     Column("revision", Integer, nullable=False, default=0),
+    # The oldest revision the change feed answers from (the deletions before it were pruned).
+    Column("feed_since", Integer, nullable=False, default=0, server_default="0"),
     Column("created_at", DateTime(timezone=True), nullable=False),
     Column("updated_at", DateTime(timezone=True), nullable=False),
 )
@@ -106,6 +108,7 @@ removed_markings = Table(
     Column("map_id", String(64), ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True),
     Column("marking_id", Integer, primary_key=True),
     Column("revision", Integer, nullable=False),
+    Column("removed_at", DateTime(timezone=True), nullable=False),
     Index("ix_removed_markings_revision", "map_id", "revision", "marking_id"),
 )
 

@@ -754,8 +754,10 @@ class Store:
         for k in range(0, len(ids), 5000):
             chunk = list(ids[k:k + 5000])
             conn.execute(delete(removed_markings).where(rm.map_id == map_id, rm.marking_id.in_(chunk)))
+            now = _now()
             _insert_many(conn, removed_markings,
-                         [{"map_id": map_id, "marking_id": i, "revision": revision} for i in chunk])
+                         [{"map_id": map_id, "marking_id": i, "revision": revision, "removed_at": now}
+                          for i in chunk])  # fmt: skip
 
     def _touch_map(self, conn: Connection, map_id: str, xs=(), ys=()) -> None:
         """Widen the map's bounds to take in ``xs``, ``ys`` (its revision moved on already)."""
@@ -1066,18 +1068,24 @@ class Store:
         Raises
         ------
         StaleRevisionError
-            If ``since`` is beyond the map's revision.
+            If ``since`` is beyond the map's revision, or before the deletions the map
+            keeps (:meth:`prune_removed`); ``since=0`` (a copy from nothing) always works.
         """
         if since < 0:
             raise StoreError(f"since must be >= 0, got {since}")
         c, rm = markings.c, removed_markings.c
         r0, i0 = after if after is not None else (since, -1)
         with self._read() as conn:
-            upto = int(self._map_row(conn, map_id).revision)
+            row = self._map_row(conn, map_id)
+            upto = int(row.revision)
             if since > upto:
                 raise StaleRevisionError(
                     f"map {map_id!r} is at revision {upto}, not yet at {since}: it was made anew "
                     "since that copy was taken; read it whole")  # fmt: skip
+            if 0 < since < row.feed_since:
+                raise StaleRevisionError(
+                    f"map {map_id!r} keeps its deletions from revision {row.feed_since} on, and this "
+                    f"copy is at {since}: read it whole")  # fmt: skip
             window = [c.map_id == map_id, c.revision > since, c.revision <= upto,
                       or_(c.revision > r0, and_(c.revision == r0, c.id > i0))]  # fmt: skip
             rows = conn.execute(
@@ -1103,6 +1111,29 @@ class Store:
                 removed.append((rev, i))
         last = (records[-1][0], records[-1][1]) if records else None
         return Changes(revision=upto, changed=changed, removed=removed, more=more, after=last)
+
+    def prune_removed(self, map_id: str, older_than: datetime) -> tuple[int, int]:
+        """Forget the deletions recorded before ``older_than`` (an aware datetime).
+
+        The change feed then answers from the newest revision among them on: a
+        copy older than that is told to read the map whole. Returns the number of
+        deletions forgotten and the revision the feed now answers from.
+        """
+        rm = removed_markings.c
+        with self._write() as conn:
+            row = self._map_row(conn, map_id, lock=True)
+            old = [rm.map_id == map_id, rm.removed_at < older_than]
+            newest = conn.execute(select(func.max(rm.revision)).where(*old)).scalar()
+            if newest is None:
+                return 0, int(row.feed_since)
+            # Every deletion up to that revision goes, whatever its clock said: a copy at the
+            # horizon or later needs none of them, and one before it reads the map whole.
+            n = conn.execute(delete(removed_markings).where(rm.map_id == map_id, rm.revision <= newest)).rowcount
+            horizon = max(int(row.feed_since), int(newest))
+            conn.execute(update(maps).where(maps.c.id == map_id).values(feed_since=horizon))
+        log.info("map %s: %d deletions before %s forgotten; the change feed answers from revision %d",
+                 map_id, n, older_than.isoformat(), horizon)
+        return int(n), horizon
 
     def iter_markings(
         self, map_id: str, batch: int = 5000, *, statuses: Sequence[str] | None = None,

@@ -194,3 +194,43 @@ def test_markings_stored_before_the_feed_are_in_it_after_the_upgrade(db_url):
     store.apply_changeset("old", [Change("delete", id=page.changed[0][1].id)], who="t")
     assert store.changes("old", 7).removed == [(8, page.changed[0][1].id)]
     store.close()
+
+
+def test_old_deletions_are_pruned_and_older_copies_read_the_map_whole(store, tmp_path, monkeypatch):
+    """``prune_removed`` / ``lanemap maps prune-feed``: deletions before a time go, the feed answers
+    copies from the newest pruned revision on, an older copy is told to read the map whole (and
+    reading from nothing still works), a newer one syncs as before."""
+    from datetime import UTC, datetime, timedelta
+
+    store.create_map("ka", crs="EPSG:25832")
+    ids = store.add_markings("ka", [_m(3.0 * k) for k in range(6)])
+    old_copy = Copy()
+    old_copy.sync(store, "ka")
+    store.apply_changeset("ka", [Change("delete", id=ids[0])], who="t")
+    middle = Copy()
+    middle.sync(store, "ka")
+    horizon = store.get_map("ka").revision
+    cutoff = datetime.now(UTC) + timedelta(seconds=1)  # everything so far is older
+    assert store.prune_removed("ka", cutoff) == (1, horizon)
+    store.apply_changeset("ka", [Change("delete", id=ids[1])], who="t")
+    with pytest.raises(StaleRevisionError, match=f"from revision {horizon} on"):
+        store.changes("ka", old_copy.revision)
+    middle.sync(store, "ka")  # at the horizon: goes on
+    assert middle.markings == _truth(store, "ka")
+    fresh = Copy()
+    fresh.sync(store, "ka")
+    assert fresh.markings == _truth(store, "ka")
+    # nothing older than a cutoff in the past: nothing goes, the horizon stays
+    assert store.prune_removed("ka", datetime.now(UTC) - timedelta(days=1)) == (0, horizon)
+    if store.dialect == "sqlite":  # the command, once
+        from typer.testing import CliRunner
+
+        from service.cli import app
+
+        monkeypatch.setenv("LANEMAP_DATABASE_URL", store.url)
+        res = CliRunner().invoke(app, ["maps", "prune-feed", "ka", "--older-than", "0"])
+        assert res.exit_code == 0, res.output
+        assert res.stdout.strip() == (f"map ka: 1 deletions forgotten; the change feed answers copies at revision "
+                                      f"{horizon + 1} or later (older ones read the map whole)")
+        res = CliRunner().invoke(app, ["maps", "prune-feed", "ka", "--older-than", "-1"])
+        assert res.exit_code == 2

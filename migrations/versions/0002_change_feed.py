@@ -1,4 +1,4 @@
-"""change feed: the revision that last wrote each marking, and removed markings
+"""change feed: the revision that last wrote each marking, removed markings, and how far back the feed goes
 
 Revision ID: 0002
 Revises: 0001
@@ -19,6 +19,8 @@ depends_on = None
 
 
 def upgrade() -> None:
+    with op.batch_alter_table('maps', schema=None) as batch_op:
+        batch_op.add_column(sa.Column('feed_since', sa.Integer(), server_default='0', nullable=False))
     with op.batch_alter_table('markings', schema=None) as batch_op:
         batch_op.add_column(sa.Column('revision', sa.Integer(), server_default='0', nullable=False))
     op.execute(
@@ -31,6 +33,7 @@ def upgrade() -> None:
     sa.Column('map_id', sa.String(length=64), nullable=False),
     sa.Column('marking_id', sa.Integer(), nullable=False),
     sa.Column('revision', sa.Integer(), nullable=False),
+    sa.Column('removed_at', sa.DateTime(timezone=True), nullable=False),
     sa.ForeignKeyConstraint(['map_id'], ['maps.id'], name=op.f('fk_removed_markings_map_id_maps'), ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('map_id', 'marking_id', name=op.f('pk_removed_markings'))
     )
@@ -45,3 +48,5 @@ def downgrade() -> None:
     with op.batch_alter_table('markings', schema=None) as batch_op:
         batch_op.drop_index('ix_markings_revision')
         batch_op.drop_column('revision')
+    with op.batch_alter_table('maps', schema=None) as batch_op:
+        batch_op.drop_column('feed_since')

@@ -1,4 +1,4 @@
-"""``lanemap maps``: create, list, show, retitle and delete maps."""
+"""``lanemap maps``: create, list, show, retitle and delete maps, and prune their change feeds."""
 
 from __future__ import annotations
 
@@ -64,6 +64,25 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(1)
         store.delete_map(map_id)
         typer.echo(f"deleted map {map_id}")
+
+    @maps.command("prune-feed")
+    def prune_feed(
+        map_id: str = typer.Argument(..., metavar="MAP"),
+        older_than: float = typer.Option(..., "--older-than", min=0.0, metavar="DAYS",
+                                         help="Forget the deletions recorded more than DAYS days ago."),
+    ) -> None:
+        """Forget a map's old deletions from its change feed (a copy older than them reads the map whole).
+
+        Every deletion is kept for the change feed until pruned: a map rebuilt
+        often grows a row for each detection a rebuild replaces. Run it from cron
+        with a horizon longer than any fleet goes without syncing.
+        """
+        from datetime import datetime, timedelta, timezone
+
+        cutoff = datetime.now(timezone.utc) - timedelta(days=older_than)
+        n, horizon = Store().prune_removed(map_id, cutoff)
+        typer.echo(f"map {map_id}: {n:,} deletions forgotten; the change feed answers copies at revision "
+                   f"{horizon} or later (older ones read the map whole)")
 
     app.add_typer(maps, name="maps")
 

@@ -36,11 +36,13 @@ def _after(text: str | None) -> tuple[int, int] | None:
         "`features` are the markings to hold now (their `revision` is the one that wrote them last), "
         "`removed` the ids to drop. With `status`, the copy holds only markings of those statuses, and a "
         "marking whose status left them is listed as removed. A copy starts from `since=0`. 409 "
-        "(`stale-revision`) when the map has not reached `since`: it was deleted and made anew, and the "
-        "copy must be read whole again."
+        "(`stale-revision`) when the map has not reached `since` (it was deleted and made anew) or when "
+        "its deletions from before `since` were pruned (`lanemap maps prune-feed`): the copy must be read "
+        "whole again, from `since=0`."
     ),
     responses={200: {"content": {GEOJSON: {}}},
-               409: {"description": "The map has not reached `since` (it was made anew)"}},
+               409: {"description": "The map has not reached `since` (it was made anew), or no longer keeps "
+                                   "its deletions from then"}},
 )  # fmt: skip
 def get_changes(
     request: Request,

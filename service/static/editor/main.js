@@ -700,7 +700,7 @@ async function followChanges() {
     loadHistory(true);
   } catch (err) {
     if (err instanceof ApiError && err.status === 409) {
-      toast(`Map ${mapId} was made anew on the server: loaded again.`, 'error');
+      toast(`The server cannot list map ${mapId}'s changes since this page loaded it (made anew, or its old changes pruned): loaded again.`, 'error');
       openMap(mapId);
     }
     // Anything else (the network, a restart): the next round asks again.
