@@ -134,6 +134,8 @@ class MapInfo:
     created_at: datetime
     updated_at: datetime
     count: int | None = None
+    #: The oldest revision the change feed answers from (0: every one; :meth:`Store.prune_removed`).
+    feed_since: int = 0
 
     def bounds_wgs84(self) -> tuple[float, float, float, float] | None:
         """Bounds as (west, south, east, north), degrees."""
@@ -671,6 +673,7 @@ class Store:
         return MapInfo(
             id=row.id, title=row.title, crs=row.crs, bounds=bounds, revision=row.revision,
             created_at=_utc(row.created_at), updated_at=_utc(row.updated_at), count=count,
+            feed_since=int(row.feed_since),
         )  # fmt: skip
 
     def get_map(self, map_id: str, *, with_count: bool = False) -> MapInfo:

@@ -211,7 +211,9 @@ def test_old_deletions_are_pruned_and_older_copies_read_the_map_whole(store, tmp
     middle.sync(store, "ka")
     horizon = store.get_map("ka").revision
     cutoff = datetime.now(UTC) + timedelta(seconds=1)  # everything so far is older
+    assert store.get_map("ka").feed_since == 0
     assert store.prune_removed("ka", cutoff) == (1, horizon)
+    assert store.get_map("ka").feed_since == horizon
     store.apply_changeset("ka", [Change("delete", id=ids[1])], who="t")
     with pytest.raises(StaleRevisionError, match=f"from revision {horizon} on"):
         store.changes("ka", old_copy.revision)

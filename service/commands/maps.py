@@ -96,6 +96,7 @@ def _info_dict(i) -> dict:
         "bounds_wgs84": list(i.bounds_wgs84()) if i.bounds else None,
         "markings": i.count,
         "revision": i.revision,
+        "changes_since": i.feed_since,
         "created_at": i.created_at.isoformat(),
         "updated_at": i.updated_at.isoformat(),
     }

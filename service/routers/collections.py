@@ -106,6 +106,8 @@ def collection_of(info: MapInfo, request: Request) -> dict[str, Any]:
         "crs": [CRS84],
         "storageCrs": crs_uri(info.crs),
         "revision": info.revision,
+        # A copy at a revision before this one cannot follow the change feed: it reads the map whole.
+        "changesSince": info.feed_since,
         "links": [
             link(base, "self", JSON),
             link(f"{base}/items", "items", GEOJSON, "Markings"),
