@@ -41,12 +41,11 @@ def register(app: typer.Typer) -> None:
         that is one consistent snapshot. A copy that fails leaves the target empty.
         Imagery files stay where they are.
         """
-        from mapbuilder.dbcopy import copy_database
-
         from pathlib import Path
 
         from sqlalchemy.engine import make_url
 
+        from mapbuilder.dbcopy import copy_database
         from mapbuilder.settings import Settings
 
         url = make_url(source or Settings().resolved_database_url())
