@@ -570,10 +570,12 @@ class Store:
         """The database's URL without its password, for messages."""
         return self._safe_url()
 
-    def check_schema(self) -> None:
-        """Raise :class:`SchemaError` unless the database is at this lanemap's schema revision."""
+    def check_schema(self, current: str | None = None) -> None:
+        """Raise :class:`SchemaError` unless the database (at schema revision ``current``, read
+        when not given) is at this lanemap's schema revision."""
         head = migrate.head_revision(self.url)
-        current = self.schema_revision()
+        if current is None:
+            current = self.schema_revision()
         if current != head:
             raise SchemaError(
                 f"database {self._safe_url()} is at schema revision {current or '(empty)'}, this lanemap "
@@ -581,20 +583,14 @@ class Store:
             )
 
     def _ensure_schema(self) -> None:
-        head = migrate.head_revision(self.url)
         try:
             current = self.schema_revision()
         except DBAPIError as exc:
             raise StoreUnavailableError(f"cannot open database {self._safe_url()}: {exc.orig}") from exc
-        if current == head:
-            return
         if current is None:
             self.upgrade()
-            return
-        raise SchemaError(
-            f"database schema is at revision {current}, this lanemap needs {head}: "
-            "run `lanemap db upgrade`"
-        )
+        else:
+            self.check_schema(current)
 
     def upgrade(self, revision: str = "head") -> tuple[str | None, str | None]:
         """Apply migrations up to ``revision``; returns (before, after)."""
@@ -753,14 +749,11 @@ class Store:
         """Record markings ``ids`` as deleted at ``revision`` (for the change feed)."""
         if not ids:
             return
-        rm = removed_markings.c
-        for k in range(0, len(ids), 5000):
-            chunk = list(ids[k:k + 5000])
-            conn.execute(delete(removed_markings).where(rm.map_id == map_id, rm.marking_id.in_(chunk)))
-            now = _now()
-            _insert_many(conn, removed_markings,
-                         [{"map_id": map_id, "marking_id": i, "revision": revision, "removed_at": now}
-                          for i in chunk])  # fmt: skip
+        # A deleted id was live, and a live id has no deletion recorded (re-creating one under its
+        # id drops it, _apply_one): these rows are new.
+        now = _now()
+        _insert_many(conn, removed_markings,
+                     [{"map_id": map_id, "marking_id": i, "revision": revision, "removed_at": now} for i in ids])
 
     def _touch_map(self, conn: Connection, map_id: str, xs=(), ys=()) -> None:
         """Widen the map's bounds to take in ``xs``, ``ys`` (its revision moved on already)."""
