@@ -53,6 +53,10 @@ PROBLEM_SCHEMA: dict[str, Any] = {
 _WRITES = {"post", "put", "patch", "delete"}
 
 
+def _needs_write_token(operation: dict[str, Any]) -> bool:
+    return any("WriteToken" in req for req in operation.get("security", []))
+
+
 def problem_statuses(method: str, operation: dict[str, Any]) -> set[int]:
     """The error statuses an operation can answer (see the module docstring)."""
     codes = {400, 401, 404, 422, 503}
@@ -60,7 +64,7 @@ def problem_statuses(method: str, operation: dict[str, Any]) -> set[int]:
         codes |= {413, 415}
     if method in _WRITES:
         codes.add(409)
-    if any("WriteToken" in req for req in operation.get("security", [])):
+    if _needs_write_token(operation):
         codes.add(403)
     if any(p.get("in") == "header" and p.get("name", "").lower() == "if-match"
            for p in operation.get("parameters", [])):  # fmt: skip
@@ -79,7 +83,7 @@ def add_problem_responses(schema: dict[str, Any]) -> dict[str, Any]:
         for method, op in ops.items():
             if method not in {"get", "head", "post", "put", "patch", "delete", "options"}:
                 continue
-            if any("WriteToken" in req for req in op.get("security", [])):
+            if _needs_write_token(op):
                 # The routers' read check runs on writes too; only a write token gets past both.
                 op["security"] = [{"WriteToken": []}]
             responses = op.setdefault("responses", {})

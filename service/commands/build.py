@@ -114,6 +114,8 @@ def build(
         )
         typer.echo(result.summary())
         if quicklook is not None:
+            if progress:  # seconds, for a city's imagery: say what is happening
+                typer.echo(f"drawing the quicklook {quicklook} ...", err=True)
             _save_quicklook(store, map_id, [str(p) for p in images], quicklook, quicklook_px)
     except ValueError as exc:
         fail(str(exc))
