@@ -168,6 +168,9 @@ class Changes:
         Whether more changes follow; ask again from ``after``.
     after : (int, int) or None
         The ``(revision, id)`` of this page's last change: where the next page starts.
+    crs : str or None
+        The map's storage CRS (None while it has none): what a copy needs to
+        use the markings in the metric frame the map keeps them in.
     """
 
     revision: int
@@ -175,6 +178,7 @@ class Changes:
     removed: list[tuple[int, int]]
     more: bool
     after: tuple[int, int] | None
+    crs: str | None = None
 
 
 @dataclass
@@ -1106,7 +1110,7 @@ class Store:
             else:
                 removed.append((rev, i))
         last = (records[-1][0], records[-1][1]) if records else None
-        return Changes(revision=upto, changed=changed, removed=removed, more=more, after=last)
+        return Changes(revision=upto, changed=changed, removed=removed, more=more, after=last, crs=row.crs)
 
     def prune_removed(self, map_id: str, older_than: datetime) -> tuple[int, int]:
         """Forget the deletions recorded before ``older_than`` (an aware datetime).

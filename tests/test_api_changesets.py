@@ -253,7 +253,10 @@ def test_a_copy_follows_the_map_through_its_changes(api):
     with api.client(headers=api.auth) as c:
         assert c.get(f"/collections/{map_id}").json()["changesSince"] == 0  # nothing pruned: any copy follows
         href = [ln["href"] for ln in c.get(f"/collections/{map_id}").json()["links"] if ln["rel"] == "changes"]
-        assert len(href) == 1 and c.get(href[0]).json()["since"] == 0  # the map links to its feed
+        feed = c.get(href[0]).json()
+        assert len(href) == 1 and feed["since"] == 0  # the map links to its feed
+        # a copy learns the metric CRS the map keeps its markings in
+        assert feed["storageCrs"] == c.get(f"/collections/{map_id}").json()["storageCrs"] is not None
         first, rev0, _ = _follow(c, map_id, 0)
         assert {k for k, v in first.items() if v} == set(ids) and rev0 == c.get(f"/collections/{map_id}").json()["revision"]
         r = c.post(f"/collections/{map_id}/changesets", json={"comment": "c", "changes": [

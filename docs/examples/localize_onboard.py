@@ -19,6 +19,7 @@ import json
 import sys
 
 import numpy as np
+from pyproj import CRS
 from pyproj.aoi import AreaOfInterest
 from pyproj.database import query_utm_crs_info
 
@@ -26,17 +27,23 @@ from localizer import GeoFrame, MapIndex, Prior, localize
 
 
 def load_index(path: str) -> MapIndex:
-    """The localizer's index of a mirrored copy, in the UTM zone of its centre."""
+    """The localizer's index of a mirrored copy, in the map's own CRS (``storageCrs``), else in
+    the UTM zone of the copy's centre."""
     with open(path) as f:
-        features = json.load(f)["features"]
+        copy = json.load(f)
+    features = copy["features"]
     if not features:
         raise SystemExit(f"error: {path} holds no markings")
     lon = np.array([f["geometry"]["coordinates"][0] for f in features])
     lat = np.array([f["geometry"]["coordinates"][1] for f in features])
     props = [f["properties"] for f in features]
     lon0, lat0 = float(lon.mean()), float(lat.mean())
-    zone = query_utm_crs_info(datum_name="WGS 84", area_of_interest=AreaOfInterest(lon0, lat0, lon0, lat0))[0]
-    crs = f"{zone.auth_name}:{zone.code}"
+    crs = copy.get("storageCrs")
+    if crs is not None:
+        crs = CRS.from_user_input(crs).to_string()  # the feed's OGC URI as EPSG:code
+    else:  # a copy taken before the feed named the CRS
+        zone = query_utm_crs_info(datum_name="WGS 84", area_of_interest=AreaOfInterest(lon0, lat0, lon0, lat0))[0]
+        crs = f"{zone.auth_name}:{zone.code}"
     frame = GeoFrame(crs)
     x, y = frame.to_xy(lon, lat)
     # The copy's bearings are clockwise from true north; the index wants them from grid north.

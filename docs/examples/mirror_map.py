@@ -4,8 +4,9 @@ The first run reads the whole map; each later run asks only for what changed
 since the revision the file is at (``GET /collections/{id}/changes?since=``)
 and applies it: the markings written since replace those of the same id, the
 deleted ones go. A map that was deleted and made anew on the server (409) is
-read whole again. The file is replaced in one step, so a reader never sees
-half a copy.
+read whole again. The copy also keeps the map's ``storageCrs``, the metric
+CRS the server localizes in. The file is replaced in one step, so a reader
+never sees half a copy.
 
 Usage (the demo server of the README, from the repository root):
 
@@ -56,8 +57,9 @@ def mirror(base_url: str, map_id: str, path: Path, statuses: str | None = None,
             if not nxt:
                 break
             url, params = nxt[0], None
+    # The map's metric CRS: an on-board localizer projects the markings to it, as the server does.
     out = {"type": "FeatureCollection", "map": map_id, "statuses": statuses, "revision": page["revision"],
-           "features": sorted(held.values(), key=lambda f: int(f["id"]))}
+           "storageCrs": page.get("storageCrs"), "features": sorted(held.values(), key=lambda f: int(f["id"]))}
     part = path.with_name(path.name + ".part")
     part.write_text(json.dumps(out))
     part.replace(path)

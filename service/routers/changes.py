@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse
 
 from ..deps import Context, get_ctx, require_read
 from ..problems import Problem
-from ._common import GEOJSON, JSON, MAX_ID, base_url, feature_of, link, statuses_param
+from ._common import GEOJSON, JSON, MAX_ID, base_url, crs_uri, feature_of, link, statuses_param
 
 router = APIRouter(tags=["Maps"], dependencies=[Depends(require_read)])
 
@@ -34,7 +34,8 @@ def _after(text: str | None) -> tuple[int, int] | None:
         "(a fleet's, a tool's) that applies them, page by page, holds what the map holds, at the "
         "`revision` of the last page (the one without a `next` link); ask from there next time. "
         "`features` are the markings to hold now (their `revision` is the one that wrote them last), "
-        "`removed` the ids to drop. With `status`, the copy holds only markings of those statuses, and a "
+        "`removed` the ids to drop, `storageCrs` the metric CRS the map keeps its markings in (the "
+        "features are WGS84 lon/lat; a copy that localizes projects them to it). With `status`, the copy holds only markings of those statuses, and a "
         "marking whose status left them is listed as removed. A copy starts from `since=0`. 409 "
         "(`stale-revision`) when the map has not reached `since` (it was deleted and made anew) or when "
         "its deletions from before `since` were pruned (`lanemap maps prune-feed`): the copy must be read "
@@ -69,6 +70,7 @@ def get_changes(
         "type": "FeatureCollection",
         "since": since,
         "revision": page.revision,
+        "storageCrs": crs_uri(page.crs),
         "features": features,
         "removed": [{"id": str(i), "revision": rev} for rev, i in page.removed],
         "numberReturned": len(features) + len(page.removed),
