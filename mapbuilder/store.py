@@ -1135,6 +1135,26 @@ class Store:
                  map_id, n, older_than.isoformat(), horizon)
         return int(n), horizon
 
+    def prune_all_removed(self, older_than: datetime) -> dict[str, tuple[int, int]]:
+        """:meth:`prune_removed` for every map that recorded deletions before ``older_than``.
+
+        Each map is pruned in a transaction of its own; a map deleted meanwhile is
+        skipped. Returns ``{map id: (deletions forgotten, revision the feed answers from)}``
+        for the maps pruned.
+        """
+        rm = removed_markings.c
+        with self._read() as conn:
+            ids = conn.execute(
+                select(rm.map_id).where(rm.removed_at < older_than).distinct().order_by(rm.map_id)
+            ).scalars().all()  # fmt: skip
+        out = {}
+        for map_id in ids:
+            try:
+                out[map_id] = self.prune_removed(map_id, older_than)
+            except UnknownMapError:
+                continue
+        return out
+
     def iter_markings(
         self, map_id: str, batch: int = 5000, *, statuses: Sequence[str] | None = None,
         lonlat_box: tuple[float, float, float, float] | None = None,

@@ -97,9 +97,17 @@ def create_app(
         log.info("%d objects of the start frozen out of the garbage collector's scans", gc.get_freeze_count())
         if ctx.jobs is not None:
             ctx.jobs.start()
+        pruner = None
+        if settings.feed_retention_days is not None:
+            from .retention import FeedPruner
+
+            pruner = FeedPruner(store, settings.feed_retention_days, settings.feed_prune_interval_s)
+            pruner.start()
         try:
             yield
         finally:
+            if pruner is not None:
+                pruner.stop()
             if ctx.jobs is not None:
                 ctx.jobs.stop()
 

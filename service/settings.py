@@ -79,6 +79,13 @@ class ServiceSettings(BaseSettings):
         How long a build tries to reach the scheduler, seconds.
     health_timeout_s : float
         How long ``/health`` waits for the database, seconds.
+    feed_retention_days : float or None
+        ``LANEMAP_FEED_RETENTION_DAYS``: the server forgets deletions older
+        than this from every map's change feed (:mod:`service.retention`); a
+        copy older than that reads its map whole. Unset: deletions are kept
+        until ``lanemap maps prune-feed``.
+    feed_prune_interval_s : float
+        How often the server prunes the feeds when a retention is set, seconds.
     log_format : {"text", "json"}
         ``LANEMAP_LOG_FORMAT``: the server's log as uvicorn's text lines, or
         as one JSON object per line for a log collector (:mod:`service.logs`).
@@ -101,7 +108,15 @@ class ServiceSettings(BaseSettings):
     dask_scheduler: str = ""
     dask_timeout_s: float = Field(20.0, gt=0, allow_inf_nan=False)
     health_timeout_s: float = Field(2.0, gt=0, allow_inf_nan=False)
+    feed_retention_days: float | None = Field(None, gt=0, allow_inf_nan=False)
+    feed_prune_interval_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
     log_format: Literal["text", "json"] = "text"
+
+    @field_validator("feed_retention_days", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value):
+        # Compose passes an unset variable on as an empty one.
+        return None if isinstance(value, str) and not value.strip() else value
 
     @field_validator("read_tokens")
     @classmethod

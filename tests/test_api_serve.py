@@ -308,6 +308,8 @@ def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
         "LANEMAP_HEALTH_TIMEOUT_S": ("nan", "(got 'nan')"),
         "LANEMAP_READ_TOKEN_REQUIRED": ("perhaps", "valid boolean"),
         "LANEMAP_READ_TOKENS": ("car=x", "a read token must differ from every write token"),
+        "LANEMAP_FEED_RETENTION_DAYS": ("-3", "greater than 0 (got '-3')"),
+        "LANEMAP_FEED_PRUNE_INTERVAL_S": ("0", "greater than 0 (got '0')"),
     }
     for name, (value, says) in cases.items():
         env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
@@ -318,6 +320,54 @@ def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"error: {name}: ") and says in lines[0], lines
         assert "car=x" not in lines[0]  # a token is never printed
+
+def test_an_empty_retention_is_no_retention(monkeypatch):
+    """Compose passes ``${LANEMAP_FEED_RETENTION_DAYS:-}`` on as an empty variable: deletions are kept."""
+    from service.settings import ServiceSettings
+
+    monkeypatch.setenv("LANEMAP_FEED_RETENTION_DAYS", " ")
+    assert ServiceSettings().feed_retention_days is None
+    monkeypatch.setenv("LANEMAP_FEED_RETENTION_DAYS", "30")
+    assert ServiceSettings().feed_retention_days == 30.0
+
+
+def test_the_server_prunes_old_deletions_from_the_change_feeds(tmp_path):
+    """``LANEMAP_FEED_RETENTION_DAYS``: a server forgets the deletions older than the retention
+    from every map's feed by itself; a copy from before them is told to read the map whole, a
+    map whose deletions are recent keeps them."""
+    retention_s = 1.5
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                          env={"LANEMAP_FEED_RETENTION_DAYS": str(retention_s / 86400),
+                               "LANEMAP_FEED_PRUNE_INTERVAL_S": "0.2"})  # fmt: skip
+    try:
+        with server.client(headers=server.auth) as c:
+            for map_id in ("old", "new"):
+                assert c.post("/collections", json={"id": map_id, "crs": "EPSG:25832"}).status_code == 201
+                fc = {"type": "FeatureCollection", "features": [feature(8.428 + k * 1e-4, 49.0071) for k in range(3)]}
+                assert c.post(f"/collections/{map_id}/import", json=fc).status_code == 201
+            first = c.get("/collections/old/items").json()["features"][0]
+            assert c.delete(f"/collections/old/items/{first['id']}").status_code == 204
+            deleted_at = time.monotonic()
+            at = c.get("/collections/old").json()["revision"]
+            assert c.get("/collections/old/changes", params={"since": 1}).json()["removed"] == [
+                {"id": first["id"], "revision": at}]
+            deadline = time.monotonic() + 30
+            while c.get("/collections/old").json()["changesSince"] != at:
+                assert time.monotonic() < deadline, server.log()
+                time.sleep(0.1)
+            assert time.monotonic() - deleted_at > retention_s - 0.2  # not before its time
+            r = c.get("/collections/old/changes", params={"since": 1})
+            assert r.status_code == 409 and r.json()["type"].endswith("stale-revision")
+            assert c.get("/collections/old/changes", params={"since": at}).status_code == 200
+            # a deletion made now is kept until it too is older than the retention
+            second = c.get("/collections/new/items").json()["features"][0]
+            assert c.delete(f"/collections/new/items/{second['id']}").status_code == 204
+            time.sleep(0.5)
+            assert c.get("/collections/new").json()["changesSince"] == 0
+        assert "deletions older than" in server.log()
+    finally:
+        server.stop()
+
 
 def test_json_log_lines_carry_the_request_and_its_access_fields(tmp_path):
     """``LANEMAP_LOG_FORMAT=json``: every line the server writes, in its parent and in both

@@ -236,3 +236,38 @@ def test_old_deletions_are_pruned_and_older_copies_read_the_map_whole(store, tmp
                                       f"{horizon + 1} or later (older ones read the map whole)")
         res = CliRunner().invoke(app, ["maps", "prune-feed", "ka", "--older-than", "-1"])
         assert res.exit_code == 2
+        for args in (["ka", "--all"], []):  # a map or every map, not both, not neither
+            res = CliRunner().invoke(app, ["maps", "prune-feed", *args, "--older-than", "1"])
+            assert res.exit_code == 2 and "name a MAP or give --all" in res.output
+
+
+def test_every_maps_feed_is_pruned_at_once(store, monkeypatch):
+    """``prune_all_removed`` / ``prune-feed --all``: each map with old deletions is pruned, a map
+    without any is left as it is."""
+    from datetime import UTC, datetime, timedelta
+
+    horizons = {}
+    for map_id in ("a", "b", "c"):
+        store.create_map(map_id, crs="EPSG:25832")
+        ids = store.add_markings(map_id, [_m(3.0 * k) for k in range(4)])
+        if map_id != "c":
+            store.apply_changeset(map_id, [Change("delete", id=i) for i in ids[: 2 if map_id == "a" else 1]], who="t")
+        horizons[map_id] = store.get_map(map_id).revision
+    cutoff = datetime.now(UTC) + timedelta(seconds=1)
+    assert store.prune_all_removed(cutoff) == {"a": (2, horizons["a"]), "b": (1, horizons["b"])}
+    assert [store.get_map(m).feed_since for m in "abc"] == [horizons["a"], horizons["b"], 0]
+    assert store.prune_all_removed(cutoff) == {}
+    store.apply_changeset("c", [Change("delete", id=store.add_markings("c", [_m(50.0)])[0])], who="t")
+    if store.dialect == "sqlite":
+        from typer.testing import CliRunner
+
+        from service.cli import app
+
+        monkeypatch.setenv("LANEMAP_DATABASE_URL", store.url)
+        res = CliRunner().invoke(app, ["maps", "prune-feed", "--all", "--older-than", "1"])
+        assert res.exit_code == 0 and res.stdout.strip() == "no map recorded deletions more than 1 day ago"
+        res = CliRunner().invoke(app, ["maps", "prune-feed", "--all", "--older-than", "0"])
+        assert res.exit_code == 0, res.output
+        assert res.stdout.strip() == (f"map c: 1 deletions forgotten; the change feed answers copies at revision "
+                                      f"{store.get_map('c').revision} or later (older ones read the map whole)")
+    store.close()

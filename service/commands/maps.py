@@ -67,22 +67,30 @@ def register(app: typer.Typer) -> None:
 
     @maps.command("prune-feed")
     def prune_feed(
-        map_id: str = typer.Argument(..., metavar="MAP"),
+        map_id: str | None = typer.Argument(None, metavar="MAP", show_default=False),
         older_than: float = typer.Option(..., "--older-than", min=0.0, metavar="DAYS",
                                          help="Forget the deletions recorded more than DAYS days ago."),
+        every: bool = typer.Option(False, "--all", help="Prune every map's feed."),
     ) -> None:
         """Forget a map's old deletions from its change feed (a copy older than them reads the map whole).
 
         Every deletion is kept for the change feed until pruned: a map rebuilt
         often grows a row for each detection a rebuild replaces. Run it from cron
-        with a horizon longer than any fleet goes without syncing.
+        with a horizon longer than any fleet goes without syncing, or let the
+        server do it (``LANEMAP_FEED_RETENTION_DAYS``).
         """
         from datetime import datetime, timedelta, timezone
 
+        if (map_id is None) == (not every):
+            raise typer.BadParameter("name a MAP or give --all, not both", param_hint="MAP")
         cutoff = datetime.now(timezone.utc) - timedelta(days=older_than)
-        n, horizon = Store().prune_removed(map_id, cutoff)
-        typer.echo(f"map {map_id}: {n:,} deletions forgotten; the change feed answers copies at revision "
-                   f"{horizon} or later (older ones read the map whole)")
+        store = Store()
+        pruned = store.prune_all_removed(cutoff) if every else {map_id: store.prune_removed(map_id, cutoff)}
+        for mid, (n, horizon) in pruned.items():
+            typer.echo(f"map {mid}: {n:,} deletions forgotten; the change feed answers copies at revision "
+                       f"{horizon} or later (older ones read the map whole)")
+        if every and not pruned:
+            typer.echo(f"no map recorded deletions more than {older_than:g} day{'' if older_than == 1 else 's'} ago")
 
     app.add_typer(maps, name="maps")
 
