@@ -2,8 +2,10 @@
 
 Loads a synthetic map (1,000,000 markings spread over 10 km x 10 km of UTM 32N,
 about 10 per 1,000 m²), then times bbox queries that each return about 1,000
-markings. Prints p50/p95/max latency. SQLite by default; pass ``--url`` for
-PostgreSQL.
+markings. Prints p50/p95/max latency, and how long a summary of the map
+(``Store.summary``: counts by status, source and kind, the review's scores)
+takes. The markings are unreviewed detections with scores, as a build leaves
+them. SQLite by default; pass ``--url`` for PostgreSQL.
 
     .venv/bin/python benchmarks/store_bbox.py [--n 1000000] [--url URL] [--queries 200]
 """
@@ -41,6 +43,7 @@ def main() -> None:
     store = Store(url)
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, SIDE, size=(args.n, 2))
+    scores = rng.uniform(0, 1, size=args.n).round(3)
     loaded = [m for m in store.list_maps() if m.id == "bench"]
     reuse = args.reuse and loaded and loaded[0].count == args.n
     if not reuse:
@@ -54,7 +57,8 @@ def main() -> None:
             part = pts[s : s + chunk]
             store.bulk_load(
                 "bench",
-                (Marking(x=E0 + a, y=N0 + b, length_m=3, width_m=0.12, weight=36) for a, b in part),
+                (Marking(x=E0 + a, y=N0 + b, length_m=3, width_m=0.12, weight=36, source="detected",
+                         score=float(sc)) for (a, b), sc in zip(part, scores[s : s + chunk])),
             )
             bar.update(len(part))
     load_s = time.perf_counter() - t0
@@ -74,6 +78,14 @@ def main() -> None:
         print(f"markings      {args.n:,} loaded in {load_s:.1f} s ({args.n / load_s:,.0f}/s)")
     print(f"query box     {side:.1f} m x {side:.1f} m, {np.mean(counts):.0f} markings on average")
     print(f"bbox query    p50 {np.percentile(lat, 50):.1f} ms, p95 {np.percentile(lat, 95):.1f} ms, max {lat.max():.1f} ms over {args.queries} queries (full Marking objects)")
+    times = []
+    for _ in range(5):
+        t = time.perf_counter()
+        sm = store.summary("bench")
+        times.append(time.perf_counter() - t)
+    assert sm.count == args.n
+    print(f"summary       median {np.median(times) * 1000:.0f} ms, max {max(times) * 1000:.0f} ms over 5 "
+          f"(counts of {sm.count:,} markings and the histogram of {sum(sm.unreviewed_scores):,} scores)")
 
 
 if __name__ == "__main__":

@@ -112,6 +112,17 @@ removed_markings = Table(
     Index("ix_removed_markings_revision", "map_id", "revision", "marking_id"),
 )
 
+#: The last revision of each deleted map: a map created again under its id
+#: goes on past it, so that nothing that knew the old map (a copy kept through
+#: the change feed, a server process's cache) takes the new one for it.
+retired_maps = Table(
+    "retired_maps",
+    metadata,
+    Column("id", String(64), primary_key=True),
+    Column("revision", Integer, nullable=False),
+    Column("deleted_at", DateTime(timezone=True), nullable=False),
+)
+
 changesets = Table(
     "changesets",
     metadata,

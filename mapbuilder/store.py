@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import (
-    Text, and_, create_engine, delete, event, func, insert, or_, select, text, type_coerce, update,
+    Text, and_, case, create_engine, delete, event, func, insert, or_, select, text, type_coerce, update,
 )  # fmt: skip
 from sqlalchemy.engine import Connection, Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
@@ -32,7 +32,9 @@ from sqlalchemy.exc import DBAPIError, IntegrityError
 from . import migrate
 from .crs import CRSError, from_wgs84, metric_crs, to_wgs84, utm_crs_for
 from .model import SOURCES, STATUSES, Marking
-from .schema import GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings, removed_markings
+from .schema import (
+    GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings, removed_markings, retired_maps,
+)  # fmt: skip
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -144,9 +146,51 @@ class MapInfo:
         return to_wgs84(self.crs).transform_bounds(*self.bounds, densify_pts=21)
 
 
+#: Bins of :attr:`MapSummary.unreviewed_scores`: the detections' scores, 0-1.
+SCORE_BINS = 10
+
+
+@dataclass
+class MapSummary:
+    """What a map holds, counted (:meth:`Store.summary`): how far its review has come.
+
+    Attributes
+    ----------
+    revision : int
+        The map's revision the counts were read at.
+    count : int
+        Markings in the map.
+    by_status, by_source, by_kind : dict of str to int
+        Markings per status, per source and per kind (``"unknown"`` for none);
+        only values that occur.
+    detections : dict of str to int
+        Detected markings per status (``unreviewed``, ``accepted``, ``rejected``,
+        each present): the review of what the builds found.
+    unreviewed_scores : list of int
+        Unreviewed detections per score bin, ``SCORE_BINS`` bins of equal width
+        from 0 to 1 (the last includes 1); detections without a score are in
+        none of them.
+    """
+
+    revision: int
+    count: int
+    by_status: dict[str, int]
+    by_source: dict[str, int]
+    by_kind: dict[str, int]
+    detections: dict[str, int]
+    unreviewed_scores: list[int]
+
+    @property
+    def reviewed_share(self) -> float | None:
+        """The share of detections accepted or rejected; None for a map without detections."""
+        total = sum(self.detections.values())
+        return None if total == 0 else 1.0 - self.detections.get("unreviewed", 0) / total
+
+
 class StaleRevisionError(StoreError):
-    """A change feed was asked for the changes since a revision the map has not reached
-    (the map was deleted and made anew since the copy was taken)."""
+    """A change feed was asked for the changes since a revision it cannot answer from: one the
+    map has not reached (a database restored from an older backup), one from before the map
+    was made anew under its id, or one from before the deletions it still keeps."""
 
 
 @dataclass
@@ -623,12 +667,19 @@ class Store:
         now = _now()
         try:
             with self._write() as conn:
+                # A map made anew under the id of a deleted one goes on past its last
+                # revision, and its change feed answers only from there: a copy or a
+                # cache of the old map is never taken for the new one.
+                retired = conn.execute(select(retired_maps.c.revision).where(retired_maps.c.id == map_id)).scalar()
+                start = 0 if retired is None else int(retired) + 1
                 conn.execute(
                     insert(maps).values(
-                        id=map_id, title=title or "", crs=crs, revision=0,
+                        id=map_id, title=title or "", crs=crs, revision=start, feed_since=start,
                         created_at=now, updated_at=now,
                     )
                 )  # fmt: skip
+                if retired is not None:
+                    conn.execute(delete(retired_maps).where(retired_maps.c.id == map_id))
         except IntegrityError:
             raise MapExistsError(map_id) from None
         return self.get_map(map_id)
@@ -699,8 +750,10 @@ class Store:
     def delete_map(self, map_id: str) -> None:
         """Delete a map with its markings, edit log, imagery records and jobs."""
         with self._write() as conn:
-            self._map_row(conn, map_id, lock=True)
+            row = self._map_row(conn, map_id, lock=True)
             conn.execute(delete(maps).where(maps.c.id == map_id))
+            conn.execute(delete(retired_maps).where(retired_maps.c.id == map_id))
+            conn.execute(insert(retired_maps).values(id=map_id, revision=int(row.revision), deleted_at=_now()))
 
     def map_revision(self, map_id: str) -> int:
         """The map's revision (it grows with every change of its markings).
@@ -1054,6 +1107,38 @@ class Store:
                 return 0
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
+    def summary(self, map_id: str) -> MapSummary:
+        """Count a map's markings by status, source and kind, and its unreviewed detections
+        by score, in one snapshot (a scan of the map's markings: about a second per million)."""
+        c = markings.c
+        edges = [k / SCORE_BINS for k in range(SCORE_BINS)] + [math.inf]
+        per_bin = [func.coalesce(func.sum(case((and_(c.score >= lo, c.score < hi), 1), else_=0)), 0)
+                   for lo, hi in zip(edges[:-1], edges[1:])]  # fmt: skip
+        with self._read() as conn:
+            row = self._map_row(conn, map_id)
+            groups = conn.execute(
+                select(c.status, c.source, c.kind, func.count()).where(c.map_id == map_id)
+                .group_by(c.status, c.source, c.kind)
+            ).all()  # fmt: skip
+            hist = [int(n) for n in conn.execute(
+                select(*per_bin).where(c.map_id == map_id, c.source == "detected", c.status == "unreviewed")
+            ).one()]  # fmt: skip
+        by_status: dict[str, int] = {}
+        by_source: dict[str, int] = {}
+        by_kind: dict[str, int] = {}
+        detections = dict.fromkeys(STATUSES, 0)
+        for status, source, kind, n in groups:
+            by_status[status] = by_status.get(status, 0) + n
+            by_source[source] = by_source.get(source, 0) + n
+            by_kind[kind or "unknown"] = by_kind.get(kind or "unknown", 0) + n
+            if source == "detected":
+                detections[status] += n
+        return MapSummary(
+            revision=int(row.revision), count=sum(by_status.values()),
+            by_status=dict(sorted(by_status.items())), by_source=dict(sorted(by_source.items())),
+            by_kind=dict(sorted(by_kind.items())), detections=detections, unreviewed_scores=hist,
+        )
+
     def changes(
         self, map_id: str, since: int, *, statuses: Sequence[str] | None = None,
         after: tuple[int, int] | None = None, limit: int = 1000,
@@ -1080,12 +1165,12 @@ class Store:
             upto = int(row.revision)
             if since > upto:
                 raise StaleRevisionError(
-                    f"map {map_id!r} is at revision {upto}, not yet at {since}: it was made anew "
-                    "since that copy was taken; read it whole")  # fmt: skip
+                    f"map {map_id!r} is at revision {upto}, not yet at {since}: that copy is of "
+                    "another map of this id (the database was restored from an older backup); read it whole")  # fmt: skip
             if 0 < since < row.feed_since:
                 raise StaleRevisionError(
-                    f"map {map_id!r} keeps its deletions from revision {row.feed_since} on, and this "
-                    f"copy is at {since}: read it whole")  # fmt: skip
+                    f"map {map_id!r} answers changes from revision {row.feed_since} on (it was made "
+                    f"anew, or its older deletions were pruned), and this copy is at {since}: read it whole")  # fmt: skip
             window = [c.map_id == map_id, c.revision > since, c.revision <= upto,
                       or_(c.revision > r0, and_(c.revision == r0, c.id > i0))]  # fmt: skip
             rows = conn.execute(

@@ -276,7 +276,7 @@ def test_a_copy_follows_the_map_through_its_changes(api):
         assert pages == 3 and rev == rev1 and {k: v for k, v in paged.items() if v} == _state(c, map_id)
         assert _follow(c, map_id, rev1)[0] == {}
         # a revision the map never reached, and bad parameters, are problems
-        assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": rev1 + 1}), 409, "made anew")
+        assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": rev1 + 1}), 409, "older backup")
         assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": -1}), 422)
         assert_problem(c.get(f"/collections/{map_id}/changes"), 422, "since")
         assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": 0, "after": "x"}), 400, "REVISION:ID")

@@ -123,6 +123,34 @@ def test_import_then_page_through_all_items(api, imported, karlsruhe_fc):
         assert any(link["rel"] == "prev" for link in last["links"])
 
 
+def test_a_maps_summary_counts_its_markings_and_its_review(api):
+    """``GET /collections/{id}/summary``: the counts equal the items', the review follows a
+    changeset, and the map links to it."""
+    map_id = api.new_map(prefix="sum")
+    feats = [feature(8.428 + k * 1e-4, 49.0071, source="detected", score=k / 10, kind="dash" if k < 3 else None)
+             for k in range(10)]  # fmt: skip
+    feats += [feature(8.428 + k * 1e-4, 49.0072, source="manual", status="accepted") for k in range(2)]
+    with api.client(headers=api.auth) as c:
+        assert c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats}).status_code == 201
+        items = c.get(f"/collections/{map_id}/items", params={"limit": 100}).json()["features"]
+        low = min((f for f in items if f["properties"]["source"] == "detected"), key=lambda f: f["properties"]["score"])
+        assert c.post(f"/collections/{map_id}/changesets", json={"changes": [
+            {"op": "update", "id": low["id"], "patch": {"properties": {"status": "rejected"}}}]}).status_code == 201
+        href = [ln["href"] for ln in c.get(f"/collections/{map_id}").json()["links"] if ln["rel"] == "summary"]
+        assert len(href) == 1
+        r = c.get(href[0])
+        assert r.status_code == 200 and r.headers["x-map-revision"] == str(r.json()["revision"])
+        sm = r.json()
+    assert sm["numberOfFeatures"] == 12 and sm["byStatus"] == {"accepted": 2, "rejected": 1, "unreviewed": 9}
+    assert sm["bySource"] == {"detected": 10, "manual": 2} and sm["byKind"] == {"dash": 3, "unknown": 9}
+    assert sm["review"]["detections"] == {"unreviewed": 9, "accepted": 0, "rejected": 1}
+    assert sm["review"]["reviewedShare"] == pytest.approx(0.1)
+    bins = sm["review"]["unreviewedScores"]
+    assert [b["count"] for b in bins] == [0] + [1] * 9 and (bins[0]["min"], bins[-1]["max"]) == (0.0, 1.0)
+    with api.client() as c:
+        assert_problem(c.get("/collections/no-such-map/summary"), 404)
+
+
 def test_bbox_returns_exactly_the_features_inside(api, imported):
     map_id, _ = imported
     with api.client() as c:

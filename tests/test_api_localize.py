@@ -247,6 +247,39 @@ def _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, env: dict):  # noqa: F811
     return server, map_id, feats
 
 
+def test_a_map_made_anew_by_another_process_is_not_taken_for_the_cached_one(api, karlsruhe_fc, tmp_path):  # noqa: F811
+    """The map deleted and made anew under its id by the command line (another process, so the
+    server's cache of its index is not told), with markings elsewhere: the server localizes
+    against the new map, although it was written as often as the old one."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    map_id = api.new_map(prefix="anew")
+    r = httpx.post(f"{api.base_url}/collections/{map_id}/import", json=karlsruhe_fc, headers=api.auth, timeout=60)
+    assert r.status_code == 201
+    feats = httpx.get(f"{api.base_url}/collections/{map_id}/items?limit=10000").json()["features"]
+    p, lon, lat, heading, obs = scene(feats, 10)
+    body = {"gps": gps_near(p, heading), "observations": obs}
+    url = f"{api.base_url}/collections/{map_id}/localize"
+    first = httpx.post(url, json=body, timeout=60)
+    assert first.json()["status"] == "ok"  # the index is cached at this revision
+    far = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": [lon + 0.05 + k * 1e-4, lat]},
+         "properties": {"weight": 40.0}} for k in range(5)]}  # fmt: skip
+    (tmp_path / "far.geojson").write_text(json.dumps(far))
+    env = {**os.environ, "LANEMAP_DATABASE_URL": api.db_url}
+    for args in (["maps", "delete", map_id, "--yes"], ["import", map_id, str(tmp_path / "far.geojson"), "--create"]):
+        out = subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                             env=env, timeout=120)  # fmt: skip
+        assert out.returncode == 0, out.stderr
+    again = httpx.post(url, json=body, timeout=60)
+    assert again.status_code == 200 and again.json()["status"] == "failed", again.json()
+    assert "no map markings within" in again.json()["reason"]
+    assert int(again.headers["x-map-revision"]) > int(first.headers["x-map-revision"])
+
+
 def test_the_server_compiles_the_localizer_before_serving(tmp_path, karlsruhe_fc):  # noqa: F811
     """With nothing in numba's cache, the kernels compile at start, not in the first request."""
     server, map_id, feats = _own_server_with_karlsruhe(

@@ -111,11 +111,29 @@ def test_changes_name_their_revisions_and_refuse_a_revision_the_map_never_reache
     assert store.changes("ka", r1).changed == [] and store.changes("ka", r1).removed == [(r2, a[0])]
     with pytest.raises(StoreError, match=">= 0"):
         store.changes("ka", -1)
-    # the map made anew: a copy of the old one is told to read it whole
+    # the map made anew: a copy of the old one is told to read it whole, even once the new map
+    # has been written as often as the old one was (its revisions go on past the old one's)
     store.delete_map("ka")
     store.create_map("ka", crs="EPSG:25832")
+    assert store.get_map("ka").revision == store.get_map("ka").feed_since == r2 + 1
     with pytest.raises(StaleRevisionError, match="made anew"):
         store.changes("ka", r2)
+    b = store.add_markings("ka", [_m(6.0)])
+    store.add_markings("ka", [_m(9.0)])
+    assert store.get_map("ka").revision == r2 + 3
+    for since in (r1, r2):
+        with pytest.raises(StaleRevisionError, match=f"from revision {r2 + 1} on"):
+            store.changes("ka", since)
+    fresh = Copy()
+    fresh.sync(store, "ka")
+    assert fresh.markings == _truth(store, "ka") and b[0] in fresh.markings
+    # a copy from a database restored from an older backup: beyond the map's revision
+    with pytest.raises(StaleRevisionError, match="older backup"):
+        store.changes("ka", r2 + 10)
+    # made anew twice: past the second one's last revision
+    store.delete_map("ka")
+    store.create_map("ka")
+    assert store.get_map("ka").revision == r2 + 4
 
 
 def test_a_copy_synchronised_between_two_writers_misses_neither(db_url, monkeypatch):

@@ -465,6 +465,9 @@ def test_what_others_save_appears_and_conflicts_show_before_saving(browser, edit
         assert p.evaluate(f"lanemapEditor.state.server.has('{c}')") is False
         assert "changed on the server" in p.text_content("#view-status")
         p.wait_for_selector("#history-list li:has-text('elsewhere')")
+        # the review's progress follows: a accepted, c (a detection) gone
+        n = len(fx.detected) - 1
+        p.wait_for_selector(f"#review-progress:has-text('Saved: 1 of {n} detections reviewed')")
     # here, b is a conflict before any save; the watcher has none
     page.wait_for_selector("#conflict", state="visible")
     assert "Someone else changed" in page.text_content("#conflict-title")
@@ -556,6 +559,9 @@ def test_unsaved_edits_survive_a_reload_and_a_crash(editor, fx, server):
 def test_review_queue_steps_through_detections_by_score(editor, fx):
     editor.open().enter_token()
     page = editor.page
+    n = len(fx.detected)
+    progress = f"Saved: 0 of {n} detections reviewed (0.0 %; 0 accepted, 0 rejected), {n} to go."
+    page.wait_for_function(f"document.getElementById('review-progress').textContent === {json.dumps(progress)}")
     page.click("#review-start")
     q = fx.detected
     page.wait_for_function(f"lanemapEditor.state.selection.has('{q[0]}')")
@@ -579,6 +585,12 @@ def test_review_queue_steps_through_detections_by_score(editor, fx):
     assert page.is_hidden("#review-stop")
     editor.key("Control+z")
     assert set(editor.pending()) == {q[0]}
+    # the progress counts what is saved
+    assert page.text_content("#review-progress") == progress
+    editor.save("one accepted")
+    progress = (f"Saved: 1 of {n} detections reviewed ({100 / n:.1f} %; 1 accepted, 0 rejected), "
+                f"{n - 1} to go.")  # fmt: skip
+    page.wait_for_function(f"document.getElementById('review-progress').textContent === {json.dumps(progress)}")
 
 
 def review_list(page, path, places: dict) -> None:

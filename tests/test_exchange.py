@@ -224,6 +224,27 @@ def test_retitle_map_cli(db_url, tmp_path, cli):
     assert long.returncode == 1 and "at most 500 characters" in long.stderr
 
 
+def test_summary_cli(sqlite_url, tmp_path, cli):
+    """``lanemap maps summary``: the counts and the review's progress, as lines and as JSON."""
+    pts = [_pt(8.43 + k * 1e-4, source="detected", score=0.45 + k / 100, weight=40) for k in range(4)]
+    pts += [_pt(8.43, 49.001, kind="stop_line", status="accepted", weight=40)]
+    (tmp_path / "g.geojson").write_text(json.dumps(_fc(*pts)))
+    cli(["import", "m", "g.geojson", "--create"], sqlite_url, tmp_path)
+    lines = cli(["maps", "summary", "m"], sqlite_url, tmp_path).stdout.splitlines()
+    assert lines[:5] == ["map m at revision 1: 5 markings",
+                         "  status  accepted 1, unreviewed 4",
+                         "  source  detected 4, imported 1",
+                         "  kind    stop_line 1, unknown 4",
+                         "  review  0 of 4 detections reviewed (0.0 %): 0 accepted, 0 rejected, 4 to go"]  # fmt: skip
+    assert lines[5] == "  unreviewed detections by score:" and len(lines) == 16
+    assert lines[10] == "    0.4-0.5         4  " + "#" * 30 and lines[11].split() == ["0.5-0.6", "0"]
+    data = json.loads(cli(["maps", "summary", "m", "--json"], sqlite_url, tmp_path).stdout)
+    assert data["detections"] == {"unreviewed": 4, "accepted": 0, "rejected": 0} and data["reviewed_share"] == 0.0
+    assert data["unreviewed_scores"][4] == 4 and sum(data["unreviewed_scores"]) == 4
+    bad = cli(["maps", "summary", "nope"], sqlite_url, tmp_path, check=False)
+    assert bad.returncode == 1 and bad.stderr.strip() == "error: unknown map 'nope'"
+
+
 def test_delete_map_cli(sqlite_url, tmp_path, cli):
     run = cli
     (tmp_path / "g.geojson").write_text(json.dumps(_fc(_pt())))

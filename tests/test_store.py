@@ -303,6 +303,45 @@ def test_replace_detected_keeps_what_people_decided(store):
     assert store.done_tiles(job) == {"t0", "t1"}
 
 
+def test_summary_counts_what_the_map_holds_and_its_review(store):
+    """``Store.summary``: counts by status, source and kind equal a count of the markings one by
+    one; the detections' review and their scores' histogram follow accepts and rejects."""
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(5)
+    scores = [0.0, 0.05, 0.1, 0.35, 0.999, 1.0, *rng.uniform(0, 1, 30).round(3)]
+    ms = [_m(2.0 * k, 0.0, source="detected", score=float(v), kind="dash" if k % 4 == 0 else None)
+          for k, v in enumerate(scores)]  # fmt: skip
+    ms += [_m(2.0 * k, 10.0, source="detected", score=None) for k in range(3)]  # a detection without a score
+    ms += [_m(2.0 * k, 20.0, source="imported", kind="stop_line", status="accepted") for k in range(4)]
+    ids = store.add_markings("ka", ms)
+    det = ids[: len(scores)]
+    store.apply_changeset("ka", [Change("update", id=det[0], fields={"status": "accepted"}),
+                                 Change("update", id=det[1], fields={"status": "rejected"}),
+                                 Change("delete", id=det[2])], who="t")  # fmt: skip
+    sm = store.summary("ka")
+    held = list(store.iter_markings("ka"))
+
+    def tally(key):
+        out = {}
+        for m in held:
+            out[key(m)] = out.get(key(m), 0) + 1
+        return dict(sorted(out.items()))
+
+    assert sm.count == len(held) == len(ms) - 1 and sm.revision == store.get_map("ka").revision
+    assert sm.by_status == tally(lambda m: m.status) and sm.by_source == tally(lambda m: m.source)
+    assert sm.by_kind == tally(lambda m: m.kind or "unknown")
+    assert sm.detections == {"unreviewed": len(scores) - 3 + 3, "accepted": 1, "rejected": 1}
+    assert sm.reviewed_share == pytest.approx(2 / (len(scores) - 1 + 3))
+    left = [m.score for m in held if m.source == "detected" and m.status == "unreviewed" and m.score is not None]
+    assert sm.unreviewed_scores == [sum(min(int(v * 10), 9) == k for v in left) for k in range(10)]
+    assert sm.unreviewed_scores[9] >= 2  # 0.999 and 1.0 in the last bin
+    with pytest.raises(UnknownMapError):
+        store.summary("nope")
+    store.create_map("empty", crs="EPSG:25832")
+    empty = store.summary("empty")
+    assert (empty.count, empty.reviewed_share, sum(empty.unreviewed_scores)) == (0, None, 0)
+
+
 def test_jobs(store):
     store.create_map("ka", crs="EPSG:25832")
     j = store.create_job("build", "ka", {"image": "a.tif"})

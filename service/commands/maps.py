@@ -1,4 +1,4 @@
-"""``lanemap maps``: create, list, show, retitle and delete maps, and prune their change feeds."""
+"""``lanemap maps``: create, list, show, summarise, retitle and delete maps, and prune their change feeds."""
 
 from __future__ import annotations
 
@@ -42,6 +42,19 @@ def register(app: typer.Typer) -> None:
     def show(map_id: str = typer.Argument(..., metavar="MAP")) -> None:
         """Print a map's metadata as JSON."""
         typer.echo(json.dumps(_info_dict(Store().get_map(map_id, with_count=True)), indent=2))
+
+    @maps.command("summary")
+    def summary(
+        map_id: str = typer.Argument(..., metavar="MAP"),
+        as_json: bool = typer.Option(False, "--json", help="Print JSON."),
+    ) -> None:
+        """Count a map's markings by status, source and kind, and say how far its review has come."""
+        sm = Store().summary(map_id)
+        if as_json:
+            typer.echo(json.dumps(_summary_dict(map_id, sm), indent=2))
+            return
+        for line in _summary_lines(map_id, sm):
+            typer.echo(line)
 
     @maps.command("update")
     def update(
@@ -93,6 +106,38 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"no map recorded deletions more than {older_than:g} day{'' if older_than == 1 else 's'} ago")
 
     app.add_typer(maps, name="maps")
+
+
+def _summary_dict(map_id: str, sm) -> dict:
+    return {
+        "id": map_id, "revision": sm.revision, "markings": sm.count,
+        "by_status": sm.by_status, "by_source": sm.by_source, "by_kind": sm.by_kind,
+        "detections": sm.detections, "reviewed_share": sm.reviewed_share,
+        "unreviewed_scores": sm.unreviewed_scores,
+    }  # fmt: skip
+
+
+def _summary_lines(map_id: str, sm) -> list[str]:
+    def counts(d: dict) -> str:
+        return ", ".join(f"{k} {v:,}" for k, v in d.items()) or "none"
+
+    lines = [f"map {map_id} at revision {sm.revision}: {sm.count:,} markings",
+             f"  status  {counts(sm.by_status)}",
+             f"  source  {counts(sm.by_source)}",
+             f"  kind    {counts(sm.by_kind)}"]  # fmt: skip
+    total = sum(sm.detections.values())
+    if not total:
+        return lines + ["  review  no detections"]
+    left = sm.detections["unreviewed"]
+    lines.append(f"  review  {total - left:,} of {total:,} detections reviewed ({100 * sm.reviewed_share:.1f} %): "
+                 f"{sm.detections['accepted']:,} accepted, {sm.detections['rejected']:,} rejected, {left:,} to go")
+    if left:
+        lines.append("  unreviewed detections by score:")
+        n, top = len(sm.unreviewed_scores), max(sm.unreviewed_scores)
+        for k, c in enumerate(sm.unreviewed_scores):
+            bar = "#" * (round(30 * c / top) if top else 0)
+            lines.append(f"    {k / n:.1f}-{(k + 1) / n:.1f} {c:>9,}  {bar}")
+    return lines
 
 
 def _info_dict(i) -> dict:

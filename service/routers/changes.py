@@ -37,13 +37,14 @@ def _after(text: str | None) -> tuple[int, int] | None:
         "`removed` the ids to drop, `storageCrs` the metric CRS the map keeps its markings in (the "
         "features are WGS84 lon/lat; a copy that localizes projects them to it). With `status`, the copy holds only markings of those statuses, and a "
         "marking whose status left them is listed as removed. A copy starts from `since=0`. 409 "
-        "(`stale-revision`) when the map has not reached `since` (it was deleted and made anew) or when "
-        "its deletions from before `since` were pruned (`lanemap maps prune-feed`): the copy must be read "
-        "whole again, from `since=0`."
+        "(`stale-revision`) when `since` is from before the map was made anew under its id (a map "
+        "created again goes on past the old one's last revision, see `changesSince`), from before the "
+        "deletions it keeps (`lanemap maps prune-feed`), or one the map has not reached (a database "
+        "restored from an older backup): the copy must be read whole again, from `since=0`."
     ),
     responses={200: {"content": {GEOJSON: {}}},
-               409: {"description": "The map has not reached `since` (it was made anew), or no longer keeps "
-                                   "its deletions from then"}},
+               409: {"description": "`since` is from before the map was made anew or before the deletions "
+                                   "it keeps, or the map has not reached it: read the map whole"}},
 )  # fmt: skip
 def get_changes(
     request: Request,

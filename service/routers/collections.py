@@ -112,6 +112,7 @@ def collection_of(info: MapInfo, request: Request) -> dict[str, Any]:
             link(base, "self", JSON),
             link(f"{base}/items", "items", GEOJSON, "Markings"),
             link(f"{base}/changes?since=0", "changes", GEOJSON, "Changes since a revision (keeping a copy)"),
+            link(f"{base}/summary", "summary", JSON, "Markings counted; how far the review has come"),
             link(f"{base}/changesets", "changesets", JSON, "Changesets"),
             link(f"{base}/history", "history", JSON, "Edit history"),
             link(f"{base}/imagery", "imagery", JSON, "Imagery"),
@@ -151,6 +152,45 @@ def get_collection(request: Request, mapId: str = MapId, ctx: Context = Depends(
     return collection_of(ctx.store.get_map(mapId, with_count=True), request)
 
 
+@router.get(
+    "/collections/{mapId}/summary", tags=["Maps"], summary="A map's markings counted, and its review",
+    description=(
+        "Markings per status, source and kind; the detections per status (`review.detections`) "
+        "and the share of them accepted or rejected (`review.reviewedShare`, null without "
+        "detections); the unreviewed detections per score, in ten bins from 0 to 1 "
+        "(`review.unreviewedScores`), to see how much of the review queue is doubtful. Read in one "
+        "snapshot at `revision` (also the `X-Map-Revision` header), once per revision of the map: "
+        "0.7-1.2 s for a million markings, then kept until the map changes."
+    ),
+)  # fmt: skip
+def get_summary(request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx)) -> JSONResponse:
+    # Every editor asks again whenever the map moves on; a map's scan is done once per revision.
+    cached = ctx.summaries.get(mapId)
+    if cached is not None and cached[0] == ctx.store.map_revision(mapId):
+        sm = cached[1]
+    else:
+        sm = ctx.store.summary(mapId)
+        ctx.summaries[mapId] = (sm.revision, sm)
+    n = len(sm.unreviewed_scores)
+    body = {
+        "id": mapId,
+        "revision": sm.revision,
+        "numberOfFeatures": sm.count,
+        "byStatus": sm.by_status,
+        "bySource": sm.by_source,
+        "byKind": sm.by_kind,
+        "review": {
+            "detections": sm.detections,
+            "reviewedShare": sm.reviewed_share,
+            "unreviewedScores": [{"min": k / n, "max": (k + 1) / n, "count": c}
+                                 for k, c in enumerate(sm.unreviewed_scores)],
+        },
+        "links": [link(str(request.url), "self", JSON),
+                  link(f"{base_url(request)}/collections/{mapId}", "collection", JSON)],
+    }  # fmt: skip
+    return JSONResponse(body, headers={"X-Map-Revision": str(sm.revision)})
+
+
 class CollectionPatch(BaseModel):
     model_config = ConfigDict(extra="forbid")
     title: str = Field(..., max_length=MAX_TITLE_LENGTH, description="The map's new title")
@@ -176,6 +216,7 @@ def delete_collection(mapId: str = MapId, ctx: Context = Depends(get_ctx), who: 
     ctx.store.delete_map(mapId)
     with ctx.index_lock:
         ctx.indexes.pop(mapId, None)
+    ctx.summaries.pop(mapId, None)
     imagery_root = (ctx.data_dir / "imagery").resolve()
     for f in files:
         # Only files the server wrote itself are removed.

@@ -58,6 +58,11 @@ export class Api {
     return this.request('GET', `collections/${encodeURIComponent(mapId)}`);
   }
 
+  /** The map's markings counted by status, source and kind, and how far its review has come. */
+  summary(mapId) {
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}/summary`);
+  }
+
   imagery(mapId) {
     return this.request('GET', `collections/${encodeURIComponent(mapId)}/imagery`).then((d) => d.imagery);
   }

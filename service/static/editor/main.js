@@ -412,6 +412,7 @@ async function openMap(mapId, fromHash = false) {
   }
   await loadView();
   loadHistory(true);
+  loadProgress();
   applyTokenState();
 }
 
@@ -603,6 +604,7 @@ async function save(comment) {
     state.revision = state.collection.revision;
     await loadView();
     loadHistory(true);
+    loadProgress();
   } catch (err) {
     if (err instanceof ApiError && (err.status === 409 || err.status === 412)) {
       showConflict(err.problem);
@@ -698,6 +700,7 @@ async function followChanges() {
     else render();
     renderSelection();
     loadHistory(true);
+    loadProgress();
   } catch (err) {
     if (err instanceof ApiError && err.status === 409) {
       toast(`The server cannot list map ${mapId}'s changes since this page loaded it (made anew, or its old changes pruned): loaded again.`, 'error');
@@ -946,6 +949,25 @@ $('score-file').addEventListener('change', (e) => scoreAgainst(e.target.files[0]
 $('review-stop').addEventListener('click', () => stopReview());
 
 // ---------------------------------------------------------------- history
+/** How far the review of the saved map has come, from the server's count of its detections. */
+async function loadProgress() {
+  if (!state.mapId) return;
+  const mapId = state.mapId;
+  try {
+    const sm = await api.summary(mapId);
+    if (mapId !== state.mapId) return;
+    const d = sm.review.detections;
+    const total = d.unreviewed + d.accepted + d.rejected;
+    const fmt = (v) => v.toLocaleString('en');
+    $('review-progress').textContent = total === 0 ? 'No detections to review in this map.'
+      : `Saved: ${fmt(total - d.unreviewed)} of ${fmt(total)} detections reviewed `
+        + `(${(100 * sm.review.reviewedShare).toFixed(1)} %; ${fmt(d.accepted)} accepted, `
+        + `${fmt(d.rejected)} rejected), ${fmt(d.unreviewed)} to go.`;
+  } catch (err) {
+    $('review-progress').textContent = `Review progress could not be loaded: ${problemText(err)}`;
+  }
+}
+
 async function loadHistory(reset = false) {
   if (!state.mapId) return;
   const mapId = state.mapId;
@@ -1018,6 +1040,7 @@ async function revertChangeset(c) {
     state.revision = state.collection.revision;
     await loadView();
     loadHistory(true);
+    loadProgress();
   } catch (err) {
     const ids = err.problem?.conflicting_ids;
     toast(`Revert refused: ${problemText(err)}${ids ? ` (markings ${ids.join(', ')} changed since)` : ''}`, 'error');
