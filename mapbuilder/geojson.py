@@ -7,7 +7,8 @@ lon/lat, and the properties ``weight``, ``length_m``, ``width_m``,
 marking's ``extra`` and written back on export.
 
 GeoPackage export goes through pyogrio (GDAL), in the map's storage CRS, so
-that QGIS and other GIS open it directly.
+that QGIS and other GIS open it directly; a GeoPackage of Points in any CRS
+(such an export, or a survey) is read back as the same markings.
 """
 
 from __future__ import annotations
@@ -258,6 +259,111 @@ def write_geojson_stream(fh: TextIO, items: Iterable[Marking]) -> int:
         n += 1
     fh.write("\n]}\n")
     return n
+
+
+#: Columns of a GeoPackage export that the store assigns anew on import.
+_GPKG_OUTPUT_ONLY = ("marking_id", "version", "fid")
+
+
+def _plain(value: Any) -> Any:
+    """A GeoPackage field value as JSON would hold it (NaN and missing values as None)."""
+    if value is None:
+        return None
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, bytes):
+        return value.hex()
+    if hasattr(value, "isoformat"):
+        return value.isoformat()
+    return value
+
+
+def read_gpkg(path: str | Path, progress: Callable[[int, int], None] | None = None) -> list[Marking]:
+    """Read markings from a GeoPackage layer of Points in any CRS; every problem is a :class:`GeoJSONError`.
+
+    The layer is the one named ``markings`` (what :func:`write_gpkg` writes), or the
+    file's only layer. Columns are read as the GeoJSON properties of the same names
+    (``weight``, ``length_m``, ``kind``, ``status``...); an export's ``extra`` column
+    (a JSON object) gives back the properties lanemap does not know, other columns
+    become such properties, and the ids and versions of an export are assigned anew.
+    ``progress``: as for :func:`read_feature_collection`.
+    """
+    import pyogrio
+    import pyogrio.errors
+    import shapely
+    from pyproj import CRS, Transformer
+    from pyproj.exceptions import CRSError as ProjCRSError
+
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise GeoJSONError(f"cannot read {path}: {exc.strerror}") from None
+    if size > MAX_FILE_BYTES:
+        raise GeoJSONError(f"{path} is larger than {MAX_FILE_BYTES} bytes")
+    try:
+        layers = [str(name) for name, _ in pyogrio.list_layers(path)]
+    except (pyogrio.errors.DataSourceError, OSError) as exc:
+        raise GeoJSONError(f"{path} is not a GeoPackage GDAL can open: {str(exc).splitlines()[0]}") from None
+    if "markings" in layers:
+        layer = "markings"
+    elif len(layers) == 1:
+        layer = layers[0]
+    else:
+        raise GeoJSONError(f"{path} has {len(layers)} layers ({', '.join(layers) or 'none'}) and none named "
+                           "'markings': lanemap reads that layer, or a file's only layer")  # fmt: skip
+    try:
+        meta, _, geoms, values = pyogrio.raw.read(path, layer=layer, force_2d=True)
+    except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError, OSError) as exc:
+        raise GeoJSONError(f"cannot read layer {layer!r} of {path}: {str(exc).splitlines()[0]}") from None
+    where = f"{path}, layer {layer!r}"
+    if meta.get("crs") is None:
+        raise GeoJSONError(f"{where} has no CRS: lanemap cannot tell where its points lie")
+    try:
+        to_lonlat = Transformer.from_crs(CRS.from_user_input(meta["crs"]), "EPSG:4326", always_xy=True)
+    except ProjCRSError as exc:
+        raise GeoJSONError(f"{where}: its CRS {meta['crs']!r} is not one PROJ knows ({exc})") from None
+    if geoms is None:
+        raise GeoJSONError(f"{where} has no geometry column (a Point at each marking's centroid is required)")
+    shapes = shapely.from_wkb(geoms)
+    kinds = shapely.get_type_id(shapes)
+    bad = np.flatnonzero(kinds != 0)  # 0: Point; -1: a missing geometry
+    if len(bad):
+        i = int(bad[0])
+        got = "no geometry" if shapes[i] is None else f"a {shapes[i].geom_type}"
+        raise GeoJSONError(f"{where}, row {i + 1}: has {got} (a Point at the marking's centroid is required)")
+    lon, lat = to_lonlat.transform(shapely.get_x(shapes), shapely.get_y(shapes))
+    names = [str(n) for n in meta["fields"]]
+    out: list[Marking] = []
+    n = len(shapes)
+    for start in range(0, n, PROGRESS_STEP):
+        for i in range(start, min(start + PROGRESS_STEP, n)):
+            props: dict[str, Any] = {}
+            for name, col in zip(names, values):
+                if name in _GPKG_OUTPUT_ONLY:
+                    continue
+                v = _plain(col[i])
+                if name == "extra" and isinstance(v, str):
+                    try:
+                        extra = json.loads(v)
+                    except json.JSONDecodeError:
+                        extra = None
+                    if isinstance(extra, dict):
+                        props.update({k: x for k, x in extra.items() if k not in props})
+                        continue
+                if v is not None:
+                    props[name] = v
+            feature = {"type": "Feature", "geometry": {"type": "Point", "coordinates": [float(lon[i]), float(lat[i])]},
+                       "properties": props}  # fmt: skip
+            try:
+                out.append(feature_to_marking(feature, i))
+            except GeoJSONError as exc:
+                raise GeoJSONError(f"{where}, row {i + 1}: {str(exc).split(': ', 1)[1]}") from None
+        if progress is not None:
+            progress(len(out), n)
+    return out
 
 
 def write_gpkg(path: str | Path, items: Iterable[Marking], crs: str, layer: str = "markings") -> int:

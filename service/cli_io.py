@@ -25,11 +25,13 @@ def source_name(path: Path | str) -> str:
 
 
 def read_markings(path: Path | str, progress: Callable[[int, int], None] | None = None) -> list[Marking]:
-    """Markings from a GeoJSON file, or from standard input for ``-``."""
-    from mapbuilder.geojson import read_geojson_file, read_geojson_stream
+    """Markings from a GeoJSON file or a GeoPackage (``.gpkg``), or GeoJSON from standard input for ``-``."""
+    from mapbuilder.geojson import read_geojson_file, read_geojson_stream, read_gpkg
 
     if is_stdio(path):
         return read_geojson_stream(sys.stdin.buffer, source_name(path), progress)
+    if Path(path).suffix.lower() == ".gpkg":
+        return read_gpkg(path, progress)
     return read_geojson_file(path, progress)
 
 

@@ -119,8 +119,13 @@ def test_karlsruhe_round_trip_through_the_cli(db_url, tmp_path, cli):
     for i, p in zip(ids[:50], pts[:50]):
         assert (p.x, p.y) == pytest.approx((ours[int(i)].x, ours[int(i)].y), abs=1e-6)
 
+    # ... and imports again, as it was (the ids and versions are the store's)
+    cli(["import", "ka3", "ka.gpkg", "--create"], db_url, tmp_path)
+    cli(["export", "ka3", "from-gpkg.geojson"], db_url, tmp_path)
+    _same_features(json.loads((tmp_path / "from-gpkg.geojson").read_text()), source)
+
     listing = json.loads(cli(["maps", "list", "--json"], db_url, tmp_path).stdout)
-    assert {m["id"]: m["markings"] for m in listing} == {"ka": len(source["features"]), "ka2": len(source["features"])}
+    assert {m["id"]: m["markings"] for m in listing} == {k: len(source["features"]) for k in ("ka", "ka2", "ka3")}
 
 
 def _fc(*features):
@@ -398,3 +403,69 @@ def test_version_is_the_installed_distributions(tmp_path):
     proc = subprocess.run([*LANEMAP, "--version"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == f"lanemap {metadata.version('lanemap')}"
+
+
+def _write_layer(path, crs, points, fields: dict, layer="survey", geometry_type="Point", geoms=None):
+    import shapely
+
+    import warnings
+
+    geoms = geoms if geoms is not None else shapely.points(np.asarray(points))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # pyogrio's note on a layer written without a CRS
+        pyogrio.raw.write(str(path), geometry=shapely.to_wkb(geoms), field_data=[np.asarray(v) for v in fields.values()],
+                          fields=list(fields), crs=crs, geometry_type=geometry_type, driver="GPKG", layer=layer)  # fmt: skip
+
+
+def test_a_geopackage_survey_in_another_crs_is_imported_and_scored(sqlite_url, tmp_path, cli):
+    """A GeoPackage of Points in any CRS (here Gauss-Krüger zone 3, as older German surveys are):
+    positions through PROJ, known columns as properties, other columns kept, missing values left out;
+    ``evaluate`` takes it as the truth."""
+    from pyproj import Transformer
+
+    lonlat = np.array([[8.4300 + 2e-4 * k, 49.0000 + 1e-5 * k] for k in range(12)])
+    gk = np.column_stack(Transformer.from_crs("EPSG:4326", "EPSG:31467", always_xy=True).transform(*lonlat.T))
+    kinds = np.array(["dash"] * 10 + ["stop_line", None], dtype=object)
+    _write_layer(tmp_path / "survey.gpkg", "EPSG:31467", gk, {
+        "kind": kinds, "weight": np.full(12, 40.0), "length_m": np.full(12, 3.0),
+        "score": np.array([np.nan] * 11 + [0.5]), "lane": np.arange(12, dtype=np.int64)})  # fmt: skip
+    out = cli(["import", "s", "survey.gpkg", "--create"], sqlite_url, tmp_path)
+    assert out.stdout.strip() == "imported 12 markings into s"
+    got = sorted(json.loads(cli(["export", "s", "-"], sqlite_url, tmp_path).stdout)["features"],
+                 key=lambda f: f["properties"]["lane"])  # fmt: skip
+    for f, (lon, lat), kind in zip(got, lonlat, kinds):
+        assert f["geometry"]["coordinates"] == pytest.approx([lon, lat], abs=1e-8)  # 1 mm
+        p = f["properties"]
+        assert (p.get("kind"), p["weight"], p["length_m"], p["source"]) == (kind, 40.0, 3.0, "imported")
+    assert [f["properties"]["lane"] for f in got] == list(range(12))
+    assert [f["properties"].get("score") for f in got] == [None] * 11 + [0.5]
+    # the survey as the truth of the map made from it: everything found
+    res = json.loads(cli(["evaluate", "s", "survey.gpkg", "--json"], sqlite_url, tmp_path).stdout)
+    assert (res["precision"], res["recall"]) == (1.0, 1.0)
+
+
+def test_a_geopackage_that_is_not_markings_is_one_line_and_writes_nothing(sqlite_url, tmp_path, cli):
+    import shapely
+
+    cli(["maps", "create", "m", "--crs", "EPSG:25832"], sqlite_url, tmp_path)
+    pts = np.array([[457000.0 + k, 5428000.0] for k in range(3)])
+    _write_layer(tmp_path / "lines.gpkg", "EPSG:25832", None, {"kind": np.array(["solid"], dtype=object)},
+                 geometry_type="LineString", geoms=shapely.linestrings([pts]))  # fmt: skip
+    _write_layer(tmp_path / "bad.gpkg", "EPSG:25832", pts, {"status": np.array(["accepted", "ok", "rejected"], dtype=object)})
+    _write_layer(tmp_path / "nocrs.gpkg", None, pts, {"weight": np.ones(3)})
+    _write_layer(tmp_path / "two.gpkg", "EPSG:25832", pts, {"weight": np.ones(3)}, layer="a")
+    _write_layer(tmp_path / "two.gpkg", "EPSG:25832", pts, {"weight": np.ones(3)}, layer="b")
+    (tmp_path / "text.gpkg").write_text("not a database")
+    cases = {
+        "lines.gpkg": "lines.gpkg, layer 'survey', row 1: has a LineString (a Point at the marking's centroid is required)",
+        "bad.gpkg": "bad.gpkg, layer 'survey', row 2: property 'status' must be one of unreviewed, accepted, rejected, got 'ok'",
+        "nocrs.gpkg": "nocrs.gpkg, layer 'survey' has no CRS",
+        "two.gpkg": "two.gpkg has 2 layers (a, b) and none named 'markings'",
+        "text.gpkg": "text.gpkg is not a GeoPackage GDAL can open",
+        "missing.gpkg": "cannot read missing.gpkg",
+    }
+    for name, says in cases.items():
+        proc = cli(["import", "m", name], sqlite_url, tmp_path, check=False)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 1 and len(lines) == 1 and lines[0].startswith(f"error: {says}"), (name, lines)
+    assert Store(sqlite_url).get_map("m", with_count=True).count == 0

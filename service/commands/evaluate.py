@@ -44,7 +44,8 @@ def evaluate(
     truth: Path = typer.Argument(
         ..., metavar="TRUTH",
         help="True markings as GeoJSON (Points in WGS84 with length_m and bearing_deg, as "
-        "'lanemap synth' and 'lanemap export' write them); - reads standard input."),
+        "'lanemap synth' and 'lanemap export' write them) or a GeoPackage (.gpkg) of Points in any CRS; "
+        "- reads GeoJSON from standard input."),
     tolerance: float = typer.Option(0.3, "--tolerance", help="Largest centroid (or axis) distance of a "
                                     "match, metres."),
     border: float = typer.Option(

@@ -22,12 +22,13 @@ def register(app: typer.Typer) -> None:
     def import_(
         map_id: str = typer.Argument(..., metavar="MAP", help="Target map (created if --create)."),
         file: Path = typer.Argument(
-            ..., help="GeoJSON FeatureCollection of marking centroids (WGS84); - reads standard input."),
+            ..., help="GeoJSON FeatureCollection of marking centroids (WGS84), or a GeoPackage (.gpkg) of "
+            "Points in any CRS; - reads GeoJSON from standard input."),
         create: bool = typer.Option(False, "--create", help="Create the map if it does not exist."),
         comment: str = typer.Option("", "--comment", help="Comment for the edit log."),
         progress: bool | None = PROGRESS_OPTION,
     ) -> None:
-        """Import markings from GeoJSON in one transaction: all of them or none."""
+        """Import markings from GeoJSON or a GeoPackage in one transaction: all of them or none."""
         # Parse and check everything before touching the database.
         name = source_name(file)
         with progress_bar(progress, None, "feature", f"read {name}") as bar:
