@@ -156,11 +156,8 @@ def _reject_constant(value: str):
     raise GeoJSONError(f"invalid JSON number {value}")
 
 
-def read_geojson_file(path: str | Path, progress: Callable[[int, int], None] | None = None) -> list[Marking]:
-    """Read markings from a GeoJSON file; every problem is a :class:`GeoJSONError`.
-
-    ``progress``: as for :func:`read_feature_collection`, once the file is parsed.
-    """
+def _readable(path: str | Path) -> Path:
+    """``path`` as a Path, once it is known to exist and to be at most ``MAX_FILE_BYTES`` long."""
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -168,6 +165,15 @@ def read_geojson_file(path: str | Path, progress: Callable[[int, int], None] | N
         raise GeoJSONError(f"cannot read {path}: {exc.strerror}") from None
     if size > MAX_FILE_BYTES:
         raise GeoJSONError(f"{path} is larger than {MAX_FILE_BYTES} bytes")
+    return path
+
+
+def read_geojson_file(path: str | Path, progress: Callable[[int, int], None] | None = None) -> list[Marking]:
+    """Read markings from a GeoJSON file; every problem is a :class:`GeoJSONError`.
+
+    ``progress``: as for :func:`read_feature_collection`, once the file is parsed.
+    """
+    path = _readable(path)
     with open(path, "rb") as fh:
         return read_geojson_stream(fh, str(path), progress)
 
@@ -296,13 +302,7 @@ def read_gpkg(path: str | Path, progress: Callable[[int, int], None] | None = No
     from pyproj import CRS, Transformer
     from pyproj.exceptions import CRSError as ProjCRSError
 
-    path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError as exc:
-        raise GeoJSONError(f"cannot read {path}: {exc.strerror}") from None
-    if size > MAX_FILE_BYTES:
-        raise GeoJSONError(f"{path} is larger than {MAX_FILE_BYTES} bytes")
+    path = _readable(path)
     try:
         layers = [str(name) for name, _ in pyogrio.list_layers(path)]
     except (pyogrio.errors.DataSourceError, OSError) as exc:
