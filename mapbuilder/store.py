@@ -747,6 +747,14 @@ class Store:
             rows = conn.execute(select(maps).order_by(maps.c.id)).all()
         return [self._map_info(r, counts.get(r.id, 0)) for r in rows]
 
+    def map_extents(self) -> list[tuple[str, str | None, tuple[float, float, float, float] | None]]:
+        """Every map's id, storage CRS and bounds in it (None while it has none), by id: one
+        read of the maps alone, for picking a map by position."""
+        m = maps.c
+        with self._read() as conn:
+            rows = conn.execute(select(m.id, m.crs, m.minx, m.miny, m.maxx, m.maxy).order_by(m.id)).all()
+        return [(r.id, r.crs, None if r.minx is None else (r.minx, r.miny, r.maxx, r.maxy)) for r in rows]
+
     def delete_map(self, map_id: str) -> None:
         """Delete a map with its markings, edit log, imagery records and jobs."""
         with self._write() as conn:

@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from mapbuilder.crs import meridian_convergence_deg, to_wgs84
+from mapbuilder.crs import from_wgs84, meridian_convergence_deg, to_wgs84
 from tests._api_helpers import shared_server
 from tests.test_api_features import assert_problem, karlsruhe_fc  # noqa: F401 (fixture)
 
@@ -245,6 +245,54 @@ def _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, env: dict):  # noqa: F811
         server.stop()
         raise
     return server, map_id, feats
+
+
+def test_the_map_is_picked_by_the_gps_fix(tmp_path, karlsruhe_fc):  # noqa: F811
+    """``POST /localize``: the map with the most usable markings within the fix's reach answers,
+    and says which it was; a fix far from every map is a 404 problem; rejected markings do not
+    make a map the one."""
+    import copy
+
+    server, ka, feats = _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, {})
+    try:
+        shift = 3000.0  # a second map: the same streets 3 km east
+        fw, tr = from_wgs84(CRS), to_wgs84(CRS)
+        moved = copy.deepcopy(karlsruhe_fc)
+        for f in moved["features"]:
+            x, y = fw.transform(*f["geometry"]["coordinates"])
+            f["geometry"]["coordinates"] = list(tr.transform(x + shift, y))
+        east = server.new_map(prefix="east")
+        r = httpx.post(f"{server.base_url}/collections/{east}/import", json=moved, headers=server.auth, timeout=60)
+        assert r.status_code == 201
+        # a map of rejected markings on top of Karlsruhe's: the localizer would not use them
+        rejected = copy.deepcopy(karlsruhe_fc)
+        for f in rejected["features"]:
+            f["properties"]["status"] = "rejected"
+        ghost = server.new_map(prefix="a-ghost")
+        r = httpx.post(f"{server.base_url}/collections/{ghost}/import", json=rejected, headers=server.auth, timeout=60)
+        assert r.status_code == 201
+        p, lon, lat, heading, obs = scene(feats, 250)
+        for target, offset in ((ka, 0.0), (east, shift)):
+            gps = gps_near((p[0] + offset, p[1]), heading)
+            r = httpx.post(f"{server.base_url}/localize", json={"gps": gps, "observations": obs}, timeout=60)
+            assert r.status_code == 200, r.text
+            out = r.json()
+            assert out["map"] == target and out["status"] == "ok", out
+            assert math.hypot(out["easting"] - p[0] - offset, out["northing"] - p[1]) < 0.2
+            assert r.headers["x-map-revision"] == str(httpx.get(f"{server.base_url}/collections/{target}").json()["revision"])
+        # the per-map endpoint answers as before, without naming the map
+        one = httpx.post(f"{server.base_url}/collections/{ka}/localize",
+                         json={"gps": gps_near(p, heading), "observations": obs}, timeout=60).json()  # fmt: skip
+        assert one["status"] == "ok" and "map" not in one
+        far = gps_near((p[0] + 1500.0, p[1]), heading)  # between the two maps
+        assert_problem(httpx.post(f"{server.base_url}/localize", json={"gps": far, "observations": obs}, timeout=60),
+                       404, "no map has markings within 45 m of the GPS fix")  # fmt: skip
+        wide = {**far, "position_sigma_m": 600.0}  # 1,830 m of reach: Karlsruhe's markings are in it
+        r = httpx.post(f"{server.base_url}/localize", json={"gps": wide, "observations": obs}, timeout=60)
+        assert r.status_code == 200 and r.json()["map"] in (ka, east)
+        assert_problem(httpx.post(f"{server.base_url}/localize", json={"gps": far}, timeout=60), 422, "observations")
+    finally:
+        server.stop()
 
 
 def test_a_map_made_anew_by_another_process_is_not_taken_for_the_cached_one(api, karlsruhe_fc, tmp_path):  # noqa: F811

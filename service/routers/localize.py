@@ -7,6 +7,8 @@ import math
 import time
 from typing import Literal
 
+import functools
+
 import anyio
 import numpy as np
 from fastapi import APIRouter, Depends
@@ -269,6 +271,8 @@ class PoseOut(BaseModel):
     hypotheses: list[HypothesisOut] = Field(..., description="Best first; filled when ambiguous")
     reason: str | None = Field(None, description="Why the localization failed, or that a drive's frame "
                                                   "matched nothing and the pose is the odometry's prediction")
+    map: str | None = Field(None, description="The map the pose was found on: only in the answers of "
+                                              "`POST /localize`, which picks the map by the GPS fix")
 
 
 class SequenceOut(BaseModel):
@@ -312,6 +316,51 @@ async def localize_vehicle(
         raise Problem(422, "min_probability: the pink2008 method has no posterior probability",
                       "min-probability-needs-default-method")  # fmt: skip
     return await _admit(ctx, _run_frame, mapId, body)
+
+
+@router.post("/localize", summary="Localize a vehicle against the map where its GPS fix is",
+             responses={200: {"model": PoseOut, "description": "The pose, and the map it was found on"},
+                        404: {"description": "No map has markings near the GPS fix"}})  # fmt: skip
+async def localize_anywhere(body: LocalizeIn, ctx: Context = Depends(get_ctx)):
+    """As `POST /collections/{mapId}/localize`, on the map with the most markings the localizer
+    uses (accepted and unreviewed) within the fix's reach: three of its position sigmas (the
+    ellipse's major one, 5 m by default) plus 30 m of camera view. A fleet whose vehicles cross
+    from one map to the next need not know the maps' ids: the answer's `map` names the one used."""
+    _check_count(ctx, len(body.observations), "observations")
+    if body.min_probability is not None and body.method != "default":
+        raise Problem(422, "min_probability: the pink2008 method has no posterior probability",
+                      "min-probability-needs-default-method")  # fmt: skip
+    map_id = await anyio.to_thread.run_sync(_map_at, ctx, body.gps)
+    return await _admit(ctx, functools.partial(_run_frame, name_map=True), map_id, body)
+
+
+#: Camera view added to a fix's reach when a map is picked by it, metres.
+_VIEW_REACH_M = 30.0
+
+
+def _map_at(ctx: Context, g: "GpsIn") -> str:
+    """The id of the map with the most markings within a GPS fix's reach (see ``localize_anywhere``)."""
+    from mapbuilder.crs import from_wgs84
+
+    prior = _prior(g)
+    sigma = prior.position_sigma_m if prior.position_ellipse is None else prior.position_ellipse.sigma_major_m
+    reach = 3.0 * sigma + _VIEW_REACH_M
+    best: tuple[int, str] | None = None
+    for map_id, crs, bounds in ctx.store.map_extents():
+        if crs is None or bounds is None:
+            continue
+        x, y = from_wgs84(crs).transform(g.lon, g.lat)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        if x < bounds[0] - reach or x > bounds[2] + reach or y < bounds[1] - reach or y > bounds[3] + reach:
+            continue
+        n = ctx.store.count_bbox(map_id, x - reach, y - reach, x + reach, y + reach, statuses=("accepted", "unreviewed"))
+        if n and (best is None or n > best[0]):
+            best = (n, map_id)
+    if best is None:
+        raise Problem(404, f"no map has markings within {reach:.0f} m of the GPS fix ({g.lat:.6f}, {g.lon:.6f})",
+                      "no-map-here")  # fmt: skip
+    return best[1]
 
 
 @router.post("/collections/{mapId}/localize/sequence", summary="Localize a vehicle over a drive of frames",
@@ -374,11 +423,12 @@ def _turn(ctx: Context, fn, *args):
     return anyio.to_thread.run_sync(fn, *args, limiter=ctx.localize_limiter)
 
 
-async def _run_frame(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> JSONResponse:
-    return await _turn(ctx, _localize, ctx, map_id, body, admitted)
+async def _run_frame(ctx: Context, map_id: str, body: LocalizeIn, admitted: float,
+                     name_map: bool = False) -> JSONResponse:  # fmt: skip
+    return await _turn(ctx, _localize, ctx, map_id, body, admitted, name_map)
 
 
-def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> JSONResponse:
+def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float, name_map: bool = False) -> JSONResponse:
     """The CPU-bound part of a localization, run in a worker thread."""
     from localizer import localize
 
@@ -396,7 +446,10 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float) -> J
                    "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
     _count(map_id, "frame", body.method, [pose.status if pose else "failed"], time.perf_counter() - t1)
     headers = {**_server_timing(admitted, t0, t1), REVISION_HEADER: str(revision)}
-    return JSONResponse(failure or _pose_json(pose), headers=headers)
+    answer = failure or _pose_json(pose)
+    if name_map:
+        answer["map"] = map_id
+    return JSONResponse(answer, headers=headers)
 
 
 async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float) -> JSONResponse:
