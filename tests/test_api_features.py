@@ -52,7 +52,7 @@ def test_landing_conformance_and_openapi(api):
     with api.client() as c:
         landing = c.get("/").json()
         rels = {link["rel"] for link in landing["links"]}
-        assert {"self", "service-desc", "conformance", "data"} <= rels
+        assert {"self", "service-desc", "conformance", "data", "localize"} <= rels
         conf = c.get("/conformance").json()["conformsTo"]
         assert "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/core" in conf
         assert "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/geojson" in conf

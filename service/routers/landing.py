@@ -35,6 +35,7 @@ def landing(request: Request) -> dict:
         link(f"{base}/conformance", "conformance", JSON, "Conformance classes implemented"),
         link(f"{base}/collections", "data", JSON, "The maps"),
         link(f"{base}/jobs", "http://www.opengis.net/def/rel/ogc/1.0/job-list", JSON, "Build jobs"),
+        link(f"{base}/localize", "localize", JSON, "Localize a vehicle (POST) on the map where its GPS fix is"),
     ]  # fmt: skip
     if request.app.routes and any(getattr(r, "path", "") == "/editor" for r in request.app.routes):
         links.append(link(f"{base}/editor/", "alternate", "text/html", "The map editor"))
