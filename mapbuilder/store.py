@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import (
-    Text, and_, case, create_engine, delete, event, func, insert, or_, select, text, type_coerce, update,
+    Text, and_, bindparam, case, create_engine, delete, event, func, insert, or_, select, text, type_coerce, update,
 )  # fmt: skip
 from sqlalchemy.engine import Connection, Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
@@ -282,6 +282,18 @@ class Change:
     version: int | None = None
     marking: Marking | None = None
     fields: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class ReviewResult:
+    """What a review by score did or would do (:meth:`Store.review_by_score`)."""
+
+    accepted: int
+    rejected: int
+    #: The changeset that recorded it; None for a dry run, or when nothing matched.
+    changeset_id: int | None = None
+    #: The map's revision after it (before it, for a dry run).
+    revision: int = 0
 
 
 @dataclass
@@ -1396,6 +1408,78 @@ class Store:
             conn.execute(insert(edits), log_rows)
             self._touch_map(conn, map_id, xs, ys)
         return ChangesetResult(changeset_id=cs_id, results=results, markings=written)
+
+    def review_by_score(
+        self, map_id: str, *, accept_from: float | None = None, reject_below: float | None = None,
+        lonlat_box: tuple[float, float, float, float] | None = None, who: str, comment: str = "",
+        dry_run: bool = False,
+    ) -> ReviewResult:  # fmt: skip
+        """Accept the unreviewed detections scoring at least ``accept_from`` and reject those
+        scoring below ``reject_below`` (those inside ``lonlat_box`` only, when given), as one
+        changeset: recorded, attributed and revertible like any other.
+
+        What a team does before reviewing the doubtful detections one by one. Detections
+        without a score, and markings a person decided on, are left as they are.
+        ``dry_run`` counts without writing.
+
+        Raises
+        ------
+        StoreError
+            If neither threshold is given, one lies outside [0, 1], or ``reject_below``
+            is above ``accept_from``.
+        """
+        for name, v in (("accept_from", accept_from), ("reject_below", reject_below)):
+            if v is not None and not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise StoreError(f"{name} must lie in [0, 1], got {v!r}")
+        if accept_from is None and reject_below is None:
+            raise StoreError("give accept_from, reject_below or both")
+        if accept_from is not None and reject_below is not None and reject_below > accept_from:
+            raise StoreError(f"reject_below ({reject_below}) is above accept_from ({accept_from})")
+        c = markings.c
+        pick = []
+        if accept_from is not None:
+            pick.append(c.score >= accept_from)
+        if reject_below is not None:
+            pick.append(c.score < reject_below)
+        with self._write() as conn:
+            row = self._map_row(conn, map_id, lock=True)
+            where = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
+            rows = [] if where is None else conn.execute(
+                select(markings).where(where, c.source == "detected", c.score.is_not(None), or_(*pick))
+                .order_by(c.id)
+            ).all()  # fmt: skip
+            new = ["accepted" if accept_from is not None and r.score >= accept_from else "rejected" for r in rows]
+            n_acc = new.count("accepted")
+            if dry_run or not rows:
+                return ReviewResult(n_acc, len(rows) - n_acc, None, int(row.revision))
+            now = _now()
+            rev = self._next_revision(conn, map_id)
+            thresholds = ", ".join(
+                ([f"accept from {accept_from:g}"] if accept_from is not None else [])
+                + ([f"reject below {reject_below:g}"] if reject_below is not None else []))  # fmt: skip
+            cs_id = conn.execute(
+                insert(changesets).values(map_id=map_id, who=who, at=now, n_create=0, n_update=len(rows),
+                                          n_delete=0, comment=comment or f"review by score: {thresholds}")
+            ).inserted_primary_key[0]  # fmt: skip
+            conn.execute(
+                update(markings).where(markings.c.id == bindparam("_id")).values(
+                    status=bindparam("_status"), version=bindparam("_version"), revision=rev, updated_at=now),
+                [{"_id": r.id, "_status": st, "_version": r.version + 1} for r, st in zip(rows, new)],
+            )  # fmt: skip
+            log_rows = []
+            for r, st in zip(rows, new):
+                m = _marking_from_row(r)
+                before = marking_to_json(m)
+                m.status, m.version = st, r.version + 1
+                log_rows.append(dict(map_id=map_id, changeset_id=cs_id, marking_id=r.id, op="update", who=who,
+                                     at=now, before=before, after=marking_to_json(m),
+                                     comment=comment or f"review by score: {thresholds}"))  # fmt: skip
+            for start in range(0, len(log_rows), 5000):
+                conn.execute(insert(edits), log_rows[start : start + 5000])
+            self._touch_map(conn, map_id)
+        log.info("map %s: %d detections accepted and %d rejected by score (%s) by %s, changeset %d",
+                 map_id, n_acc, len(rows) - n_acc, thresholds, who, cs_id)  # fmt: skip
+        return ReviewResult(n_acc, len(rows) - n_acc, int(cs_id), rev)
 
     def _apply_one(self, conn, map_id, crs, c: Change, current, now, rev: int):
         if c.op == "create":

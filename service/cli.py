@@ -33,6 +33,7 @@ COMMAND_MODULES = {
     "import": "exchange",
     "localize": "localize",
     "maps": "maps",
+    "review": "review",
     "serve": "serve",
     "synth": "synth",
     "train": "train",

@@ -282,3 +282,41 @@ def test_a_copy_follows_the_map_through_its_changes(api):
         assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": 0, "after": "x"}), 400, "REVISION:ID")
         assert_problem(c.get(f"/collections/{map_id}/changes", params={"since": 0, "status": "gone"}), 400)
         assert_problem(c.get("/collections/no-such-map/changes", params={"since": 0}), 404)
+
+
+def test_detections_are_accepted_and_rejected_by_score_over_http(api):
+    """``POST /collections/{id}/review``: a dry run counts (200, nothing written); the review is one
+    changeset (201 with its Location) in the history; bad thresholds are problems; a revert undoes it."""
+    map_id = api.new_map(prefix="review")
+    scores = [0.02, 0.3, 0.6, 0.93, 0.99]
+    feats = [feature(8.428 + k * 1e-4, 49.0071, source="detected", score=s) for k, s in enumerate(scores)]
+    with api.client(headers=api.auth) as c:
+        assert c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats}).status_code == 201
+        before = _state(c, map_id)
+        url = f"/collections/{map_id}/review"
+        dry = c.post(url, json={"accept_from": 0.9, "reject_below": 0.1, "dry_run": True})
+        assert dry.status_code == 200 and (dry.json()["accepted"], dry.json()["rejected"], dry.json()["changeset"]) == (2, 1, None)
+        assert _state(c, map_id) == before
+        box = "8.4279,49.007,8.42825,49.0072"  # the first three only
+        r = c.post(url, json={"accept_from": 0.9, "reject_below": 0.1, "bbox": box})
+        assert r.status_code == 201 and (r.json()["accepted"], r.json()["rejected"]) == (0, 1), r.text
+        rejected = {k for k, v in _state(c, map_id).items() if v[1] == "rejected"}
+        assert len(rejected) == 1
+        r = c.post(url, json={"accept_from": 0.9, "comment": "sure ones"})
+        assert r.status_code == 201, r.text
+        body = r.json()
+        assert (body["accepted"], body["rejected"]) == (2, 0) and r.headers["location"].endswith(f"/changesets/{body['changeset']}")
+        cs = c.get(r.headers["location"]).json()
+        assert (cs["comment"], cs["updated"]) == ("sure ones", 2)
+        accepted = {k for k, v in _state(c, map_id).items() if v[1] == "accepted"}
+        assert len(accepted) == 2 and all(before[k][2] + 1 == _state(c, map_id)[k][2] for k in accepted)
+        assert_problem(c.post(url, json={"accept_from": 0.5, "reject_below": 0.7}), 400, "above accept_from")
+        assert_problem(c.post(url, json={}), 400, "give accept_from")
+        assert_problem(c.post(url, json={"accept_from": 2}), 422, "accept_from")
+        assert_problem(c.post(url, json={"accept_from": 0.5, "bbox": "1,2,3"}), 422, "bbox")
+        assert_problem(c.post("/collections/no-such-map/review", json={"accept_from": 0.5}), 404)
+        assert c.post(f"/collections/{map_id}/changesets/{body['changeset']}/revert").status_code == 201
+        after = {k: v[1] for k, v in _state(c, map_id).items()}
+        assert after == {k: "rejected" if k in rejected else "unreviewed" for k in before}
+    with api.client() as c:  # no token: no write
+        assert_problem(c.post(url, json={"accept_from": 0.5}), 401)

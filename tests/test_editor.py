@@ -593,6 +593,38 @@ def test_review_queue_steps_through_detections_by_score(editor, fx):
     page.wait_for_function(f"document.getElementById('review-progress').textContent === {json.dumps(progress)}")
 
 
+def test_the_sure_detections_are_decided_at_once_by_score(editor, fx, server):
+    """*Count* says what a review by score would do without writing; *Apply…* asks, then writes
+    one changeset, which the history lists and the progress counts; a read-only page cannot apply."""
+    editor.open()
+    page = editor.page
+    assert page.is_disabled("#bulk-apply")
+    editor.enter_token()
+    scores = {i: fx.features[i]["properties"]["score"] for i in fx.detected}
+    want_acc = sum(v >= 0.8 for v in scores.values())
+    want_rej = sum(v < 0.3 for v in scores.values())
+    assert want_acc and want_rej
+    page.fill("#bulk-accept", "0.8")
+    page.fill("#bulk-reject", "0.3")
+    page.click("#bulk-preview")
+    page.wait_for_selector(f"#bulk-status:has-text('{want_acc} to accept and {want_rej} to reject in the map.')")
+    assert api_get(server, f"/collections/{fx.map_id}/changesets")["numberMatched"] == 1  # the import only
+    asked = []
+    page.once("dialog", lambda d: (asked.append(d.message), d.accept()))
+    page.click("#bulk-apply")
+    page.wait_for_selector(f"#bulk-status:has-text('Accepted {want_acc} and rejected {want_rej} in the map')")
+    assert asked == [f"Accept {want_acc} and reject {want_rej} unreviewed detections in the map, as one changeset?"]
+    got = {f["id"]: f["properties"]["status"] for f in api_get(server, f"/collections/{fx.map_id}/items",
+                                                                  limit=10000)["features"]}  # fmt: skip
+    for i, v in scores.items():
+        assert got[i] == ("accepted" if v >= 0.8 else "rejected" if v < 0.3 else "unreviewed"), (i, v)
+    page.wait_for_selector("#history-list li:has-text('review by score in the map')")
+    n = len(fx.detected)
+    page.wait_for_selector(f"#review-progress:has-text('Saved: {want_acc + want_rej} of {n} detections reviewed')")
+    # the page shows the new statuses without a reload
+    page.wait_for_function(f"lanemapEditor.state.server.get('{fx.detected[0]}')?.status === 'rejected'")
+
+
 def review_list(page, path, places: dict) -> None:
     """Write a GeoJSON list of places to ``path`` and give it to the review panel's list field."""
     path.write_text(json.dumps(places))

@@ -250,6 +250,33 @@ def test_summary_cli(sqlite_url, tmp_path, cli):
     assert bad.returncode == 1 and bad.stderr.strip() == "error: unknown map 'nope'"
 
 
+def test_review_cli(sqlite_url, tmp_path, cli):
+    """``lanemap review``: a dry run changes nothing; the review is one changeset by ``cli``; bad
+    thresholds are one line each."""
+    pts = [_pt(8.43 + k * 1e-4, source="detected", score=s, weight=40) for k, s in enumerate([0.05, 0.5, 0.92, 0.97])]
+    (tmp_path / "g.geojson").write_text(json.dumps(_fc(*pts)))
+    cli(["import", "m", "g.geojson", "--create"], sqlite_url, tmp_path)
+    out = cli(["review", "m", "--accept-from", "0.9", "--reject-below", "0.1", "--dry-run"], sqlite_url, tmp_path)
+    assert out.stdout.strip() == "map m: would have 2 detections accepted and 1 rejected; nothing changed (--dry-run)"
+    assert Store(sqlite_url).summary("m").detections["unreviewed"] == 4
+    out = cli(["review", "m", "--accept-from", "0.9", "--reject-below", "0.1", "--comment", "sure"], sqlite_url, tmp_path)
+    assert out.stdout.strip() == "map m: 2 detections accepted and 1 rejected in changeset 2 (revision 2)"
+    store = Store(sqlite_url)
+    assert store.summary("m").detections == {"unreviewed": 1, "accepted": 2, "rejected": 1}
+    cs = store.get_changeset("m", 2)
+    assert (cs.who, cs.comment, cs.n_update) == ("cli", "sure", 3)
+    out = cli(["review", "m", "--accept-from", "0.99"], sqlite_url, tmp_path)
+    assert out.stdout.strip() == "map m: no unreviewed detection with a score is in that range; nothing changed"
+    for args, says in ((["m"], "give --accept-from SCORE, --reject-below SCORE or both"),
+                       (["m", "--accept-from", "0.5", "--reject-below", "0.6"], "--reject-below 0.6 is above --accept-from 0.5"),
+                       (["m", "--accept-from", "0.5", "--bbox", "1,2"], "bbox: give 4 numbers"),
+                       (["nope", "--accept-from", "0.5"], "unknown map 'nope'")):  # fmt: skip
+        bad = cli(["review", *args], sqlite_url, tmp_path, check=False)
+        lines = bad.stderr.strip().splitlines()
+        assert bad.returncode == 1 and len(lines) == 1 and lines[0].startswith(f"error: {says}"), (args, lines)
+    assert cli(["review", "m", "--accept-from", "1.5"], sqlite_url, tmp_path, check=False).returncode == 2
+
+
 def test_delete_map_cli(sqlite_url, tmp_path, cli):
     run = cli
     (tmp_path / "g.geojson").write_text(json.dumps(_fc(_pt())))

@@ -342,6 +342,51 @@ def test_summary_counts_what_the_map_holds_and_its_review(store):
     assert (empty.count, empty.reviewed_share, sum(empty.unreviewed_scores)) == (0, None, 0)
 
 
+def test_review_by_score_decides_the_sure_detections_in_one_revertible_changeset(store):
+    """``review_by_score``: the unreviewed detections at or above ``accept_from`` are accepted and
+    those below ``reject_below`` rejected, in one changeset that a revert undoes; people's
+    decisions, markings of other sources and detections without a score stay as they are."""
+    store.create_map("ka", crs="EPSG:25832")
+    scores = [0.05, 0.1, 0.15, 0.5, 0.85, 0.9, 0.95, 1.0]
+    det = store.add_markings("ka", [_m(3.0 * k, 0.0, source="detected", score=s) for k, s in enumerate(scores)])
+    decided = store.add_markings("ka", [_m(0.0, 5.0, source="detected", score=0.99, status="rejected"),
+                                        _m(3.0, 5.0, source="detected", score=0.01, status="accepted")])  # fmt: skip
+    others = store.add_markings("ka", [_m(0.0, 10.0, source="manual", score=0.01),
+                                       _m(3.0, 10.0, source="detected", score=None)])  # fmt: skip
+    far = store.add_markings("ka", [_m(5000.0, 0.0, source="detected", score=0.97)])
+    before = {m.id: (m.status, m.version) for m in store.iter_markings("ka")}
+    rev0 = store.get_map("ka").revision
+    with pytest.raises(StoreError, match="give accept_from"):
+        store.review_by_score("ka", who="t")
+    with pytest.raises(StoreError, match="above accept_from"):
+        store.review_by_score("ka", accept_from=0.5, reject_below=0.6, who="t")
+    with pytest.raises(StoreError, match=r"in \[0, 1\]"):
+        store.review_by_score("ka", accept_from=1.5, who="t")
+    dry = store.review_by_score("ka", accept_from=0.9, reject_below=0.15, who="t", dry_run=True)
+    assert (dry.accepted, dry.rejected, dry.changeset_id, dry.revision) == (4, 2, None, rev0)
+    assert {m.id: (m.status, m.version) for m in store.iter_markings("ka")} == before
+    # only near the first detections: the far one stays unreviewed
+    to_wgs = __import__("mapbuilder.crs", fromlist=["to_wgs84"]).to_wgs84("EPSG:25832")
+    w, s_ = to_wgs.transform(E0 - 10, N0 - 10)
+    e, n = to_wgs.transform(E0 + 100, N0 + 100)
+    res = store.review_by_score("ka", accept_from=0.9, reject_below=0.15, lonlat_box=(w, s_, e, n), who="alice")
+    assert (res.accepted, res.rejected, res.revision) == (3, 2, rev0 + 1)
+    now = {m.id: m for m in store.iter_markings("ka")}
+    assert [now[i].status for i in det] == ["rejected", "rejected", "unreviewed", "unreviewed", "unreviewed",
+                                            "accepted", "accepted", "accepted"]  # fmt: skip
+    assert all(now[i].version == 2 for i, sc in zip(det, scores) if sc >= 0.9 or sc < 0.15)
+    assert now[far[0]].status == "unreviewed"
+    assert all((now[i].status, now[i].version) == before[i] for i in decided + others)
+    cs = store.get_changeset("ka", res.changeset_id)
+    assert (cs.who, cs.n_update, cs.comment) == ("alice", 5, "review by score: accept from 0.9, reject below 0.15")
+    assert {r for r, _ in store.changes("ka", rev0).changed} == {rev0 + 1}
+    # the revert puts every one of them back
+    store.revert_changeset("ka", res.changeset_id, who="alice")
+    assert {m.id: m.status for m in store.iter_markings("ka")} == {i: st for i, (st, _) in before.items()}
+    none = store.review_by_score("ka", accept_from=0.999, lonlat_box=(w, s_, w + 1e-6, s_ + 1e-6), who="t")
+    assert (none.accepted, none.rejected, none.changeset_id) == (0, 0, None)
+
+
 def test_jobs(store):
     store.create_map("ka", crs="EPSG:25832")
     j = store.create_job("build", "ka", {"image": "a.tif"})

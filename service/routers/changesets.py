@@ -22,6 +22,7 @@ from mapbuilder.store import (
 )  # fmt: skip
 
 from ..deps import Context, get_ctx, require_read, require_write
+from ..filters import parse_bbox
 from ..problems import Problem
 from ._common import (
     JSON,
@@ -233,6 +234,49 @@ def history(
         "numberReturned": len(rows),
         "links": _page_links(request, offset, limit, len(rows), total),
     }
+
+
+class ReviewIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    accept_from: float | None = Field(None, ge=0, le=1, description="Accept the unreviewed detections scoring "
+                                                                  "at least this")
+    reject_below: float | None = Field(None, ge=0, le=1, description="Reject the unreviewed detections scoring "
+                                                                   "below this")
+    bbox: str | None = Field(None, max_length=200, description="Only inside minLon,minLat,maxLon,maxLat (WGS84)")
+    comment: str = Field("", max_length=2000)
+    dry_run: bool = Field(False, description="Count what it would do; write nothing")
+
+
+@router.post(
+    "/collections/{mapId}/review", summary="Accept and reject detections by their score, as one changeset",
+    status_code=201,
+    responses={200: {"description": "A dry run, or nothing matched: the counts, no changeset"},
+               201: {"description": "The changeset that accepted and rejected them"}},
+)  # fmt: skip
+def review_by_score(
+    body: ReviewIn, request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx),
+    who: str = Depends(require_write),
+):
+    """What a team does before reviewing the doubtful detections one by one: the unreviewed
+    detections scoring at least `accept_from` are accepted, those below `reject_below` rejected
+    (within `bbox` when given), in one changeset that the history lists and a revert undoes.
+    Detections without a score and markings a person decided on are left as they are. The map's
+    summary (`GET .../summary`) shows how the unreviewed scores spread."""
+    box = None
+    if body.bbox is not None:
+        try:
+            box = parse_bbox(body.bbox)
+        except ValueError as exc:
+            raise Problem(422, str(exc), "invalid-parameter") from None
+    res = ctx.store.review_by_score(mapId, accept_from=body.accept_from, reject_below=body.reject_below,
+                                    lonlat_box=box, who=who, comment=body.comment, dry_run=body.dry_run)  # fmt: skip
+    out: dict[str, Any] = {"accepted": res.accepted, "rejected": res.rejected, "revision": res.revision,
+                           "changeset": None if res.changeset_id is None else str(res.changeset_id), "links": []}
+    if res.changeset_id is None:
+        return JSONResponse(out, status_code=200)
+    url = f"{base_url(request)}/collections/{mapId}/changesets/{res.changeset_id}"
+    out["links"] = [link(url, "self", JSON)]
+    return JSONResponse(out, status_code=201, headers={"Location": url})
 
 
 @router.post("/collections/{mapId}/changesets/{changesetId}/revert", summary="Revert a changeset",

@@ -138,6 +138,11 @@ export class Api {
     return this.request('GET', `collections/${encodeURIComponent(mapId)}/changesets/${encodeURIComponent(id)}`);
   }
 
+  /** Accept and reject unreviewed detections by score, one changeset (`dry_run`: only count). */
+  reviewByScore(mapId, body) {
+    return this.request('POST', `collections/${encodeURIComponent(mapId)}/review`, { body });
+  }
+
   revert(mapId, id, comment) {
     return this.request('POST', `collections/${encodeURIComponent(mapId)}/changesets/${encodeURIComponent(id)}/revert`,
       { body: { comment } });

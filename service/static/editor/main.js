@@ -943,6 +943,48 @@ function stopReview(clearText = true) {
   if (clearText) $('review-status').textContent = '';
 }
 
+// ---------------------------------------------------------------- review by score
+function bulkBody(dryRun) {
+  const num = (id) => ($(id).value.trim() === '' ? null : Number($(id).value));
+  const body = { accept_from: num('bulk-accept'), reject_below: num('bulk-reject'), dry_run: dryRun };
+  if ($('bulk-in-view').checked) body.bbox = map.getBounds().toBBoxString();
+  return body;
+}
+
+async function bulkReview(dryRun) {
+  if (!state.mapId || (!dryRun && !canEdit())) return;
+  const body = bulkBody(dryRun);
+  const where = body.bbox ? 'in view' : 'in the map';
+  try {
+    if (!dryRun) {
+      const n = await api.reviewByScore(state.mapId, { ...body, dry_run: true });
+      if (!confirm(`Accept ${n.accepted} and reject ${n.rejected} unreviewed detections ${where}, as one changeset?`)) return;
+      body.comment = `review by score ${where}`;
+      state.writes++;
+      state.writeSeq++;
+    }
+    try {
+      const res = await api.reviewByScore(state.mapId, body);
+      if (dryRun || res.changeset == null) {
+        $('bulk-status').textContent = `${res.accepted} to accept and ${res.rejected} to reject ${where}.`;
+        return;
+      }
+      $('bulk-status').textContent = `Accepted ${res.accepted} and rejected ${res.rejected} ${where} (changeset #${res.changeset}).`;
+      state.collection = await api.collection(state.mapId);
+      state.revision = state.collection.revision;
+      await loadView();
+      loadHistory(true);
+      loadProgress();
+    } finally {
+      if (!dryRun) state.writes--;
+    }
+  } catch (err) {
+    $('bulk-status').textContent = `Review by score failed: ${problemText(err)}`;
+  }
+}
+$('bulk-preview').addEventListener('click', () => bulkReview(true));
+$('bulk-apply').addEventListener('click', () => bulkReview(false));
+
 $('review-start').addEventListener('click', startReview);
 $('review-file').addEventListener('change', (e) => reviewFile(e.target.files[0]));
 $('score-file').addEventListener('change', (e) => scoreAgainst(e.target.files[0]));
@@ -1063,7 +1105,7 @@ function applyTokenState() {
   $('who').hidden = !has;
   $('who').textContent = writes ? 'editing' : has ? 'read-only token' : '';
   document.body.classList.toggle('readonly', !writes);
-  for (const id of ['mode-add']) $(id).disabled = !writes;
+  for (const id of ['mode-add', 'bulk-apply']) $(id).disabled = !writes;
   for (const b of document.querySelectorAll('#history-list .revert')) b.disabled = !writes;
   if (!writes && state.mode === 'add') setMode('select');
   updateCounters();
