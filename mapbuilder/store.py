@@ -418,6 +418,19 @@ def marking_row(m: Marking, crs: str, now: datetime) -> dict[str, Any]:
     }
 
 
+def _update_many(conn: Connection, rows: list[dict[str, Any]]) -> None:
+    """UPDATE markings by id (``_id``) to the values ``_v_<column>``, in one ``executemany``.
+
+    Every row gives the same columns (a changeset's updates write whole rows).
+    """
+    if not rows:
+        return
+    cols = [k[3:] for k in rows[0] if k.startswith("_v_")]
+    stmt = update(markings).where(markings.c.id == bindparam("_id")).values(
+        {c: bindparam(f"_v_{c}") for c in cols})  # fmt: skip
+    conn.execute(stmt, rows)
+
+
 def _insert_many(conn: Connection, table, rows: list[dict[str, Any]]) -> None:
     """INSERT rows that all have the same keys, in the connection's transaction.
 
@@ -1387,10 +1400,10 @@ class Store:
                     reverts=reverts,
                 )
             ).inserted_primary_key[0]  # fmt: skip
-            results, xs, ys, log_rows, written = [], [], [], [], {}
+            results, xs, ys, log_rows, written, updates = [], [], [], [], {}, []
             for i, c in enumerate(changes):
                 try:
-                    res, before, after = self._apply_one(conn, map_id, crs, c, current, now, rev)
+                    res, before, after = self._apply_one(conn, map_id, crs, c, current, now, rev, updates)
                 except InvalidMarkingError as exc:
                     raise InvalidMarkingError(f"change {i} ({c.op}): {exc}") from None
                 results.append(res)
@@ -1405,6 +1418,7 @@ class Store:
                         at=now, before=before, after=after, comment=comment or "",
                     )
                 )  # fmt: skip
+            _update_many(conn, updates)
             conn.execute(insert(edits), log_rows)
             self._touch_map(conn, map_id, xs, ys)
         return ChangesetResult(changeset_id=cs_id, results=results, markings=written)
@@ -1481,7 +1495,9 @@ class Store:
                  map_id, n_acc, len(rows) - n_acc, thresholds, who, cs_id)  # fmt: skip
         return ReviewResult(n_acc, len(rows) - n_acc, int(cs_id), rev)
 
-    def _apply_one(self, conn, map_id, crs, c: Change, current, now, rev: int):
+    def _apply_one(self, conn, map_id, crs, c: Change, current, now, rev: int, updates: list):
+        """Apply one change; an update's new values are appended to ``updates`` instead, for
+        :func:`_update_many` (a statement built per row cost most of a large changeset's time)."""
         if c.op == "create":
             if c.marking is None:
                 raise StoreError("a create change needs a marking")
@@ -1529,7 +1545,7 @@ class Store:
         values.pop("created_at")
         values["version"] = row.version + 1
         values["revision"] = rev
-        conn.execute(update(markings).where(markings.c.id == c.id).values(**values))
+        updates.append({"_id": c.id, **{f"_v_{k}": v for k, v in values.items()}})
         after = marking_to_json(_marking_from_row(_row_obj({**values, "created_at": row.created_at}, c.id, map_id)))
         return {"op": "update", "id": c.id, "version": row.version + 1}, before, after
 
