@@ -604,6 +604,11 @@ def test_the_sure_detections_are_decided_at_once_by_score(editor, fx, server):
     want_acc = sum(v >= 0.8 for v in scores.values())
     want_rej = sum(v < 0.3 for v in scores.values())
     assert want_acc and want_rej
+    # how the unreviewed scores spread: ten bars, one per tenth
+    page.wait_for_selector("#review-scores span")
+    titles = page.eval_on_selector_all("#review-scores span", "bars => bars.map(b => b.title)")
+    assert titles == [f"score {k / 10:.1f}–{(k + 1) / 10:.1f}: {sum(k / 10 <= v < (k + 1) / 10 for v in scores.values())}"
+                      " unreviewed" for k in range(10)]  # fmt: skip
     page.fill("#bulk-accept", "0.8")
     page.fill("#bulk-reject", "0.3")
     page.click("#bulk-preview")

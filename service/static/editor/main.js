@@ -1005,6 +1005,17 @@ async function loadProgress() {
       : `Saved: ${fmt(total - d.unreviewed)} of ${fmt(total)} detections reviewed `
         + `(${(100 * sm.review.reviewedShare).toFixed(1)} %; ${fmt(d.accepted)} accepted, `
         + `${fmt(d.rejected)} rejected), ${fmt(d.unreviewed)} to go.`;
+    // How the unreviewed detections' scores spread: where to set the thresholds of a review by score.
+    const bins = sm.review.unreviewedScores;
+    const top = Math.max(...bins.map((b) => b.count));
+    $('review-scores').hidden = top === 0;
+    $('review-scores').replaceChildren(...bins.map((b) => {
+      const bar = document.createElement('span');
+      bar.style.height = `${top ? (100 * b.count) / top : 0}%`;
+      bar.className = b.count ? '' : 'empty';
+      bar.title = `score ${b.min.toFixed(1)}–${b.max.toFixed(1)}: ${b.count.toLocaleString('en')} unreviewed`;
+      return bar;
+    }));
   } catch (err) {
     $('review-progress').textContent = `Review progress could not be loaded: ${problemText(err)}`;
   }
