@@ -1,13 +1,12 @@
-"""``POST /collections/{mapId}/localize``: a vehicle's pose from the markings its camera sees."""
+"""``POST /collections/{mapId}/localize`` and ``POST /localize``: a vehicle's pose from the markings its camera sees."""
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
 from typing import Literal
-
-import functools
 
 import anyio
 import numpy as np
@@ -311,10 +310,7 @@ async def localize_vehicle(
     mapId: str = PathParam(..., max_length=64),
     ctx: Context = Depends(get_ctx),
 ):
-    _check_count(ctx, len(body.observations), "observations")
-    if body.min_probability is not None and body.method != "default":
-        raise Problem(422, "min_probability: the pink2008 method has no posterior probability",
-                      "min-probability-needs-default-method")  # fmt: skip
+    _check_frame(ctx, body)
     return await _admit(ctx, _run_frame, mapId, body)
 
 
@@ -326,10 +322,7 @@ async def localize_anywhere(body: LocalizeIn, ctx: Context = Depends(get_ctx)):
     uses (accepted and unreviewed) within the fix's reach: three of its position sigmas (the
     ellipse's major one, 5 m by default) plus 30 m of camera view. A fleet whose vehicles cross
     from one map to the next need not know the maps' ids: the answer's `map` names the one used."""
-    _check_count(ctx, len(body.observations), "observations")
-    if body.min_probability is not None and body.method != "default":
-        raise Problem(422, "min_probability: the pink2008 method has no posterior probability",
-                      "min-probability-needs-default-method")  # fmt: skip
+    _check_frame(ctx, body)
     map_id = await anyio.to_thread.run_sync(_map_at, ctx, body.gps)
     return await _admit(ctx, functools.partial(_run_frame, name_map=True), map_id, body)
 
@@ -392,6 +385,14 @@ async def localize_drive(
         raise Problem(422, "gps: a GPS fix is needed to start a drive (or the previous answer's state to "
                       "continue one)", "missing-gps")  # fmt: skip
     return await _admit(ctx, _run_drive, mapId, body)
+
+
+def _check_frame(ctx: Context, body: LocalizeIn) -> None:
+    """What a single frame's request must hold beyond its schema."""
+    _check_count(ctx, len(body.observations), "observations")
+    if body.min_probability is not None and body.method != "default":
+        raise Problem(422, "min_probability: the pink2008 method has no posterior probability",
+                      "min-probability-needs-default-method")  # fmt: skip
 
 
 def _check_count(ctx: Context, n: int, field: str) -> None:
