@@ -549,6 +549,8 @@ class Store:
 
     def __init__(self, url: str | None = None, *, upgrade: bool = True):
         self.url = normalize_url(url or Settings().resolved_database_url())
+        #: map id -> (revision, number of markings) (:meth:`_count_at`)
+        self._counts: dict[str, tuple[int, int]] = {}
         self.engine = self._make_engine(self.url)
         self.dialect = self.engine.dialect.name
         if upgrade:
@@ -755,22 +757,27 @@ class Store:
     def get_map(self, map_id: str, *, with_count: bool = False) -> MapInfo:
         with self._read() as conn:
             row = self._map_row(conn, map_id)
-            count = None
-            if with_count:
-                count = conn.execute(
-                    select(func.count()).select_from(markings).where(markings.c.map_id == map_id)
-                ).scalar_one()
+            count = self._count_at(conn, row) if with_count else None
         return self._map_info(row, count)
 
     def list_maps(self) -> list[MapInfo]:
         with self._read() as conn:
-            counts = dict(
-                conn.execute(
-                    select(markings.c.map_id, func.count()).group_by(markings.c.map_id)
-                ).all()
-            )
             rows = conn.execute(select(maps).order_by(maps.c.id)).all()
-        return [self._map_info(r, counts.get(r.id, 0)) for r in rows]
+            return [self._map_info(r, self._count_at(conn, r)) for r in rows]
+
+    def _count_at(self, conn: Connection, row) -> int:
+        """The number of markings of the map of ``row`` (a ``maps`` row), counted once per revision.
+
+        Every write of a map's markings moves its revision on (and a map made anew starts past
+        its old one's), so a count kept under the revision it was read at stays exact until
+        then: a map of a million markings took 60-150 ms to count at every listing.
+        """
+        cached = self._counts.get(row.id)
+        if cached is not None and cached[0] == row.revision:
+            return cached[1]
+        n = conn.execute(select(func.count()).select_from(markings).where(markings.c.map_id == row.id)).scalar_one()
+        self._counts[row.id] = (int(row.revision), int(n))
+        return int(n)
 
     def map_extents(self) -> list[tuple[str, str | None, tuple[float, float, float, float] | None]]:
         """Every map's id, storage CRS and bounds in it (None while it has none), by id: one

@@ -387,6 +387,22 @@ def test_review_by_score_decides_the_sure_detections_in_one_revertible_changeset
     assert (none.accepted, none.rejected, none.changeset_id) == (0, 0, None)
 
 
+def test_counts_follow_writes_made_by_another_store(store):
+    """A store counts a map's markings once per revision: another process's writes (here another
+    Store on the same database) move the revision on, and the next listing counts again."""
+    store.create_map("ka", crs="EPSG:25832")
+    store.add_markings("ka", [_m(3.0 * k, 0.0) for k in range(4)])
+    assert _count(store, "ka") == 4 and [m.count for m in store.list_maps()] == [4]
+    other = Store(store.url)
+    ids = other.add_markings("ka", [_m(3.0 * k, 9.0) for k in range(3)])
+    other.apply_changeset("ka", [Change("delete", id=ids[0])], who="t")
+    assert _count(store, "ka") == 6 and [m.count for m in store.list_maps()] == [6]
+    other.delete_map("ka")
+    other.create_map("ka", crs="EPSG:25832")  # made anew: its revision goes on past the old one's
+    assert _count(store, "ka") == 0
+    other.close()
+
+
 def test_jobs(store):
     store.create_map("ka", crs="EPSG:25832")
     j = store.create_job("build", "ka", {"image": "a.tif"})
