@@ -291,6 +291,36 @@ def test_the_map_is_picked_by_the_gps_fix(tmp_path, karlsruhe_fc):  # noqa: F811
         r = httpx.post(f"{server.base_url}/localize", json={"gps": wide, "observations": obs}, timeout=60)
         assert r.status_code == 200 and r.json()["map"] in (ka, east)
         assert_problem(httpx.post(f"{server.base_url}/localize", json={"gps": far}, timeout=60), 422, "observations")
+
+        # A drive on the eastern map, streamed: the map is picked by its first fix and kept in its state.
+        frames, truth = drive_frames(feats, 4)
+        east_frames = frames  # a vehicle frame is the same on the moved streets
+        gps = gps_near((truth[0][0][0] + shift, truth[0][0][1]), truth[0][1])
+        url = f"{server.base_url}/localize/sequence"
+        whole = httpx.post(url, json={"gps": gps, "frames": east_frames}, timeout=60)
+        assert whole.status_code == 200, whole.text
+        assert whole.json()["map"] == whole.json()["state"]["map"] == east
+        first = httpx.post(url, json={"gps": gps, "frames": east_frames[:2]}, timeout=60).json()
+        rest = httpx.post(url, json={"state": first["state"], "frames": east_frames[2:]}, timeout=60)
+        assert rest.status_code == 200 and rest.json()["map"] == east, rest.text
+        assert first["poses"] + rest.json()["poses"] == whole.json()["poses"]
+        last, (p_last, _) = whole.json()["poses"][-1], truth[-1]
+        assert last["status"] == "ok" and math.hypot(last["easting"] - p_last[0] - shift, last["northing"] - p_last[1]) < 0.3
+        # the map's own endpoint goes on with such a state too, but not another map's
+        own = httpx.post(f"{server.base_url}/collections/{east}/localize/sequence",
+                         json={"state": first["state"], "frames": east_frames[2:]}, timeout=60)  # fmt: skip
+        assert own.status_code == 200 and own.json()["poses"] == rest.json()["poses"] and "map" not in own.json()
+        assert_problem(httpx.post(f"{server.base_url}/collections/{ka}/localize/sequence",
+                                  json={"state": first["state"], "frames": east_frames[2:]}, timeout=60),
+                       409, f"the drive is localized on map {east!r}")  # fmt: skip
+        # a state of a map's own endpoint names no map; one whose map is gone is a 404
+        plain = httpx.post(f"{server.base_url}/collections/{east}/localize/sequence",
+                           json={"gps": gps, "frames": east_frames[:2]}, timeout=60).json()  # fmt: skip
+        assert "map" not in plain["state"]
+        assert_problem(httpx.post(url, json={"state": plain["state"], "frames": east_frames[2:]}, timeout=60),
+                       422, "state.map")  # fmt: skip
+        assert_problem(httpx.post(url, json={"state": {**first["state"], "map": "gone"}, "frames": east_frames[2:]},
+                                  timeout=60), 404, "gone")  # fmt: skip
     finally:
         server.stop()
 

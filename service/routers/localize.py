@@ -181,6 +181,9 @@ class DriveState(BaseModel):
         None, max_length=50, description="The drive's last frames (absent in older states)")
     shift: float = Field(0.0, ge=0, allow_inf_nan=False,
                          description="Log weight the lead cap has taken off every track so far")
+    map: str | None = Field(None, max_length=64,
+                            description="The map the drive is localized on, when `POST /localize/sequence` "
+                                        "picked it: the drive goes on there")
 
 
 class SequenceIn(BaseModel):
@@ -281,6 +284,8 @@ class SequenceOut(BaseModel):
     state: DriveState | None = Field(
         None, description="Send it with the next frames to continue the drive; null when the frames could "
                           "not be localized")
+    map: str | None = Field(None, description="The map the drive was localized on: only in the answers of "
+                                              "`POST /localize/sequence`, which picks it by the first GPS fix")
 
 
 #: The answer's header naming the revision of the map it was localized against.
@@ -372,6 +377,33 @@ async def localize_drive(
     request carries at most ``LANEMAP_MAX_DRIVE_OBSERVATIONS`` observations
     over all its frames (5,000 by default); a longer drive is streamed.
     """
+    _check_drive(ctx, body)
+    if body.state is not None and body.state.map is not None and body.state.map != mapId:
+        raise Problem(409, f"state: the drive is localized on map {body.state.map!r}, not {mapId!r}; send it "
+                      "to POST /localize/sequence, or start the drive anew", "state-of-another-map")  # fmt: skip
+    return await _admit(ctx, _run_drive, mapId, body)
+
+
+@router.post("/localize/sequence", summary="Localize a vehicle over a drive, on the map where its GPS fix is",
+             responses={200: {"model": SequenceOut, "description": "The pose at every frame, and the map"},
+                        404: {"description": "No map has markings near the GPS fix, or the state's map is gone"}})  # fmt: skip
+async def localize_drive_anywhere(body: SequenceIn, ctx: Context = Depends(get_ctx)):
+    """As `POST /collections/{mapId}/localize/sequence`, on the map that `POST /localize` would pick
+    for the drive's first GPS fix. The answer's `map` and its `state` name it; a drive streamed with
+    that state goes on there."""
+    _check_drive(ctx, body)
+    if body.state is not None:
+        if body.state.map is None:
+            raise Problem(422, "state.map: this state comes from a map's own drive endpoint; continue it there",
+                          "missing-map")  # fmt: skip
+        map_id = body.state.map
+    else:
+        map_id = await anyio.to_thread.run_sync(_map_at, ctx, body.gps)
+    return await _admit(ctx, functools.partial(_run_drive, name_map=True), map_id, body)
+
+
+def _check_drive(ctx: Context, body: SequenceIn) -> None:
+    """What a drive's request must hold beyond its schema."""
     for k, f in enumerate(body.frames):
         _check_count(ctx, len(f.observations), f"frames[{k}].observations")
         if (k or body.state is not None) and f.motion is None:
@@ -384,7 +416,6 @@ async def localize_drive(
     if body.gps is None and body.state is None:
         raise Problem(422, "gps: a GPS fix is needed to start a drive (or the previous answer's state to "
                       "continue one)", "missing-gps")  # fmt: skip
-    return await _admit(ctx, _run_drive, mapId, body)
 
 
 def _check_frame(ctx: Context, body: LocalizeIn) -> None:
@@ -453,7 +484,8 @@ def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float, name
     return JSONResponse(answer, headers=headers)
 
 
-async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float) -> JSONResponse:
+async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: float,
+                     name_map: bool = False) -> JSONResponse:  # fmt: skip
     """A drive a frame per turn at the localization thread.
 
     The frames of a drive could hold the thread for seconds (50 of them, or
@@ -467,7 +499,7 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
     busy = 0.0
     try:
         while True:
-            done, dt = await _turn(ctx, _advance, steps)
+            done, dt = await _turn(ctx, _advance, steps, map_id if name_map else None)
             busy += dt
             if done is not None:
                 statuses, answer = done
@@ -477,7 +509,8 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
         failed = {"status": "failed", "crs": index.crs, "hypotheses": [],
                   "reason": f"numerical failure ({exc.__class__.__name__})"}  # fmt: skip
         statuses = ["failed"] * len(frames)
-        answer = JSONResponse({"poses": [failed] * len(frames), "tracks": 0, "state": None})
+        answer = JSONResponse({"poses": [failed] * len(frames), "tracks": 0, "state": None,
+                               **({"map": map_id} if name_map else {})})  # fmt: skip
     _count(map_id, "drive", "default", statuses, busy)
     answer.headers.update({**_server_timing(admitted, t0, t1, busy), REVISION_HEADER: str(revision)})
     return answer
@@ -494,7 +527,7 @@ def _drive_steps(ctx: Context, map_id: str, body: SequenceIn):
               (0.0, 0.0, 0.0) if f.motion is None else (f.motion.dx, f.motion.dy, math.radians(f.motion.dyaw_deg)))
         for f in body.frames
     ]  # fmt: skip
-    state = TrackState.from_dict(body.state.model_dump()) if body.state is not None else None
+    state = TrackState.from_dict(body.state.model_dump(exclude={"map"})) if body.state is not None else None
     return index, revision, iter_sequence(index, frames, _prior(body.gps) if body.gps is not None else None,
                                 options=localize_options(body.min_probability), state=state)  # fmt: skip
 
@@ -505,9 +538,10 @@ def _timed(fn, *args) -> tuple[object, float, float]:
     return fn(*args), t, time.perf_counter()
 
 
-def _advance(steps) -> tuple[tuple[list[str], JSONResponse] | None, float]:
+def _advance(steps, map_id: str | None = None) -> tuple[tuple[list[str], JSONResponse] | None, float]:
     """One frame of a drive and the seconds it took: ``None`` while frames are left, then the
-    poses' statuses and the answer (rendered here, off the event loop)."""
+    poses' statuses and the answer (rendered here, off the event loop; naming ``map_id``, in
+    the answer and its state, when given)."""
     t = time.perf_counter()
     try:
         next(steps)
@@ -516,6 +550,8 @@ def _advance(steps) -> tuple[tuple[list[str], JSONResponse] | None, float]:
         result = end.value
         out = {"poses": [_pose_json(p) for p in result.poses], "tracks": result.tracks,
                "state": result.state.to_dict()}
+        if map_id is not None:
+            out["map"] = out["state"]["map"] = map_id
         return ([p.status for p in result.poses], JSONResponse(out)), dt
     return None, time.perf_counter() - t
 
