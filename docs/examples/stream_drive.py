@@ -8,8 +8,11 @@ those one request with all the frames would give.
 Usage (the demo server of the README, from the repository root):
 
     python docs/examples/stream_drive.py http://127.0.0.1:8000 karlsruhe docs/examples/drive.json
+    python docs/examples/stream_drive.py http://127.0.0.1:8000 - docs/examples/drive.json
 
-Prints one line per frame: status, probability, latitude, longitude, heading.
+With ``-`` for the map, the server picks the map where the drive's first fix
+is (``POST /localize/sequence``) and the state keeps it. Prints one line per
+frame: status, probability, latitude, longitude, heading.
 Needs ``httpx`` (installed with lanemap).
 """
 
@@ -21,9 +24,10 @@ import sys
 import httpx
 
 
-def stream(base_url: str, map_id: str, drive: dict, token: str | None = None) -> list[dict]:
-    """Send ``drive``'s frames one per request; the answer at every frame."""
-    url = f"{base_url}/collections/{map_id}/localize/sequence"
+def stream(base_url: str, map_id: str | None, drive: dict, token: str | None = None) -> list[dict]:
+    """Send ``drive``'s frames one per request (to the map ``map_id``, or None: the map where the
+    drive starts); the answer at every frame."""
+    url = f"{base_url}/localize/sequence" if map_id is None else f"{base_url}/collections/{map_id}/localize/sequence"
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     poses, state = [], None
     with httpx.Client(headers=headers, timeout=30) as client:
@@ -44,11 +48,11 @@ def stream(base_url: str, map_id: str, drive: dict, token: str | None = None) ->
 
 def main() -> None:
     if len(sys.argv) != 4:
-        raise SystemExit("usage: stream_drive.py BASE_URL MAP_ID DRIVE.json")
+        raise SystemExit("usage: stream_drive.py BASE_URL MAP_ID|- DRIVE.json")
     base_url, map_id, path = sys.argv[1:]
     with open(path) as f:
         drive = json.load(f)
-    for k, p in enumerate(stream(base_url.rstrip("/"), map_id, drive)):
+    for k, p in enumerate(stream(base_url.rstrip("/"), None if map_id == "-" else map_id, drive)):
         if p["status"] == "failed":
             print(f"frame {k}: failed ({p.get('reason')})")
         else:
