@@ -1147,22 +1147,27 @@ class Store:
                 return 0
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
-    def summary(self, map_id: str) -> MapSummary:
+    def summary(self, map_id: str, lonlat_box: tuple[float, float, float, float] | None = None) -> MapSummary:
         """Count a map's markings by status, source and kind, and its unreviewed detections
-        by score, in one snapshot (a scan of the map's markings: about a second per million)."""
+        by score, in one snapshot (a scan of the map's markings: about a second per million);
+        only those inside ``lonlat_box`` (minLon, minLat, maxLon, maxLat; degrees) when given,
+        such as a district a team reviews."""
         c = markings.c
         edges = [k / SCORE_BINS for k in range(SCORE_BINS)] + [math.inf]
         per_bin = [func.coalesce(func.sum(case((and_(c.score >= lo, c.score < hi), 1), else_=0)), 0)
                    for lo, hi in zip(edges[:-1], edges[1:])]  # fmt: skip
         with self._read() as conn:
             row = self._map_row(conn, map_id)
-            groups = conn.execute(
-                select(c.status, c.source, c.kind, func.count()).where(c.map_id == map_id)
-                .group_by(c.status, c.source, c.kind)
-            ).all()  # fmt: skip
-            hist = [int(n) for n in conn.execute(
-                select(*per_bin).where(c.map_id == map_id, c.source == "detected", c.status == "unreviewed")
-            ).one()]  # fmt: skip
+            where = self._selection(conn, map_id, None, lonlat_box)
+            if where is None:  # the box misses the map
+                groups, hist = [], [0] * SCORE_BINS
+            else:
+                groups = conn.execute(
+                    select(c.status, c.source, c.kind, func.count()).where(where).group_by(c.status, c.source, c.kind)
+                ).all()  # fmt: skip
+                hist = [int(n) for n in conn.execute(
+                    select(*per_bin).where(where, c.source == "detected", c.status == "unreviewed")
+                ).one()]  # fmt: skip
         by_status: dict[str, int] = {}
         by_source: dict[str, int] = {}
         by_kind: dict[str, int] = {}

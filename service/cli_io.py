@@ -1,5 +1,5 @@
-"""Files named on the ``lanemap`` command line (``-`` means standard input or output), and the
-progress bars of the commands that read or write many markings."""
+"""Files named on the ``lanemap`` command line (``-`` means standard input or output), its
+``--bbox``, and the progress bars of the commands that read or write many markings."""
 
 from __future__ import annotations
 
@@ -17,6 +17,20 @@ STDIO = "-"
 
 def is_stdio(path: Path | str) -> bool:
     return str(path) == STDIO
+
+
+def bbox_option(text: str | None) -> tuple[float, float, float, float] | None:
+    """A command's ``--bbox MINLON,MINLAT,MAXLON,MAXLAT`` as a box (None when not given), or its
+    one ``error:`` line."""
+    from .cli_errors import fail
+    from .filters import parse_bbox
+
+    if text is None:
+        return None
+    try:
+        return parse_bbox(text)
+    except ValueError as exc:
+        fail(f"--{exc}")
 
 
 def source_name(path: Path | str) -> str:

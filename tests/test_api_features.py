@@ -149,6 +149,14 @@ def test_a_maps_summary_counts_its_markings_and_its_review(api):
     assert [b["count"] for b in bins] == [0] + [1] * 9 and (bins[0]["min"], bins[-1]["max"]) == (0.0, 1.0)
     with api.client() as c:
         assert_problem(c.get("/collections/no-such-map/summary"), 404)
+        # a district: the first three detections only (scores 0, 0.1 and 0.2; the first rejected)
+        part = c.get(f"/collections/{map_id}/summary", params={"bbox": "8.42795,49.007,8.42825,49.00715"}).json()
+        assert part["numberOfFeatures"] == 3 and part["review"]["detections"] == {"unreviewed": 2, "accepted": 0,
+                                                                                  "rejected": 1}  # fmt: skip
+        assert [b["count"] for b in part["review"]["unreviewedScores"]][:3] == [0, 1, 1]
+        away = c.get(f"/collections/{map_id}/summary", params={"bbox": "1,1,2,2"}).json()
+        assert away["numberOfFeatures"] == 0 and away["review"]["reviewedShare"] is None
+        assert_problem(c.get(f"/collections/{map_id}/summary", params={"bbox": "1,2,3"}), 400, "bbox")
 
 
 def test_bbox_returns_exactly_the_features_inside(api, imported):

@@ -248,6 +248,12 @@ def test_summary_cli(sqlite_url, tmp_path, cli):
     assert data["unreviewed_scores"][4] == 4 and sum(data["unreviewed_scores"]) == 4
     bad = cli(["maps", "summary", "nope"], sqlite_url, tmp_path, check=False)
     assert bad.returncode == 1 and bad.stderr.strip() == "error: unknown map 'nope'"
+    # a district: the box around the first two detections
+    box = json.loads(cli(["maps", "summary", "m", "--json", "--bbox", "8.42995,48.9999,8.43015,49.0001"],
+                         sqlite_url, tmp_path).stdout)  # fmt: skip
+    assert (box["markings"], box["detections"]["unreviewed"], box["unreviewed_scores"][4]) == (2, 2, 2)
+    bad = cli(["maps", "summary", "m", "--bbox", "1,2,3"], sqlite_url, tmp_path, check=False)
+    assert bad.returncode == 1 and bad.stderr.startswith("error: --bbox: give 4 numbers")
 
 
 def test_review_cli(sqlite_url, tmp_path, cli):
@@ -269,7 +275,7 @@ def test_review_cli(sqlite_url, tmp_path, cli):
     assert out.stdout.strip() == "map m: no unreviewed detection with a score is in that range; nothing changed"
     for args, says in ((["m"], "give --accept-from SCORE, --reject-below SCORE or both"),
                        (["m", "--accept-from", "0.5", "--reject-below", "0.6"], "--reject-below 0.6 is above --accept-from 0.5"),
-                       (["m", "--accept-from", "0.5", "--bbox", "1,2"], "bbox: give 4 numbers"),
+                       (["m", "--accept-from", "0.5", "--bbox", "1,2"], "--bbox: give 4 numbers"),
                        (["nope", "--accept-from", "0.5"], "unknown map 'nope'")):  # fmt: skip
         bad = cli(["review", *args], sqlite_url, tmp_path, check=False)
         lines = bad.stderr.strip().splitlines()

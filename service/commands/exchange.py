@@ -13,9 +13,9 @@ from mapbuilder.store import Store
 
 from ..cli_errors import fail
 from ..cli_io import (
-    PROGRESS_OPTION, counted, follow, is_stdio, progress_bar, read_markings, source_name,
+    PROGRESS_OPTION, bbox_option, counted, follow, is_stdio, progress_bar, read_markings, source_name,
 )  # fmt: skip
-from ..filters import parse_bbox, parse_statuses
+from ..filters import parse_statuses
 
 def register(app: typer.Typer) -> None:
     @app.command("import")
@@ -63,9 +63,9 @@ def register(app: typer.Typer) -> None:
             fail(f"cannot export to {file.name}: use a .geojson or .gpkg file name")
         try:
             statuses = parse_statuses(status)
-            box = parse_bbox(bbox) if bbox is not None else None
         except ValueError as exc:
             fail(f"--{exc}")
+        box = bbox_option(bbox)
         store = Store()
         info = store.get_map(map_id)
         if suffix == ".gpkg" and info.crs is None:

@@ -46,10 +46,14 @@ def register(app: typer.Typer) -> None:
     @maps.command("summary")
     def summary(
         map_id: str = typer.Argument(..., metavar="MAP"),
+        bbox: str = typer.Option(None, "--bbox", metavar="MINLON,MINLAT,MAXLON,MAXLAT",
+                                 help="Only inside this box (WGS84 minLon,minLat,maxLon,maxLat): a district."),
         as_json: bool = typer.Option(False, "--json", help="Print JSON."),
     ) -> None:
         """Count a map's markings by status, source and kind, and say how far its review has come."""
-        sm = Store().summary(map_id)
+        from ..cli_io import bbox_option
+
+        sm = Store().summary(map_id, bbox_option(bbox))
         if as_json:
             typer.echo(json.dumps(_summary_dict(map_id, sm), indent=2))
             return

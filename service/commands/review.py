@@ -7,7 +7,7 @@ import typer
 from mapbuilder.store import Store
 
 from ..cli_errors import fail
-from ..filters import parse_bbox
+from ..cli_io import bbox_option
 
 
 def register(app: typer.Typer) -> None:
@@ -18,7 +18,7 @@ def register(app: typer.Typer) -> None:
                                           help="Accept the unreviewed detections scoring at least SCORE."),
         reject_below: float = typer.Option(None, "--reject-below", min=0.0, max=1.0, metavar="SCORE",
                                            help="Reject the unreviewed detections scoring below SCORE."),
-        bbox: str = typer.Option(None, "--bbox", metavar="W,S,E,N",
+        bbox: str = typer.Option(None, "--bbox", metavar="MINLON,MINLAT,MAXLON,MAXLAT",
                                  help="Only inside this box (WGS84 minLon,minLat,maxLon,maxLat)."),
         comment: str = typer.Option("", "--comment", help="Comment for the edit log."),
         dry_run: bool = typer.Option(False, "--dry-run", help="Say what it would do; change nothing."),
@@ -35,13 +35,8 @@ def register(app: typer.Typer) -> None:
             fail("give --accept-from SCORE, --reject-below SCORE or both")
         if accept_from is not None and reject_below is not None and reject_below > accept_from:
             fail(f"--reject-below {reject_below:g} is above --accept-from {accept_from:g}")
-        box = None
-        if bbox is not None:
-            try:
-                box = parse_bbox(bbox)
-            except ValueError as exc:
-                fail(str(exc))
-        res = Store().review_by_score(map_id, accept_from=accept_from, reject_below=reject_below, lonlat_box=box,
+        res = Store().review_by_score(map_id, accept_from=accept_from, reject_below=reject_below,
+                                      lonlat_box=bbox_option(bbox),
                                       who="cli", comment=comment, dry_run=dry_run)  # fmt: skip
         what = f"{res.accepted:,} detections accepted and {res.rejected:,} rejected"
         if dry_run:

@@ -163,14 +163,21 @@ def get_collection(request: Request, mapId: str = MapId, ctx: Context = Depends(
         "0.7-1.2 s for a million markings, then kept until the map changes."
     ),
 )  # fmt: skip
-def get_summary(request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx)) -> JSONResponse:
-    # Every editor asks again whenever the map moves on; a map's scan is done once per revision.
-    cached = ctx.summaries.get(mapId)
-    if cached is not None and cached[0] == ctx.store.map_revision(mapId):
-        sm = cached[1]
+def get_summary(
+    request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx),
+    bbox: str | None = Query(None, max_length=200, description="Only the markings inside minLon,minLat,maxLon,maxLat "
+                                                               "(WGS84), such as a district a team reviews"),
+) -> JSONResponse:  # fmt: skip
+    if bbox is not None:
+        sm = ctx.store.summary(mapId, _bbox(bbox))
     else:
-        sm = ctx.store.summary(mapId)
-        ctx.summaries[mapId] = (sm.revision, sm)
+        # Every editor asks again whenever the map moves on; a map's scan is done once per revision.
+        cached = ctx.summaries.get(mapId)
+        if cached is not None and cached[0] == ctx.store.map_revision(mapId):
+            sm = cached[1]
+        else:
+            sm = ctx.store.summary(mapId)
+            ctx.summaries[mapId] = (sm.revision, sm)
     n = len(sm.unreviewed_scores)
     body = {
         "id": mapId,
