@@ -630,6 +630,28 @@ def test_the_sure_detections_are_decided_at_once_by_score(editor, fx, server):
     page.wait_for_function(f"lanemapEditor.state.server.get('{fx.detected[0]}')?.status === 'rejected'")
 
 
+def test_a_district_is_reviewed_on_its_own(editor, fx):
+    """*this view only*: the progress counts the detections in view, the queue holds only them, and
+    the review by score decides only them."""
+    editor.open().enter_token()
+    page = editor.page
+    a = fx.isolated(source="detected")[0]
+    lon, lat = fx.lonlat(a)
+    page.evaluate(f"void lanemapEditor.map.setView([{lat}, {lon}], 20, {{animate: false}})")
+    page.check("#review-in-view")
+    b = page.evaluate("(() => { const b = lanemapEditor.map.getBounds(); "
+                      "return [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()]; })()")  # fmt: skip
+    inside = [i for i in fx.detected if b[0] <= fx.lonlat(i)[0] <= b[2] and b[1] <= fx.lonlat(i)[1] <= b[3]]
+    assert 0 < len(inside) < len(fx.detected)
+    page.wait_for_selector(f"#review-progress:has-text('Saved, in view: 0 of {len(inside)} detections reviewed')")
+    page.fill("#bulk-accept", "0")  # every detection in view
+    page.fill("#bulk-reject", "0")
+    page.click("#bulk-preview")
+    page.wait_for_selector(f"#bulk-status:has-text('{len(inside)} to accept and 0 to reject in view.')")
+    page.click("#review-start")  # (the queue then centres each detection in turn)
+    page.wait_for_selector(f"#review-status:has-text('1 of {len(inside)}:')")
+
+
 def review_list(page, path, places: dict) -> None:
     """Write a GeoJSON list of places to ``path`` and give it to the review panel's list field."""
     path.write_text(json.dumps(places))

@@ -59,8 +59,9 @@ export class Api {
   }
 
   /** The map's markings counted by status, source and kind, and how far its review has come. */
-  summary(mapId) {
-    return this.request('GET', `collections/${encodeURIComponent(mapId)}/summary`);
+  summary(mapId, bbox = null) {
+    const q = bbox ? `?bbox=${bbox.map((v) => v.toFixed(7)).join(',')}` : '';
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}/summary${q}`);
   }
 
   imagery(mapId) {

@@ -739,7 +739,7 @@ async function startReview() {
   if (!state.mapId) return;
   $('review-status').textContent = 'Loading unreviewed detections…';
   try {
-    const items = await api.items(state.mapId, null, {
+    const items = await api.items(state.mapId, reviewBox(), {
       status: 'unreviewed',
       pageSize: 10000,
       onPage: (n, of) => ($('review-status').textContent = `Loading unreviewed detections… ${n} of ${of}`),
@@ -947,7 +947,8 @@ function stopReview(clearText = true) {
 function bulkBody(dryRun) {
   const num = (id) => ($(id).value.trim() === '' ? null : Number($(id).value));
   const body = { accept_from: num('bulk-accept'), reject_below: num('bulk-reject'), dry_run: dryRun };
-  if ($('bulk-in-view').checked) body.bbox = map.getBounds().toBBoxString();
+  const box = reviewBox();
+  if (box) body.bbox = box.map((v) => v.toFixed(7)).join(',');
   return body;
 }
 
@@ -982,6 +983,8 @@ async function bulkReview(dryRun) {
     $('bulk-status').textContent = `Review by score failed: ${problemText(err)}`;
   }
 }
+$('review-in-view').addEventListener('change', loadProgress);
+map.on('moveend', () => { if ($('review-in-view').checked && !state.review) loadProgress(); });
 $('bulk-preview').addEventListener('click', () => bulkReview(true));
 $('bulk-apply').addEventListener('click', () => bulkReview(false));
 
@@ -991,18 +994,28 @@ $('score-file').addEventListener('change', (e) => scoreAgainst(e.target.files[0]
 $('review-stop').addEventListener('click', () => stopReview());
 
 // ---------------------------------------------------------------- history
-/** How far the review of the saved map has come, from the server's count of its detections. */
+/** The box the review works in: the view's (minLon, minLat, maxLon, maxLat) when "this view
+ * only" is ticked, else null (the whole map). */
+function reviewBox() {
+  if (!$('review-in-view').checked) return null;
+  const b = map.getBounds();
+  return [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()];
+}
+
+/** How far the review of the saved map (or of the view) has come, from the server's count of its detections. */
 async function loadProgress() {
   if (!state.mapId) return;
   const mapId = state.mapId;
+  const box = reviewBox();
   try {
-    const sm = await api.summary(mapId);
+    const sm = await api.summary(mapId, box);
     if (mapId !== state.mapId) return;
     const d = sm.review.detections;
     const total = d.unreviewed + d.accepted + d.rejected;
     const fmt = (v) => v.toLocaleString('en');
-    $('review-progress').textContent = total === 0 ? 'No detections to review in this map.'
-      : `Saved: ${fmt(total - d.unreviewed)} of ${fmt(total)} detections reviewed `
+    const where = box ? 'in view' : 'in this map';
+    $('review-progress').textContent = total === 0 ? `No detections to review ${where}.`
+      : `Saved${box ? ', in view' : ''}: ${fmt(total - d.unreviewed)} of ${fmt(total)} detections reviewed `
         + `(${(100 * sm.review.reviewedShare).toFixed(1)} %; ${fmt(d.accepted)} accepted, `
         + `${fmt(d.rejected)} rejected), ${fmt(d.unreviewed)} to go.`;
     // How the unreviewed detections' scores spread: where to set the thresholds of a review by score.
