@@ -600,11 +600,7 @@ async function save(comment) {
     $('conflict').hidden = true;
     $('save-comment').value = '';
     toast(`Saved changeset ${res.changeset}: ${res.results.length} markings (${created.length} new).`);
-    state.collection = await api.collection(state.mapId);
-    state.revision = state.collection.revision;
-    await loadView();
-    loadHistory(true);
-    loadProgress();
+    await afterOwnWrite();
   } catch (err) {
     if (err instanceof ApiError && (err.status === 409 || err.status === 412)) {
       showConflict(err.problem);
@@ -971,11 +967,7 @@ async function bulkReview(dryRun) {
         return;
       }
       $('bulk-status').textContent = `Accepted ${res.accepted} and rejected ${res.rejected} ${where} (changeset #${res.changeset}).`;
-      state.collection = await api.collection(state.mapId);
-      state.revision = state.collection.revision;
-      await loadView();
-      loadHistory(true);
-      loadProgress();
+      await afterOwnWrite();
     } finally {
       if (!dryRun) state.writes--;
     }
@@ -994,6 +986,16 @@ $('score-file').addEventListener('change', (e) => scoreAgainst(e.target.files[0]
 $('review-stop').addEventListener('click', () => stopReview());
 
 // ---------------------------------------------------------------- history
+/** After this page wrote to the map (a save, a revert, a review by score): the map's revision,
+ * the markings in view, the history and the review's progress as the server now has them. */
+async function afterOwnWrite() {
+  state.collection = await api.collection(state.mapId);
+  state.revision = state.collection.revision;
+  await loadView();
+  loadHistory(true);
+  loadProgress();
+}
+
 /** The box the review works in: the view's (minLon, minLat, maxLon, maxLat) when "this view
  * only" is ticked, else null (the whole map). */
 function reviewBox() {
@@ -1102,11 +1104,7 @@ async function revertChangeset(c) {
   try {
     const res = await api.revert(state.mapId, c.id, comment);
     toast(`Changeset #${c.id} reverted by #${res.changeset}.`);
-    state.collection = await api.collection(state.mapId);
-    state.revision = state.collection.revision;
-    await loadView();
-    loadHistory(true);
-    loadProgress();
+    await afterOwnWrite();
   } catch (err) {
     const ids = err.problem?.conflicting_ids;
     toast(`Revert refused: ${problemText(err)}${ids ? ` (markings ${ids.join(', ')} changed since)` : ''}`, 'error');
