@@ -421,7 +421,8 @@ def marking_row(m: Marking, crs: str, now: datetime) -> dict[str, Any]:
 def _update_many(conn: Connection, rows: list[dict[str, Any]]) -> None:
     """UPDATE markings by id (``_id``) to the values ``_v_<column>``, in one ``executemany``.
 
-    Every row gives the same columns (a changeset's updates write whole rows).
+    Every row gives the same columns: a changeset's updates write whole rows, a review by
+    score the status and what moves with it.
     """
     if not rows:
         return
@@ -551,6 +552,8 @@ class Store:
         self.url = normalize_url(url or Settings().resolved_database_url())
         #: map id -> (revision, number of markings) (:meth:`_count_at`)
         self._counts: dict[str, tuple[int, int]] = {}
+        #: map id -> (revision, the whole map's summary) (:meth:`summary`)
+        self._summaries: dict[str, tuple[int, MapSummary]] = {}
         self.engine = self._make_engine(self.url)
         self.dialect = self.engine.dialect.name
         if upgrade:
@@ -1151,12 +1154,20 @@ class Store:
         """Count a map's markings by status, source and kind, and its unreviewed detections
         by score, in one snapshot (a scan of the map's markings: about a second per million);
         only those inside ``lonlat_box`` (minLon, minLat, maxLon, maxLat; degrees) when given,
-        such as a district a team reviews."""
+        such as a district a team reviews.
+
+        The whole map's summary is kept under the revision it was read at, as its count is
+        (:meth:`_count_at`): every editor asks again whenever the map moves on.
+        """
+        if lonlat_box is None:
+            cached = self._summaries.get(map_id)
+            if cached is not None and cached[0] == self.map_revision(map_id):
+                return cached[1]
         c = markings.c
         edges = [k / SCORE_BINS for k in range(SCORE_BINS)] + [math.inf]
         per_bin = [func.coalesce(func.sum(case((and_(c.score >= lo, c.score < hi), 1), else_=0)), 0)
                    for lo, hi in zip(edges[:-1], edges[1:])]  # fmt: skip
-        with self._read() as conn:
+        with self.snapshot() as conn:
             row = self._map_row(conn, map_id)
             where = self._selection(conn, map_id, None, lonlat_box)
             if where is None:  # the box misses the map
@@ -1178,11 +1189,14 @@ class Store:
             by_kind[kind or "unknown"] = by_kind.get(kind or "unknown", 0) + n
             if source == "detected":
                 detections[status] += n
-        return MapSummary(
+        out = MapSummary(
             revision=int(row.revision), count=sum(by_status.values()),
             by_status=dict(sorted(by_status.items())), by_source=dict(sorted(by_source.items())),
             by_kind=dict(sorted(by_kind.items())), detections=detections, unreviewed_scores=hist,
         )
+        if lonlat_box is None:
+            self._summaries[map_id] = (out.revision, out)
+        return out
 
     def changes(
         self, map_id: str, since: int, *, statuses: Sequence[str] | None = None,
@@ -1483,25 +1497,21 @@ class Store:
             thresholds = ", ".join(
                 ([f"accept from {accept_from:g}"] if accept_from is not None else [])
                 + ([f"reject below {reject_below:g}"] if reject_below is not None else []))  # fmt: skip
+            comment = comment or f"review by score: {thresholds}"
             cs_id = conn.execute(
                 insert(changesets).values(map_id=map_id, who=who, at=now, n_create=0, n_update=len(rows),
-                                          n_delete=0, comment=comment or f"review by score: {thresholds}")
+                                          n_delete=0, comment=comment)
             ).inserted_primary_key[0]  # fmt: skip
-            conn.execute(
-                update(markings).where(markings.c.id == bindparam("_id")).values(
-                    status=bindparam("_status"), version=bindparam("_version"), revision=rev, updated_at=now),
-                [{"_id": r.id, "_status": st, "_version": r.version + 1} for r, st in zip(rows, new)],
-            )  # fmt: skip
+            _update_many(conn, [{"_id": r.id, "_v_status": st, "_v_version": r.version + 1, "_v_revision": rev,
+                                 "_v_updated_at": now} for r, st in zip(rows, new)])  # fmt: skip
             log_rows = []
             for r, st in zip(rows, new):
                 m = _marking_from_row(r)
                 before = marking_to_json(m)
                 m.status, m.version = st, r.version + 1
                 log_rows.append(dict(map_id=map_id, changeset_id=cs_id, marking_id=r.id, op="update", who=who,
-                                     at=now, before=before, after=marking_to_json(m),
-                                     comment=comment or f"review by score: {thresholds}"))  # fmt: skip
-            for start in range(0, len(log_rows), 5000):
-                conn.execute(insert(edits), log_rows[start : start + 5000])
+                                     at=now, before=before, after=marking_to_json(m), comment=comment))  # fmt: skip
+            conn.execute(insert(edits), log_rows)
             self._touch_map(conn, map_id)
         log.info("map %s: %d detections accepted and %d rejected by score (%s) by %s, changeset %d",
                  map_id, n_acc, len(rows) - n_acc, thresholds, who, cs_id)  # fmt: skip

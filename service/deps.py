@@ -37,8 +37,6 @@ class Context:
     jobs: Any = None  # service.jobs.JobRunner
     indexes: dict[str, tuple[int, Any]] = field(default_factory=dict)
     index_lock: threading.Lock = field(default_factory=threading.Lock)
-    #: the latest summary of each map (``GET .../summary``), as (revision, MapSummary)
-    summaries: dict[str, tuple[int, Any]] = field(default_factory=dict)
     #: localizations admitted and not yet answered (changed on the event loop only)
     localize_pending: int = 0
     localize_limiter: Any = None  # anyio.CapacityLimiter, made on the event loop at first use
