@@ -45,11 +45,6 @@ class Quicklook:
     markings: int
 
 
-def image_bounds(images: Sequence[str], crs: str) -> tuple[float, float, float, float]:
-    """The union of the images' footprints in ``crs``, metres."""
-    return _footprints(images, crs)[0]
-
-
 def _footprints(images: Sequence[str], crs: str) -> tuple[tuple[float, float, float, float], float]:
     """The union of the images' footprints in ``crs`` and the finest of their pixel sizes there, metres."""
     import rasterio
@@ -133,9 +128,23 @@ def _paint(out: np.ndarray, path: str, crs: str, transform, res: float) -> None:
     out[keep] = rgb.transpose(1, 2, 0)[keep]
 
 
+def map_quicklook(store, map_id: str, images: Sequence[str], out: Path | str, *, max_px: int = 3000,
+                  title: str = "") -> Quicklook:  # fmt: skip
+    """:func:`render_quicklook` of the markings of a map (a :class:`~mapbuilder.store.Store`'s) that
+    the localizer uses (unreviewed and accepted) over ``images``, in the map's CRS.
+
+    What ``lanemap build --quicklook`` and a build job's ``quicklook.png`` draw; the images'
+    headers are read once, for the markings' box and for the picture.
+    """
+    crs = store.get_map(map_id).crs
+    footprints = _footprints(images, crs)
+    shown = store.query_bbox(map_id, *footprints[0], statuses=("unreviewed", "accepted"))
+    return render_quicklook(images, shown, crs, out, max_px=max_px, title=title, footprints=footprints)
+
+
 def render_quicklook(
     images: Sequence[str], markings: Sequence[Marking], crs: str, out: Path | str, *,
-    max_px: int = 3000, title: str = "",
+    max_px: int = 3000, title: str = "", footprints: tuple | None = None,
 ) -> Quicklook:  # fmt: skip
     """Draw ``markings`` (in ``crs``) over ``images`` and save the picture as a PNG.
 
@@ -149,6 +158,9 @@ def render_quicklook(
         The map's CRS, metric.
     max_px : int
         Longest side of the picture, pixels (not finer than the imagery needs to be).
+    footprints : optional
+        The images' union footprint and finest pixel size in ``crs`` when the caller has
+        read them already (:func:`map_quicklook`).
     """
     import matplotlib
 
@@ -156,7 +168,7 @@ def render_quicklook(
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
-    bounds, finest = _footprints(images, crs)
+    bounds, finest = footprints or _footprints(images, crs)
     width, height = bounds[2] - bounds[0], bounds[3] - bounds[1]
     res = max(max(width, height) / max(int(max_px), 64), finest)
     shape = (max(1, math.ceil(height / res - 1e-6)), max(1, math.ceil(width / res - 1e-6)))

@@ -124,13 +124,10 @@ def build(
 
 
 def _save_quicklook(store, map_id: str, images: list[str], path: Path, max_px: int) -> None:
-    from mapbuilder.quicklook import image_bounds, render_quicklook
+    from mapbuilder.quicklook import map_quicklook
 
-    crs = store.get_map(map_id).crs
-    box = image_bounds(images, crs)
-    shown = store.query_bbox(map_id, *box, statuses=("unreviewed", "accepted"))
     try:
-        look = render_quicklook(images, shown, crs, path, max_px=max_px, title=f"map {map_id}")
+        look = map_quicklook(store, map_id, images, path, max_px=max_px, title=f"map {map_id}")
     except OSError as exc:
         fail(f"cannot write {path}: {exc.strerror or exc}")
     typer.echo(f"quicklook: {look.path} ({look.shape[1]} x {look.shape[0]} px, {look.resolution_m:.2f} m per pixel)")

@@ -189,14 +189,12 @@ def job_quicklook(
 
 def _render_quicklook(ctx: Context, job: JobInfo, images: list[str], path, size: int) -> None:
     """Render a job's quicklook into ``path`` (written whole, then renamed) and drop its older ones."""
-    from mapbuilder.quicklook import image_bounds, render_quicklook
+    from mapbuilder.quicklook import map_quicklook
 
-    crs = ctx.store.get_map(job.map_id).crs
-    shown = ctx.store.query_bbox(job.map_id, *image_bounds(images, crs), statuses=("unreviewed", "accepted"))
     part = path.with_name(f"{path.stem}.{os.getpid()}.{threading.get_ident()}.part.png")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        render_quicklook(images, shown, crs, part, max_px=size, title=f"map {job.map_id}, job {job.id}")
+        map_quicklook(ctx.store, job.map_id, images, part, max_px=size, title=f"map {job.map_id}, job {job.id}")
         part.replace(path)
         current = path.name.rsplit("-", 1)[0] + "-"  # job-{id}-r{revision}-: other sizes stay
         for old in path.parent.glob(f"job-{job.id}-r*.png"):
