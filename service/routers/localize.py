@@ -325,7 +325,8 @@ async def localize_vehicle(
 async def localize_anywhere(body: LocalizeIn, ctx: Context = Depends(get_ctx)):
     """As `POST /collections/{mapId}/localize`, on the map with the most markings the localizer
     uses (accepted and unreviewed) within the fix's reach: three of its position sigmas (the
-    ellipse's major one, 5 m by default) plus 30 m of camera view. A fleet whose vehicles cross
+    ellipse's major one, 5 m by default) plus 30 m of camera view; of maps with as many, the
+    first by id. A fleet whose vehicles cross
     from one map to the next need not know the maps' ids: the answer's `map` names the one used."""
     _check_frame(ctx, body)
     map_id = await anyio.to_thread.run_sync(_map_at, ctx, body.gps)
