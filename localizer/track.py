@@ -61,7 +61,7 @@ import numpy as np
 
 from .core import DEFAULT_OPTIONS, _check_prior, _make_pose, localize, parse_observations, position_covariance
 from .errors import LocalizationInputError
-from .frames import wrap_angle
+from .frames import GeoFrame, wrap_angle
 from .geometry import LocalMap
 from .index import MapIndex
 from .robust import log_prior, missed_counts, mixture_covariance
@@ -248,6 +248,59 @@ class TrackState:
                         for obs, motion, weight, first in self.history],
             "shift": float(self.shift),
         }
+
+    def to_crs(self, crs: str) -> TrackState:
+        """The same state with its poses in another projected CRS: a drive handed to another map.
+
+        Every pose keeps its place on the ground and its true heading; the
+        grid yaw takes the other CRS's meridian convergence, and the sigmas and
+        the fix's covariance the local scale and turn between the two grids
+        (their Jacobian, taken 1 m around each pose). The frames kept for
+        retrodiction are in the vehicle frame and stay as they are.
+
+        Parameters
+        ----------
+        crs : str
+            The other map's CRS (projected, metres).
+
+        Raises
+        ------
+        LocalizationInputError
+            If either CRS is not a projected metric one, or a pose falls
+            outside the other CRS's domain.
+        """
+        if crs == self.crs:
+            return self
+        src, dst = GeoFrame(self.crs), GeoFrame(crs)
+        poses = np.array([t[:3] for t in self.tracks] + [self.gps[:3]], float)
+        e, n = poses[:, 0], poses[:, 1]
+        # each pose, and a metre east and north of it, through WGS84 into the other grid
+        x = np.concatenate([e, e + 1.0, e])
+        y = np.concatenate([n, n, n + 1.0])
+        tx, ty = dst.to_xy(*src.to_lonlat(x, y))
+        tx, ty = np.asarray(tx, float).reshape(3, -1), np.asarray(ty, float).reshape(3, -1)
+        if not (np.all(np.isfinite(tx)) and np.all(np.isfinite(ty))):
+            raise LocalizationInputError(f"state: its poses lie outside the domain of {crs}")
+        jac = np.empty((len(poses), 2, 2))
+        jac[:, :, 0] = np.column_stack([tx[1] - tx[0], ty[1] - ty[0]])
+        jac[:, :, 1] = np.column_stack([tx[2] - tx[0], ty[2] - ty[0]])
+        heading = np.einsum("kij,kj->ki", jac, np.column_stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])]))
+        yaw = np.arctan2(heading[:, 1], heading[:, 0])
+        scale = np.sqrt(np.abs(np.linalg.det(jac)))
+        tracks = tuple(
+            (float(tx[0, k]), float(ty[0, k]), float(yaw[k]), float(t[3] * scale[k]), *t[4:])
+            for k, t in enumerate(self.tracks)
+        )
+        g = len(self.tracks)
+        gps = (float(tx[0, g]), float(ty[0, g]), float(yaw[g]), float(self.gps[3] * scale[g]), self.gps[4])
+        cov = None
+        if self.gps_covariance is not None:
+            j = np.eye(3)
+            j[:2, :2] = jac[g]
+            c = j @ np.asarray(self.gps_covariance, float) @ j.T
+            c = 0.5 * (c + c.T)
+            cov = tuple(tuple(float(v) for v in row) for row in c)
+        return replace(self, crs=str(crs), tracks=tracks, gps=gps, gps_covariance=cov)
 
     @classmethod
     def from_dict(cls, data) -> TrackState:

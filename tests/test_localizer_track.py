@@ -494,3 +494,63 @@ def test_bad_track_options_are_input_errors():
     for bad in (-1, MAX_FRAMES + 1, 1.5, True, "3"):
         with pytest.raises(LocalizationInputError, match="retrodiction_frames"):
             TrackOptions(retrodiction_frames=bad)
+
+
+def _karlsruhe_in(crs: str) -> MapIndex:
+    """The markings of :func:`karlsruhe`'s index, stored in another grid (each moved through WGS84)."""
+    from localizer import GeoFrame
+    from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+
+    from ._localizer_helpers import CRS, KARLSRUHE_OSM
+
+    marks = layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS))
+    frame = GeoFrame(crs)
+    lon, lat = GeoFrame(CRS).to_lonlat(np.array([m.x for m in marks]), np.array([m.y for m in marks]))
+    x, y = frame.to_xy(lon, lat)
+    return MapIndex.from_arrays(x, y, [m.weight for m in marks], crs,
+                                bearing_deg=np.array([m.bearing_deg for m in marks]) - frame.convergence_deg(lon, lat),
+                                length_m=[m.length_m for m in marks], kind=[m.kind for m in marks])  # fmt: skip
+
+
+def test_a_drive_handed_to_a_map_in_another_crs_goes_on_where_it_was():
+    """TrackState.to_crs: the drive continued on the same markings stored in another grid gives the same
+    poses on the ground, though its grid yaws differ by the two grids' meridian convergences."""
+    index, smap = karlsruhe()
+    other_crs = "EPSG:31466"  # Gauss-Krüger zone 2: Karlsruhe lies 2.4° east of its meridian
+    other = _karlsruhe_in(other_crs)
+    rng = np.random.default_rng(31)
+    drive = sample_trajectories(smap, 1, 10, 1.5, rng, Camera(), min_visible=5)[0]
+    scenes = [simulate_scene(smap, tuple(p), rng, Camera(), Clutter()) for p in drive]
+    motions = [(0.0, 0.0, 0.0)] + [odometry(drive[k - 1], drive[k]) for k in range(1, len(drive))]
+    frames = [Frame(s.observations, m) for s, m in zip(scenes, motions)]
+    first = localize_sequence(index, frames[:5], prior_at(index, perturb(drive[0], 3.0, 5.0, rng), 4.0, 8.0))
+    state = first.state
+    assert state.tracks and state.gps_covariance is not None
+    moved = TrackState.from_dict(json.loads(json.dumps(state.to_crs(other_crs).to_dict())))
+    assert moved.crs == other_crs and moved.frames == state.frames and moved.history == state.history
+    for a, b in zip(state.tracks + (state.gps,), moved.tracks + (moved.gps,)):
+        lon, lat = index.frame.to_lonlat(a[0], a[1])
+        assert np.allclose(other.frame.to_lonlat(b[0], b[1]), (lon, lat), atol=1e-8)  # ~1 mm
+        true_a = index.frame.grid_yaw_to_heading(a[2], lon, lat)
+        true_b = other.frame.grid_yaw_to_heading(b[2], lon, lat)
+        assert abs((true_a - true_b + 180) % 360 - 180) < 1e-3
+        # the grids' norths differ by 1.8° here: the grid yaw is not simply carried over
+        assert abs(math.degrees(wrap(a[2] - b[2]))) > 1.5
+        assert b[3] == pytest.approx(a[3], rel=1e-3) and b[4:] == a[4:]
+    assert np.linalg.eigvalsh(moved.gps_covariance) == pytest.approx(np.linalg.eigvalsh(state.gps_covariance), rel=2e-3)
+    assert state.to_crs(state.crs) is state
+
+    here = localize_sequence(index, frames[5:], None, state=state)
+    there = localize_sequence(other, frames[5:], None, state=moved)
+    assert [p.status for p in here.poses] == [p.status for p in there.poses]
+    assert here.poses[-1].status == "ok"
+    for p, q, truth in zip(here.poses, there.poses, drive[5:]):
+        assert math.hypot(p.easting - truth[0], p.northing - truth[1]) < 0.5
+        assert np.allclose((q.lon, q.lat), (p.lon, p.lat), atol=3e-7)  # within about 3 cm
+        assert abs((q.heading_deg - p.heading_deg + 180) % 360 - 180) < 0.05
+    with pytest.raises(LocalizationInputError, match="projected"):
+        state.to_crs("EPSG:4326")
+
+
+def wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
