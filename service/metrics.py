@@ -62,6 +62,10 @@ localizer_seconds = Histogram(
     "seconds", ["endpoint"], buckets=_SECONDS,
 )
 shed = Counter("lanemap_localizations_shed", "Localization requests refused with 503 while too many were pending")
+drive_handovers = Counter(
+    "lanemap_drive_handovers", "Drives streamed through POST /localize/sequence handed from their map to another, "
+    "by the maps they left and joined", ["source", "target"],
+)
 
 router = APIRouter(tags=["Health"])
 

@@ -339,27 +339,77 @@ _VIEW_REACH_M = 30.0
 
 def _map_at(ctx: Context, g: "GpsIn") -> str:
     """The id of the map with the most markings within a GPS fix's reach (see ``localize_anywhere``)."""
-    from mapbuilder.crs import from_wgs84
-
     prior = _prior(g)
     sigma = prior.position_sigma_m if prior.position_ellipse is None else prior.position_ellipse.sigma_major_m
     reach = 3.0 * sigma + _VIEW_REACH_M
-    best: tuple[int, str] | None = None
+    near = _maps_near(ctx, g.lon, g.lat, reach)
+    if not near:
+        raise Problem(404, f"no map has markings within {reach:.0f} m of the GPS fix ({g.lat:.6f}, {g.lon:.6f})",
+                      "no-map-here")  # fmt: skip
+    return near[0][1]
+
+
+def _maps_near(ctx: Context, lon: float, lat: float, reach: float) -> list[tuple[int, str, str]]:
+    """``(markings, map id, CRS)`` of every map with markings the localizer uses (accepted and
+    unreviewed) within ``reach`` metres (a square) of lon/lat: the most first, ties by id."""
+    from mapbuilder.crs import from_wgs84
+
+    found = []
     for map_id, crs, bounds in ctx.store.map_extents():
         if crs is None or bounds is None:
             continue
-        x, y = from_wgs84(crs).transform(g.lon, g.lat)
+        x, y = from_wgs84(crs).transform(lon, lat)
         if not (math.isfinite(x) and math.isfinite(y)):
             continue
         if x < bounds[0] - reach or x > bounds[2] + reach or y < bounds[1] - reach or y > bounds[3] + reach:
             continue
         n = ctx.store.count_bbox(map_id, x - reach, y - reach, x + reach, y + reach, statuses=("accepted", "unreviewed"))
-        if n and (best is None or n > best[0]):
-            best = (n, map_id)
-    if best is None:
-        raise Problem(404, f"no map has markings within {reach:.0f} m of the GPS fix ({g.lat:.6f}, {g.lon:.6f})",
-                      "no-map-here")  # fmt: skip
-    return best[1]
+        if n:
+            found.append((n, map_id, crs))
+    found.sort(key=lambda t: -t[0])  # stable: maps_extents lists them by id
+    return found
+
+
+#: A drive moves to another map once that map has this many times the markings of its own
+#: where the camera looks: maps that overlap do not take a drive back and forth.
+HANDOVER_RATIO = 1.5
+
+
+def _drive_map(ctx: Context, state: "DriveState") -> tuple[str, "DriveState"]:
+    """The map a drive streamed through ``POST /localize/sequence`` goes on on, and its state there.
+
+    A drive stays on its map while that map has markings where the camera looks
+    (the view ahead of the most probable track, or of the carried GPS fix while
+    no track is followed, widened by three of its sigmas). When another map has
+    :data:`HANDOVER_RATIO` times as many there (or the drive's map is gone), the
+    drive is handed to it: its state is moved into that map's CRS
+    (:meth:`localizer.TrackState.to_crs`) and its hypotheses go on there.
+    """
+    from localizer import GeoFrame, TrackState
+
+    opts = Options()
+    near_m, far_m = opts.view_min_range_m, opts.view_max_range_m
+    ahead = 0.5 * (near_m + far_m)
+    half_view = max(0.5 * (far_m - near_m), far_m * math.sin(math.radians(opts.view_half_fov_deg)))
+    if state.tracks:
+        t = state.tracks[0]
+        e, n, yaw, sigma = t.easting, t.northing, t.yaw_grid_rad, t.sigma_m
+    else:
+        g = state.gps
+        e, n, yaw, sigma = g.easting, g.northing, g.yaw_grid_rad, g.sigma_m
+    lon, lat = GeoFrame(state.crs).to_lonlat(e + ahead * math.cos(yaw), n + ahead * math.sin(yaw))
+    if not (math.isfinite(lon) and math.isfinite(lat)):
+        raise Problem(422, f"state: its pose lies outside the domain of {state.crs}", "invalid-localization-input")
+    near = _maps_near(ctx, lon, lat, half_view + 3.0 * sigma)
+    own = next((count for count, map_id, _ in near if map_id == state.map), 0)
+    rival = next((m for m in near if m[1] != state.map), None)
+    if rival is None or (own and rival[0] < HANDOVER_RATIO * own):
+        return state.map, state
+    n_rival, map_id, crs = rival
+    moved = TrackState.from_dict(state.model_dump(exclude={"map"})).to_crs(crs)
+    log.info("drive handed from map %s (%d markings in view) to map %s (%d)", state.map, own, map_id, n_rival)
+    metrics.drive_handovers.labels(state.map, map_id).inc()
+    return map_id, DriveState(**moved.to_dict(), map=map_id)
 
 
 @router.post("/collections/{mapId}/localize/sequence", summary="Localize a vehicle over a drive of frames",
@@ -387,17 +437,22 @@ async def localize_drive(
 
 @router.post("/localize/sequence", summary="Localize a vehicle over a drive, on the map where its GPS fix is",
              responses={200: {"model": SequenceOut, "description": "The pose at every frame, and the map"},
-                        404: {"description": "No map has markings near the GPS fix, or the state's map is gone"}})  # fmt: skip
+                        404: {"description": "No map has markings near the GPS fix, or the state's map is gone "
+                                               "and none has markings where the drive is"}})  # fmt: skip
 async def localize_drive_anywhere(body: SequenceIn, ctx: Context = Depends(get_ctx)):
     """As `POST /collections/{mapId}/localize/sequence`, on the map that `POST /localize` would pick
     for the drive's first GPS fix. The answer's `map` and its `state` name it; a drive streamed with
-    that state goes on there."""
+    that state goes on there until another map has 1.5 times its markings where the camera looks
+    next (or its map is deleted): the drive is then handed to that map, its state moved into that
+    map's CRS, and the answer names it."""
     _check_drive(ctx, body)
     if body.state is not None:
         if body.state.map is None:
             raise Problem(422, "state.map: this state comes from a map's own drive endpoint; continue it there",
                           "missing-map")  # fmt: skip
-        map_id = body.state.map
+        map_id, state = await anyio.to_thread.run_sync(_drive_map, ctx, body.state)
+        if state is not body.state:
+            body = body.model_copy(update={"state": state})
     else:
         map_id = await anyio.to_thread.run_sync(_map_at, ctx, body.gps)
     return await _admit(ctx, functools.partial(_run_drive, name_map=True), map_id, body)
