@@ -124,6 +124,9 @@ def test_the_readme_api_examples_answer_as_documented(karlsruhe_fc):  # noqa: F8
     lat, lon = (float(v) for v in re.search(r"lat=(\S+) lon=(\S+)", lines[-1]).groups())
     e, n = Transformer.from_crs("EPSG:4326", "EPSG:25832", always_xy=True).transform(lon, lat)
     assert len(lines) == 8 and lines[-1].startswith("frame 7: ok")
+    picked = re.search(r" map=(\S+)$", lines[0]).group(1)
+    assert httpx.get(f"{api.base_url}/collections/{picked}").status_code == 200
+    assert not any(" map=" in line for line in lines[1:])  # the drive stayed on it
     assert _off({"easting": e, "northing": n}, TRUTH["drive_last"]) < 0.3
     assert re.search(r"`ok` at (\S+),\s+(\S+),", streaming).groups() == (
         f"{last['poses'][-1]['lat']:.7f}", f"{last['poses'][-1]['lon']:.7f}")
