@@ -117,7 +117,7 @@ Example
 
 from .core import METHODS, localize, parse_observations, warm_up
 from .errors import LocalizationInputError
-from .frames import GeoFrame, bearing_to_yaw, wrap_angle, yaw_to_bearing
+from .frames import GeoFrame, bearing_to_yaw, shared_frame, wrap_angle, yaw_to_bearing
 from .index import MapIndex
 from .track import (
     Frame,
@@ -134,6 +134,7 @@ __all__ = [
     "METHODS",
     "ErrorEllipse",
     "GeoFrame",
+    "shared_frame",
     "Hypothesis",
     "LocalizationInputError",
     "MapIndex",

@@ -61,7 +61,7 @@ import numpy as np
 
 from .core import DEFAULT_OPTIONS, _check_prior, _make_pose, localize, parse_observations, position_covariance
 from .errors import LocalizationInputError
-from .frames import GeoFrame, wrap_angle
+from .frames import shared_frame, wrap_angle
 from .geometry import LocalMap
 from .index import MapIndex
 from .robust import log_prior, missed_counts, mixture_covariance
@@ -271,7 +271,7 @@ class TrackState:
         """
         if crs == self.crs:
             return self
-        src, dst = GeoFrame(self.crs), GeoFrame(crs)
+        src, dst = shared_frame(self.crs), shared_frame(crs)
         poses = np.array([t[:3] for t in self.tracks] + [self.gps[:3]], float)
         e, n = poses[:, 0], poses[:, 1]
         # each pose, and a metre east and north of it, through WGS84 into the other grid

@@ -349,12 +349,17 @@ def _map_at(ctx: Context, g: "GpsIn") -> str:
     return near[0][1]
 
 
-def _maps_near(ctx: Context, lon: float, lat: float, reach: float) -> list[tuple[int, str, str]]:
+def _maps_near(ctx: Context, lon: float, lat: float, reach: float,
+               unless_only: str | None = None) -> list[tuple[int, str, str]]:  # fmt: skip
     """``(markings, map id, CRS)`` of every map with markings the localizer uses (accepted and
-    unreviewed) within ``reach`` metres (a square) of lon/lat: the most first, ties by id."""
+    unreviewed) within ``reach`` metres (a square) of lon/lat: the most first, ties by id.
+
+    With ``unless_only``, an empty list without counting when that map's extent is the only one
+    the square touches.
+    """
     from mapbuilder.crs import from_wgs84
 
-    found = []
+    touched = []
     for map_id, crs, bounds in ctx.store.map_extents():
         if crs is None or bounds is None:
             continue
@@ -363,6 +368,11 @@ def _maps_near(ctx: Context, lon: float, lat: float, reach: float) -> list[tuple
             continue
         if x < bounds[0] - reach or x > bounds[2] + reach or y < bounds[1] - reach or y > bounds[3] + reach:
             continue
+        touched.append((map_id, crs, x, y))
+    if unless_only is not None and [t[0] for t in touched] == [unless_only]:
+        return []
+    found = []
+    for map_id, crs, x, y in touched:
         n = ctx.store.count_bbox(map_id, x - reach, y - reach, x + reach, y + reach, statuses=("accepted", "unreviewed"))
         if n:
             found.append((n, map_id, crs))
@@ -385,7 +395,7 @@ def _drive_map(ctx: Context, state: "DriveState") -> tuple[str, "DriveState"]:
     drive is handed to it: its state is moved into that map's CRS
     (:meth:`localizer.TrackState.to_crs`) and its hypotheses go on there.
     """
-    from localizer import GeoFrame, TrackState
+    from localizer import TrackState, shared_frame
 
     opts = Options()
     near_m, far_m = opts.view_min_range_m, opts.view_max_range_m
@@ -397,10 +407,10 @@ def _drive_map(ctx: Context, state: "DriveState") -> tuple[str, "DriveState"]:
     else:
         g = state.gps
         e, n, yaw, sigma = g.easting, g.northing, g.yaw_grid_rad, g.sigma_m
-    lon, lat = GeoFrame(state.crs).to_lonlat(e + ahead * math.cos(yaw), n + ahead * math.sin(yaw))
+    lon, lat = shared_frame(state.crs).to_lonlat(e + ahead * math.cos(yaw), n + ahead * math.sin(yaw))
     if not (math.isfinite(lon) and math.isfinite(lat)):
         raise Problem(422, f"state: its pose lies outside the domain of {state.crs}", "invalid-localization-input")
-    near = _maps_near(ctx, lon, lat, half_view + 3.0 * sigma)
+    near = _maps_near(ctx, lon, lat, half_view + 3.0 * sigma, unless_only=state.map)
     own = next((count for count, map_id, _ in near if map_id == state.map), 0)
     rival = next((m for m in near if m[1] != state.map), None)
     if rival is None or (own and rival[0] < HANDOVER_RATIO * own):
