@@ -170,7 +170,8 @@ def run(args) -> dict:
                 hit = any(math.hypot(hy.easting - pose[0], hy.northing - pose[1]) <= 0.5
                           for hy in p.hypotheses)
                 row[method] = dict(status=p.status, err=e, herr=h, ms=ms, maha=maha, maha_mix=maha_mix,
-                                   mix_sigmas=mix_sigmas, it=p.iterations, hyp_hit=hit, prob=p.probability)
+                                   mix_sigmas=mix_sigmas, it=p.iterations, hyp_hit=hit, prob=p.probability,
+                                   edge=p.status == "ambiguous" and p.reason is not None)
                 if len(tr[method]) < 60 and p.trace:
                     tr[method].append(
                         [(math.hypot(t[0] - pose[0], t[1] - pose[1]), heading_err_deg(t[2], pose[2]))
@@ -286,8 +287,9 @@ def threshold_table(all_rows: dict) -> str:
     """Success per scenario and confidently wrong overall, had answers been accepted from each threshold.
 
     An answer (``ok`` or ``ambiguous``: the pose fields are the best
-    hypothesis) counts as accepted when its probability reaches the threshold;
-    0.95 reproduces the ``ok`` status.
+    hypothesis) counts as accepted when its probability reaches the threshold,
+    unless the map's edge holds it back whatever its probability
+    (``Options.edge_share``); 0.95 reproduces the ``ok`` status.
     """
     names = list(all_rows)
     lines = ["| accept from | " + " | ".join(names) + " | confidently wrong |",
@@ -296,7 +298,8 @@ def threshold_table(all_rows: dict) -> str:
         cells, cw, n = [], 0, 0
         for name in names:
             r = [x["default"] for x in all_rows[name]]
-            acc = [x["status"] != "failed" and x.get("prob") is not None and x["prob"] >= thr for x in r]
+            acc = [x["status"] != "failed" and x.get("prob") is not None and x["prob"] >= thr
+                   and not x.get("edge") for x in r]
             good = [a and x["err"] <= 0.5 and x["herr"] <= 1.0 for a, x in zip(acc, r)]
             cw += sum(a and x["err"] > 1.0 for a, x in zip(acc, r))
             n += len(r)

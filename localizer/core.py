@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import LocalizationInputError
 from .frames import GeoFrame, wrap_angle
-from .geometry import LocalMap, homogeneous
+from .geometry import LocalMap, beyond_extent, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
 from .robust import (
@@ -245,6 +245,7 @@ def localize(
     gamma = obs[:, 2]
     rho = float(np.max(np.hypot(obs_xy[:, 0], obs_xy[:, 1])))
 
+    edge = None  # why a sure answer is not (Options.edge_share)
     if method == "pink2008":
         reach = options.max_pair_distance_m * 3 + rho
         radius = reach
@@ -393,6 +394,10 @@ def localize(
             ]
         probability = float(prob[0])
         status = "ok" if probability >= options.ambiguity_probability else "ambiguous"
+        if status == "ok":
+            edge = _beyond_edge(local, obs_xy, w_data, pose, sigma_p, options)
+            if edge is not None:
+                status = "ambiguous"
 
     fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
     if fit.inliers < need:
@@ -411,6 +416,7 @@ def localize(
         method, status, fit.inliers, len(obs), fit.rms_m or 0.0, len(hyps),
     )
     out = _make_pose(frame, local.origin, pose, status, crs)
+    out.reason = edge
     out.covariance = fit.covariance
     out.iterations = int(iterations)
     out.inliers = fit.inliers
@@ -435,6 +441,30 @@ def localize(
         out.mixture_covariance = mixture_covariance(
             pose, listed, [h.score for h in out.hypotheses], [h.covariance for h in out.hypotheses])
     return out
+
+
+#: Observations this far beyond the map's extent count for ``Options.edge_share`` (metres):
+#: a marking at the edge is still seen with the range noise of a far observation.
+EDGE_MARGIN_M = 1.0
+
+
+def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, sigma_p: float,
+                 options: Options) -> str | None:  # fmt: skip
+    """Why an answer the posterior calls sure is not: the camera sees beyond the map's edge from it
+    or from a pose within the prior's reach along its heading (``Options.edge_share``); None if not."""
+    reach = min(3.0 * sigma_p, options.edge_reach_m)
+    if options.edge_share is None or not len(local.hull) or 3.0 * sigma_p < options.edge_rival_m or not w.sum() > 0:
+        return None
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    for shift in (0.0, reach, -reach):
+        x = pose[0] + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
+        y = pose[1] + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
+        share = float(w[beyond_extent(local.hull, x, y, EDGE_MARGIN_M)].sum() / w.sum())
+        if share > options.edge_share:
+            where = "from this pose" if shift == 0 else f"from {abs(shift):.0f} m {'ahead' if shift > 0 else 'behind'}"
+            return (f"{share:.0%} of what the camera sees lies beyond the map's edge {where} (the prior's "
+                    "reach): there a pose a dash period away may explain as much")
+    return None
 
 
 def warm_up() -> float:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from .errors import LocalizationInputError
 from .frames import GeoFrame
@@ -163,6 +163,11 @@ class MapIndex:
         Marking index of each expected point.
     expect_solid : (E,) ndarray of bool
         The expected point lies on a line-like marking.
+    hull : (F, 3) ndarray or None
+        The map's extent: the convex hull of its markings as half-planes
+        ``(nx, ny, c)``, a point ``p`` inside all of them where
+        ``nx * px + ny * py + c <= 0`` (unit normals, metres). Beyond it the
+        map says nothing (:func:`map_extent`, ``Options.edge_share``).
     """
 
     xy: np.ndarray
@@ -174,6 +179,7 @@ class MapIndex:
     expect_xy: np.ndarray | None = None
     expect_owner: np.ndarray | None = None
     expect_solid: np.ndarray | None = None
+    hull: np.ndarray | None = None
 
     @property
     def crs(self) -> str:
@@ -282,7 +288,7 @@ class MapIndex:
             arr.setflags(write=False)
         tree = cKDTree(xy) if xs.size else cKDTree(np.zeros((0, 2)))
         return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame,
-                   expect_xy=exy, expect_owner=owner, expect_solid=esolid)
+                   expect_xy=exy, expect_owner=owner, expect_solid=esolid, hull=map_extent(xy))
 
     @cached_property
     def expect_groups(self) -> tuple[np.ndarray, np.ndarray]:
@@ -321,3 +327,21 @@ class MapIndex:
             return math.inf
         d, _ = self.tree.query(np.asarray(point, float))
         return float(d)
+
+
+def map_extent(xy: np.ndarray) -> np.ndarray | None:
+    """The convex hull of marking centroids as half-planes (see :attr:`MapIndex.hull`).
+
+    None for fewer than three markings or markings on one line (no area).
+    """
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if len(xy) < 3:
+        return None
+    centre = xy.mean(axis=0)
+    try:
+        eq = ConvexHull(xy - centre).equations.copy()
+    except QhullError:
+        return None
+    eq[:, 2] -= eq[:, :2] @ centre  # back from the centred coordinates
+    eq.setflags(write=False)
+    return eq

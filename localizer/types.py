@@ -152,7 +152,9 @@ class Pose:
     hypotheses : list of Hypothesis
         Best first; filled when ``status == "ambiguous"``.
     reason : str or None
-        Why the localization failed.
+        Why the localization failed, or why a pose the posterior would call
+        sure is ``ambiguous`` (the camera sees beyond the map's edge,
+        ``Options.edge_share``).
     transformation : (3, 3) ndarray or None
         Homogeneous 2D transform taking vehicle coordinates to map CRS coordinates.
     trace : list of (easting, northing, yaw_grid_rad)
@@ -338,6 +340,24 @@ class Options:
         in several, are not independent evidence. Measured on
         ``benchmarks/localize_paper.py`` (1.0, 1.5, 2 and 3 m tried). None: every
         observation keeps its own weight. Not used by ``pink2008``.
+    edge_share : float or None
+        An answer is at most ``ambiguous`` when more than this share of the
+        observations' weight lies beyond the map's extent (the convex hull of
+        its markings, :attr:`MapIndex.hull`, by more than 1 m) at its pose,
+        or at its pose moved along its heading by three position sigmas of
+        the prior, either way. At a map's edge the camera sees markings the
+        map does not hold; a pose one dash period away matches them to the
+        map's own dashes and wins, surely and wrongly (from 8-10 m with the
+        map ending 5-25 m ahead: 15-22 % of answers ``ok`` and more than 1 m
+        off, ``benchmarks/localize_edge.py``). None: no such check.
+    edge_rival_m : float
+        ... only when three position sigmas reach at least this far (metres):
+        half the 9 m dash period, below which no rival a period away is
+        within the prior's reach.
+    edge_reach_m : float
+        The farthest the pose is moved for ``edge_share``, metres: rivals lie
+        one or two dash periods away (of the answers more than 1 m off at a
+        map's edge, 8-10 m prior, nearly all lay within 20 m of the truth).
     outlier_density : float
         Relative density of outliers in the per-observation likelihood.
     clutter_reference : float
@@ -442,6 +462,9 @@ class Options:
     noise_range_coeff: float = 5e-4
     bearing_noise_rad: float | None = 0.003
     crowd_radius_m: float | None = 1.5
+    edge_share: float | None = 0.2
+    edge_rival_m: float = 4.5
+    edge_reach_m: float = 20.0
     outlier_density: float = 0.05
     clutter_reference: float = 8.0
     miss_probability: float = 0.3
@@ -556,6 +579,8 @@ _OPTION_RANGES = (
     ("pitch_sigma_deg", 0.0, False, 90.0, True),
     ("covariance_inflation", 0.0, True, math.inf, True),
     ("max_observation_range_m", 0.0, True, math.inf, True),
+    ("edge_rival_m", 0.0, False, math.inf, True),
+    ("edge_reach_m", 0.0, False, math.inf, True),
 )
 
 #: The same for the options that may be None.
@@ -563,6 +588,7 @@ _OPTIONAL_RANGES = (
     ("search_cell_m", 0.0, True, math.inf, True),
     ("bearing_noise_rad", 0.0, False, math.inf, True),
     ("crowd_radius_m", 0.0, True, math.inf, True),
+    ("edge_share", 0.0, False, 1.0, False),
     ("view_min_range_m", 0.0, False, math.inf, True),
     ("view_max_range_m", 0.0, True, math.inf, True),
     ("view_half_fov_deg", 0.0, True, 180.0, False),

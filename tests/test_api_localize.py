@@ -857,3 +857,40 @@ def test_the_kinds_a_map_was_imported_with_reach_the_localizer(api):
     # About a metre along the road (the joint fit with the pitch, which used to
     # carry it farther, now keeps the pose where the ranking put it).
     assert errors[False][1] > 0.5, errors
+
+
+def test_an_answer_at_the_maps_edge_says_why_it_is_not_sure(tmp_path, karlsruhe_fc):  # noqa: F811
+    """A frame whose camera sees past the end of the map, with a wide prior: over HTTP the answer
+    is ambiguous and its reason names the map's edge, where the localizer without its edge check
+    is sure of a pose a dash period off."""
+    import copy
+
+    from localizer import Options, localize
+    from tests._api_helpers import start_server
+    from tests.test_localizer_edge import _edge_scenes
+
+    for pose, obs, prior, cut, _ in _edge_scenes(40, 6.5, (8.0, 10.0)):
+        unchecked = localize(cut, obs, prior, options=Options(edge_share=None))
+        if unchecked.status == "ok" and math.hypot(unchecked.easting - pose[0], unchecked.northing - pose[1]) > 1:
+            break
+    else:
+        pytest.fail("no scene at the edge is answered wrongly without the check")
+    fw = from_wgs84(CRS)
+    kept = {tuple(np.round(xy, 3)) for xy in cut.xy}
+    fc = copy.deepcopy(karlsruhe_fc)
+    fc["features"] = [f for f in fc["features"]
+                      if tuple(np.round(fw.transform(*f["geometry"]["coordinates"]), 3)) in kept]  # fmt: skip
+    assert 0 < len(fc["features"]) < len(karlsruhe_fc["features"])
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data")
+    try:
+        map_id = server.new_map()
+        assert httpx.post(f"{server.base_url}/collections/{map_id}/import", json=fc, headers=server.auth,
+                          timeout=60).status_code == 201  # fmt: skip
+        body = {"gps": {"lat": prior.lat, "lon": prior.lon, "heading_deg": prior.heading_deg,
+                        "position_sigma_m": prior.position_sigma_m, "heading_sigma_deg": prior.heading_sigma_deg},
+                "observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in obs]}  # fmt: skip
+        out = httpx.post(f"{server.base_url}/collections/{map_id}/localize", json=body, timeout=60).json()
+        assert out["status"] == "ambiguous" and "beyond the map's edge" in out["reason"], out
+        assert out["hypotheses"] and out["probability"] >= 0.95
+    finally:
+        server.stop()

@@ -247,7 +247,8 @@ def register(app: typer.Typer) -> None:
         elif status == "ambiguous":
             typer.echo(
                 f"warning: the answer is ambiguous (probability {last_pose.probability or 0:.3f}); "
-                f"{len(last_pose.hypotheses)} hypotheses in the JSON{_spread(last_pose)}",
+                f"{len(last_pose.hypotheses)} hypotheses in the JSON{_spread(last_pose)}"
+                + (f"; {last_pose.reason}" if last_pose.reason else ""),
                 err=True,
             )
         raise typer.Exit(EXIT_CODES[status])

@@ -271,8 +271,10 @@ class PoseOut(BaseModel):
         description="Posterior probability that the answer is right (default method; ok needs the "
                     f"request's min_probability, by default {_DEFAULT_OK}; null for pink2008 and failed)")  # fmt: skip
     hypotheses: list[HypothesisOut] = Field(..., description="Best first; filled when ambiguous")
-    reason: str | None = Field(None, description="Why the localization failed, or that a drive's frame "
-                                                  "matched nothing and the pose is the odometry's prediction")
+    reason: str | None = Field(None, description="Why the localization failed; that a drive's frame "
+                                                  "matched nothing and the pose is the odometry's prediction; or "
+                                                  "why a pose the posterior holds sure is ambiguous: the camera "
+                                                  "sees beyond the map's edge")
     map: str | None = Field(None, description="The map the pose was found on: only in the answers of "
                                               "`POST /localize`, which picks the map by the GPS fix")
 

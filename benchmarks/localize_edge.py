@@ -1,0 +1,144 @@
+"""Single frames at a map's edge: the map ends ahead of the vehicle, or behind it.
+
+The camera sees the world; the map holds only part of it. Each scene of
+``localize_paper.py``'s kind (the real Karlsruhe geometry, the default
+clutter) is localized four times with the same prior: against the whole
+map; against the map ending 5-25 m ahead of the vehicle (cut along a line
+across its heading: a vehicle driving off the map, or a map that ends where
+the next begins); against the map beginning 4-20 m ahead (a vehicle
+driving onto the map: the nearest markings it sees are not in it); and
+against the map beginning 0-20 m behind it (a vehicle that has just driven
+onto it: everything in view is mapped). Each with the localizer's defaults
+and without the edge check (``Options.edge_share=None``, the behaviour
+before it).
+
+What the camera sees beyond the cut matches nothing at the true pose, while
+a pose one dash period away matches it to the map's own dashes: without the
+check, such a pose wins surely (status ``ok``) and wrongly.
+
+Printed per prior and map: success (``ok`` within 0.5 m and 1°), confidently
+wrong (``ok``, more than 1 m off), ambiguous, failed.
+
+Run: ``.venv/bin/python benchmarks/localize_edge.py [--runs 200] [--seed 0]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from _localizer_helpers import CRS, KARLSRUHE_OSM, karlsruhe  # noqa: E402
+
+from localizer import GeoFrame, MapIndex, Options, Prior, localize  # noqa: E402
+from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene  # noqa: E402
+from mapbuilder.lanelet2 import layout_markings, read_lanelet2  # noqa: E402
+
+OUT = ROOT / "benchmarks" / "out"
+
+#: ``(name, initial error range m, heading error ±deg, prior sigma m, prior heading sigma deg)``,
+#: as the rows of ``localize_paper.py``.
+PRIORS = [
+    ("0.5-2m/±15°", (0.5, 2.0), 15.0, 1.0, 9.0),
+    ("8-10m/±15°", (8.0, 10.0), 15.0, 6.5, 9.0),
+    ("20m/±30°", (20.0, 20.0), 30.0, 14.0, 17.0),
+]
+MAPS = ("whole map", "ends 5-25 m ahead", "begins 4-20 m ahead", "began 0-20 m behind")
+VARIANTS = {"default": None, "no edge check": Options(edge_share=None)}
+
+
+class Markings:
+    """The Karlsruhe markings as the service indexes them, to be cut anywhere."""
+
+    def __init__(self):
+        marks = layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS))
+        self.xy = np.array([(m.x, m.y) for m in marks])
+        self.weight = np.array([m.weight for m in marks])
+        frame = GeoFrame(CRS)
+        conv = frame.convergence_deg(*frame.to_lonlat(*self.xy.mean(axis=0)))
+        self.bearing = np.array([m.bearing_deg for m in marks]) - conv
+        self.length = np.array([m.length_m for m in marks])
+        self.kind = np.array([m.kind for m in marks], object)
+
+    def cut(self, pose, ends_m: float = math.inf, begins_m: float = -math.inf) -> MapIndex:
+        """The markings between ``begins_m`` and ``ends_m`` along the vehicle's heading (metres
+        ahead of it; negative: behind it)."""
+        d = np.array([math.cos(pose[2]), math.sin(pose[2])])
+        along = (self.xy - np.asarray(pose[:2])) @ d
+        keep = (along <= ends_m) & (along >= begins_m)
+        return MapIndex.from_arrays(self.xy[keep, 0], self.xy[keep, 1], self.weight[keep], CRS,
+                                    bearing_deg=self.bearing[keep], length_m=self.length[keep],
+                                    kind=self.kind[keep])  # fmt: skip
+
+
+def run(args) -> dict:
+    whole, smap = karlsruhe()
+    marks = Markings()
+    frame = whole.frame
+    cam = Camera()
+    rng = np.random.default_rng(args.seed)
+    poses = sample_poses(smap, args.runs, rng, cam, min_visible=4)
+    results = {p[0]: {m: {v: [] for v in VARIANTS} for m in MAPS} for p in PRIORS}
+    with tqdm(total=len(PRIORS) * len(poses), unit="scene", desc="edge scenes") as bar:
+        for name, dist, heading, sigma, sigma_deg in PRIORS:
+            srng = np.random.default_rng([args.seed, sum(map(ord, name))])
+            for pose in poses:
+                scene = simulate_scene(smap, pose, srng, cam, Clutter())
+                init = perturb(pose, srng.uniform(*dist), srng.uniform(-heading, heading), srng)
+                lon, lat = frame.to_lonlat(init[0], init[1])
+                prior = Prior(lat=lat, lon=lon, heading_deg=float(frame.grid_yaw_to_heading(init[2], lon, lat)),
+                              position_sigma_m=sigma, heading_sigma_deg=sigma_deg)  # fmt: skip
+                maps = (whole, marks.cut(pose, ends_m=srng.uniform(5.0, 25.0)),
+                        marks.cut(pose, begins_m=srng.uniform(4.0, 20.0)),
+                        marks.cut(pose, begins_m=-srng.uniform(0.0, 20.0)))  # fmt: skip
+                for map_name, index in zip(MAPS, maps):
+                    for variant, options in VARIANTS.items():
+                        p = localize(index, scene.observations, prior, options=options)
+                        err = math.inf if p.easting is None else math.hypot(p.easting - pose[0], p.northing - pose[1])
+                        herr = math.inf if p.easting is None else abs(
+                            math.degrees((p.yaw_grid_rad - pose[2] + math.pi) % (2 * math.pi) - math.pi))
+                        results[name][map_name][variant].append({"status": p.status, "err": err, "herr": herr})
+                bar.update()
+    return {"poses": len(poses), "seed": args.seed, "results": results}
+
+
+def table(results: dict) -> str:
+    lines = ["| prior | map | variant | success | confidently wrong | ambiguous | failed |",
+             "|---|---|---|---|---|---|---|"]
+    for name, maps in results.items():
+        for map_name, variants in maps.items():
+            for variant, rows in variants.items():
+                n = len(rows)
+                ok = [r for r in rows if r["status"] == "ok"]
+                succ = sum(r["err"] <= 0.5 and r["herr"] <= 1.0 for r in ok) / n
+                cw = sum(r["err"] > 1.0 for r in ok) / n
+                amb = sum(r["status"] == "ambiguous" for r in rows) / n
+                fail = sum(r["status"] == "failed" for r in rows) / n
+                lines.append(f"| {name} | {map_name} | {variant} | {succ:.1%} | {cw:.1%} | {amb:.1%} | {fail:.1%} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=200, help="scenes per prior")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    out = run(args)
+    tab = table(out["results"])
+    print(f"{out['poses']} poses, seed {args.seed}")
+    print(tab)
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / f"localize_edge_seed{args.seed}.md").write_text(tab + "\n")
+    (OUT / f"localize_edge_seed{args.seed}.json").write_text(json.dumps(out, default=float))
+
+
+if __name__ == "__main__":
+    main()
