@@ -395,7 +395,7 @@ def localize(
         probability = float(prob[0])
         status = "ok" if probability >= options.ambiguity_probability else "ambiguous"
         if status == "ok":
-            edge = _beyond_edge(local, obs_xy, w_data, pose, sigma_p, options)
+            edge = _beyond_edge(local, obs_xy, w_data, pose, np.linalg.inv(pos_info), options)
             if edge is not None:
                 status = "ambiguous"
 
@@ -448,14 +448,19 @@ def localize(
 EDGE_MARGIN_M = 1.0
 
 
-def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, sigma_p: float,
+def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, pos_cov: np.ndarray,
                  options: Options) -> str | None:  # fmt: skip
     """Why an answer the posterior calls sure is not: the camera sees beyond the map's edge from it
-    or from a pose within the prior's reach along its heading (``Options.edge_share``); None if not."""
-    reach = min(3.0 * sigma_p, options.edge_reach_m)
-    if options.edge_share is None or not len(local.hull) or 3.0 * sigma_p < options.edge_rival_m or not w.sum() > 0:
-        return None
+    or from a pose within the prior's reach along its heading (``Options.edge_share``); None if not.
+
+    ``pos_cov`` is the prior's position covariance (map axes, m²): its sigma along the heading
+    sets the reach (a receiver sure along the road reaches no rival a dash period away).
+    """
     c, s = math.cos(pose[2]), math.sin(pose[2])
+    sigma = math.sqrt(max(float(np.array([c, s]) @ pos_cov @ np.array([c, s])), 0.0))
+    reach = min(3.0 * sigma, options.edge_reach_m)
+    if options.edge_share is None or not len(local.hull) or 3.0 * sigma < options.edge_rival_m or not w.sum() > 0:
+        return None
     for shift in (0.0, reach, -reach):
         x = pose[0] + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
         y = pose[1] + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]

@@ -344,14 +344,15 @@ class Options:
         An answer is at most ``ambiguous`` when more than this share of the
         observations' weight lies beyond the map's extent (the convex hull of
         its markings, :attr:`MapIndex.hull`, by more than 1 m) at its pose,
-        or at its pose moved along its heading by three position sigmas of
-        the prior, either way. At a map's edge the camera sees markings the
-        map does not hold; a pose one dash period away matches them to the
-        map's own dashes and wins, surely and wrongly (from 8-10 m with the
-        map ending 5-25 m ahead: 15-22 % of answers ``ok`` and more than 1 m
-        off, ``benchmarks/localize_edge.py``). None: no such check.
+        or at its pose moved along its heading, either way, by three of the
+        prior's position sigmas along that heading. At a map's edge the
+        camera sees markings the map does not hold; a pose one dash period
+        away matches them to the map's own dashes and wins, surely and
+        wrongly (from 8-10 m with the map ending 5-25 m ahead: 15-22 % of
+        answers ``ok`` and more than 1 m off, ``benchmarks/localize_edge.py``).
+        None: no such check.
     edge_rival_m : float
-        ... only when three position sigmas reach at least this far (metres):
+        ... only when those three sigmas reach at least this far (metres):
         half the 9 m dash period, below which no rival a period away is
         within the prior's reach.
     edge_reach_m : float
