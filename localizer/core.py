@@ -466,9 +466,10 @@ def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, pos_c
         y = pose[1] + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
         share = float(w[beyond_extent(local.hull, x, y, EDGE_MARGIN_M)].sum() / w.sum())
         if share > options.edge_share:
-            where = "from this pose" if shift == 0 else f"from {abs(shift):.0f} m {'ahead' if shift > 0 else 'behind'}"
-            return (f"{share:.0%} of what the camera sees lies beyond the map's edge {where} (the prior's "
-                    "reach): there a pose a dash period away may explain as much")
+            where = ("from this pose" if shift == 0 else
+                     f"from {abs(shift):.0f} m {'ahead of' if shift > 0 else 'behind'} it, within the prior's reach")
+            return (f"{share:.0%} of what the camera sees lies beyond the map's edge {where}: "
+                    "there a pose a dash period away may explain as much")
     return None
 
 

@@ -352,9 +352,9 @@ class Options:
         answers ``ok`` and more than 1 m off, ``benchmarks/localize_edge.py``).
         None: no such check.
     edge_rival_m : float
-        ... only when those three sigmas reach at least this far (metres):
-        half the 9 m dash period, below which no rival a period away is
-        within the prior's reach.
+        ``edge_share`` applies only when those three sigmas reach at least
+        this far (metres): half the 9 m dash period, below which no rival a
+        period away is within the prior's reach.
     edge_reach_m : float
         The farthest the pose is moved for ``edge_share``, metres: rivals lie
         one or two dash periods away (of the answers more than 1 m off at a
