@@ -15,7 +15,7 @@ from mapbuilder.geojson import (
 )  # fmt: skip
 from mapbuilder.model import Marking
 
-from ..filters import parse_statuses
+from ..filters import parse_bbox, parse_statuses
 from ..problems import Problem
 
 CRS84 = "http://www.opengis.net/def/crs/OGC/1.3/CRS84"
@@ -197,3 +197,14 @@ def statuses_param(text: str | None) -> list[str] | None:
         return parse_statuses(text)
     except ValueError as exc:
         raise Problem(400, str(exc), "invalid-parameter") from None
+
+
+def bbox_param(text: str | None, status: int = 400) -> tuple[float, float, float, float] | None:
+    """A ``bbox`` (``minLon,minLat,maxLon,maxLat``) given as text, None when not given: a query
+    parameter (400) or a field of a request body (422) that names its problem."""
+    if text is None:
+        return None
+    try:
+        return parse_bbox(text)
+    except ValueError as exc:
+        raise Problem(status, str(exc), "invalid-bbox") from None

@@ -22,11 +22,11 @@ from mapbuilder.store import (
 )  # fmt: skip
 
 from ..deps import Context, get_ctx, require_read, require_write
-from ..filters import parse_bbox
 from ..problems import Problem
 from ._common import (
     JSON,
     base_url,
+    bbox_param,
     link,
     marking_from_feature,
     parse_id,
@@ -262,14 +262,8 @@ def review_by_score(
     (within `bbox` when given), in one changeset that the history lists and a revert undoes.
     Detections without a score and markings a person decided on are left as they are. The map's
     summary (`GET .../summary`) shows how the unreviewed scores spread."""
-    box = None
-    if body.bbox is not None:
-        try:
-            box = parse_bbox(body.bbox)
-        except ValueError as exc:
-            raise Problem(422, str(exc), "invalid-parameter") from None
     res = ctx.store.review_by_score(mapId, accept_from=body.accept_from, reject_below=body.reject_below,
-                                    lonlat_box=box, who=who, comment=body.comment, dry_run=body.dry_run)  # fmt: skip
+                                    lonlat_box=bbox_param(body.bbox, 422), who=who, comment=body.comment, dry_run=body.dry_run)  # fmt: skip
     out: dict[str, Any] = {"accepted": res.accepted, "rejected": res.rejected, "revision": res.revision,
                            "changeset": None if res.changeset_id is None else str(res.changeset_id), "links": []}
     if res.changeset_id is None:

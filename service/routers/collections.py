@@ -18,12 +18,12 @@ from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, M
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
-from ..filters import parse_bbox
 from ._common import (
     CRS84,
     GEOJSON,
     JSON,
     base_url,
+    bbox_param,
     crs_uri,
     etag,
     feature_of,
@@ -168,7 +168,7 @@ def get_summary(
     bbox: str | None = Query(None, max_length=200, description="Only the markings inside minLon,minLat,maxLon,maxLat "
                                                                "(WGS84), such as a district a team reviews"),
 ) -> JSONResponse:  # fmt: skip
-    sm = ctx.store.summary(mapId, None if bbox is None else _bbox(bbox))
+    sm = ctx.store.summary(mapId, bbox_param(bbox))
     n = len(sm.unreviewed_scores)
     body = {
         "id": mapId,
@@ -247,13 +247,6 @@ def import_features(
 
 
 # ---------------------------------------------------------------------------- items (Part 1)
-def _bbox(text: str) -> tuple[float, float, float, float]:
-    try:
-        return parse_bbox(text)
-    except ValueError as exc:
-        raise Problem(400, str(exc), "invalid-bbox") from None
-
-
 
 
 @router.get(
@@ -273,7 +266,7 @@ def get_items(
     lim = min(limit if limit is not None else s.items_default_limit, s.items_max_limit)
     statuses = statuses_param(status)
     if bbox is not None:
-        items, matched = ctx.store.query_lonlat_box(mapId, _bbox(bbox), statuses, lim, offset)
+        items, matched = ctx.store.query_lonlat_box(mapId, bbox_param(bbox), statuses, lim, offset)
     else:
         items, matched = ctx.store.list_markings(mapId, limit=lim, offset=offset, statuses=statuses)
     url = request.url
