@@ -268,7 +268,8 @@ def localize(
     if not math.isfinite(yaw0):
         raise LocalizationInputError("prior: the heading cannot be converted to the map CRS at this position")
     prior_pose = (0.0, 0.0, yaw0)
-    pos_info = np.linalg.inv(position_covariance(prior, frame))
+    pos_cov = position_covariance(prior, frame)
+    pos_info = np.linalg.inv(pos_cov)
     prior_info = np.zeros((3, 3))
     prior_info[:2, :2] = pos_info
     prior_info[2, 2] = 1 / sigma_yaw**2
@@ -395,7 +396,7 @@ def localize(
         probability = float(prob[0])
         status = "ok" if probability >= options.ambiguity_probability else "ambiguous"
         if status == "ok":
-            edge = _beyond_edge(local, obs_xy, w_data, pose, np.linalg.inv(pos_info), options)
+            edge = _beyond_edge(local, obs_xy, w_data, pose, pos_cov, options)
             if edge is not None:
                 status = "ambiguous"
 

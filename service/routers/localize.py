@@ -34,7 +34,8 @@ MAX_RANGE_M = 1000.0
 #: Cores are used by running several server processes (``--workers``).
 LOCALIZE_THREADS = 1
 
-_DEFAULT_OK = Options().ambiguity_probability
+_DEFAULTS = Options()
+_DEFAULT_OK = _DEFAULTS.ambiguity_probability
 _MIN_PROBABILITY = Field(
     None, ge=MIN_PROBABILITY_RANGE[0], le=MIN_PROBABILITY_RANGE[1],
     description="Posterior probability the answer needs to be ok (default method); below it the answer is "
@@ -382,6 +383,12 @@ def _maps_near(ctx: Context, lon: float, lat: float, reach: float,
     return found
 
 
+#: The centre of the localizer's default camera view ahead of the vehicle, and the half side of a
+#: square around it that holds the view (4-25 m ahead within ±30°), metres.
+_VIEW_AHEAD_M = 0.5 * (_DEFAULTS.view_min_range_m + _DEFAULTS.view_max_range_m)
+_VIEW_HALF_M = max(0.5 * (_DEFAULTS.view_max_range_m - _DEFAULTS.view_min_range_m),
+                   _DEFAULTS.view_max_range_m * math.sin(math.radians(_DEFAULTS.view_half_fov_deg)))
+
 #: A drive moves to another map once that map has this many times the markings of its own
 #: where the camera looks: maps that overlap do not take a drive back and forth.
 HANDOVER_RATIO = 1.5
@@ -399,20 +406,16 @@ def _drive_map(ctx: Context, state: "DriveState") -> tuple[str, "DriveState"]:
     """
     from localizer import TrackState, shared_frame
 
-    opts = Options()
-    near_m, far_m = opts.view_min_range_m, opts.view_max_range_m
-    ahead = 0.5 * (near_m + far_m)
-    half_view = max(0.5 * (far_m - near_m), far_m * math.sin(math.radians(opts.view_half_fov_deg)))
     if state.tracks:
         t = state.tracks[0]
         e, n, yaw, sigma = t.easting, t.northing, t.yaw_grid_rad, t.sigma_m
     else:
         g = state.gps
         e, n, yaw, sigma = g.easting, g.northing, g.yaw_grid_rad, g.sigma_m
-    lon, lat = shared_frame(state.crs).to_lonlat(e + ahead * math.cos(yaw), n + ahead * math.sin(yaw))
+    lon, lat = shared_frame(state.crs).to_lonlat(e + _VIEW_AHEAD_M * math.cos(yaw), n + _VIEW_AHEAD_M * math.sin(yaw))
     if not (math.isfinite(lon) and math.isfinite(lat)):
         raise Problem(422, f"state: its pose lies outside the domain of {state.crs}", "invalid-localization-input")
-    near = _maps_near(ctx, lon, lat, half_view + 3.0 * sigma, unless_only=state.map)
+    near = _maps_near(ctx, lon, lat, _VIEW_HALF_M + 3.0 * sigma, unless_only=state.map)
     own = next((count for count, map_id, _ in near if map_id == state.map), 0)
     rival = next((m for m in near if m[1] != state.map), None)
     if rival is None or (own and rival[0] < HANDOVER_RATIO * own):
