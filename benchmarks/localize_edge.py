@@ -36,11 +36,10 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from _localizer_helpers import CRS, KARLSRUHE_OSM, karlsruhe  # noqa: E402
+from _localizer_helpers import KarlsruheMarkings, karlsruhe  # noqa: E402
 
-from localizer import GeoFrame, MapIndex, Options, Prior, localize  # noqa: E402
+from localizer import Options, Prior, localize  # noqa: E402
 from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene  # noqa: E402
-from mapbuilder.lanelet2 import layout_markings, read_lanelet2  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out"
 
@@ -55,33 +54,9 @@ MAPS = ("whole map", "ends 5-25 m ahead", "begins 4-20 m ahead", "began 0-20 m b
 VARIANTS = {"default": None, "no edge check": Options(edge_share=None)}
 
 
-class Markings:
-    """The Karlsruhe markings as the service indexes them, to be cut anywhere."""
-
-    def __init__(self):
-        marks = layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS))
-        self.xy = np.array([(m.x, m.y) for m in marks])
-        self.weight = np.array([m.weight for m in marks])
-        frame = GeoFrame(CRS)
-        conv = frame.convergence_deg(*frame.to_lonlat(*self.xy.mean(axis=0)))
-        self.bearing = np.array([m.bearing_deg for m in marks]) - conv
-        self.length = np.array([m.length_m for m in marks])
-        self.kind = np.array([m.kind for m in marks], object)
-
-    def cut(self, pose, ends_m: float = math.inf, begins_m: float = -math.inf) -> MapIndex:
-        """The markings between ``begins_m`` and ``ends_m`` along the vehicle's heading (metres
-        ahead of it; negative: behind it)."""
-        d = np.array([math.cos(pose[2]), math.sin(pose[2])])
-        along = (self.xy - np.asarray(pose[:2])) @ d
-        keep = (along <= ends_m) & (along >= begins_m)
-        return MapIndex.from_arrays(self.xy[keep, 0], self.xy[keep, 1], self.weight[keep], CRS,
-                                    bearing_deg=self.bearing[keep], length_m=self.length[keep],
-                                    kind=self.kind[keep])  # fmt: skip
-
-
 def run(args) -> dict:
     whole, smap = karlsruhe()
-    marks = Markings()
+    marks = KarlsruheMarkings()
     frame = whole.frame
     cam = Camera()
     rng = np.random.default_rng(args.seed)

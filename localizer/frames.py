@@ -108,6 +108,8 @@ class GeoFrame:
 
     def convergence_deg(self, lon, lat):
         """Meridian convergence at lon/lat, degrees: ``true_bearing = grid_bearing + c``."""
+        if np.ndim(lon) and np.size(lon) == 0:  # PROJ refuses empty arrays
+            return np.zeros(0)
         f = self._tools()[2].get_factors(lon, lat)
         c = np.asarray(f.meridian_convergence, float)
         return float(c) if c.ndim == 0 else c

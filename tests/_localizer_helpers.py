@@ -69,3 +69,36 @@ def karlsruhe_store(directory: Path) -> str:
     store.add_markings("ka", layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS)))
     store.close()
     return url
+
+
+class KarlsruheMarkings:
+    """The Karlsruhe markings as ``lanemap from-lanelet2`` lays them out, to index any part of
+    them, in any grid: a map cut at an edge, or stored in another CRS."""
+
+    def __init__(self):
+        from mapbuilder.lanelet2 import layout_markings, read_lanelet2
+
+        marks = layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS))
+        self.xy = np.array([(m.x, m.y) for m in marks])  # in CRS
+        self.weight = np.array([m.weight for m in marks])
+        self.bearing_true = np.array([m.bearing_deg for m in marks])  # clockwise from true north
+        self.length = np.array([m.length_m for m in marks])
+        self.kind = np.array([m.kind for m in marks], object)
+
+    def index(self, keep=None, crs: str = CRS) -> MapIndex:
+        """The index of the markings ``keep`` (a boolean mask; all when None), stored in ``crs``
+        (each moved through WGS84, its bearing turned by the grid's convergence there)."""
+        keep = np.ones(len(self.xy), bool) if keep is None else np.asarray(keep, bool)
+        lon, lat = GeoFrame(CRS).to_lonlat(self.xy[keep, 0], self.xy[keep, 1])
+        frame = GeoFrame(crs)
+        x, y = frame.to_xy(lon, lat)
+        return MapIndex.from_arrays(x, y, self.weight[keep], crs,
+                                    bearing_deg=self.bearing_true[keep] - frame.convergence_deg(lon, lat),
+                                    length_m=self.length[keep], kind=self.kind[keep])  # fmt: skip
+
+    def cut(self, pose, ends_m: float = np.inf, begins_m: float = -np.inf) -> MapIndex:
+        """The index of the markings between ``begins_m`` and ``ends_m`` along the heading of
+        ``pose`` (metres ahead of it; negative: behind it): a map whose edge the vehicle nears."""
+        d = np.array([np.cos(pose[2]), np.sin(pose[2])])
+        along = (self.xy - np.asarray(pose[:2])) @ d
+        return self.index((along <= ends_m) & (along >= begins_m))

@@ -1435,6 +1435,9 @@ def test_true_heading_reported_differs_from_grid_by_convergence():
     conv = frame.convergence_deg(lon, lat)
     assert conv < -2.0
     assert ((r.heading_deg - conv + 180) % 360 - 180) == pytest.approx(0.0, abs=0.3)
+    # arrays of positions, an empty one included (PROJ itself refuses it)
+    assert frame.convergence_deg(np.array([lon, lon]), np.array([lat, lat])) == pytest.approx([conv, conv])
+    assert frame.convergence_deg(np.zeros(0), np.zeros(0)).shape == (0,)
 
 
 def test_shared_index_is_thread_safe():

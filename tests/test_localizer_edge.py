@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,10 +11,7 @@ from localizer import MapIndex, Options, Prior, localize
 from localizer.index import map_extent
 from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from localize_edge import Markings  # noqa: E402
-
-from ._localizer_helpers import karlsruhe  # noqa: E402
+from ._localizer_helpers import KarlsruheMarkings, karlsruhe
 
 
 def test_the_extent_is_the_markings_convex_hull():
@@ -33,7 +28,7 @@ def test_the_extent_is_the_markings_convex_hull():
 def _edge_scenes(n: int, sigma: float, dist: tuple[float, float], seed: int = 1):
     """Scenes with the map cut 5-25 m ahead of the vehicle, and a prior ``dist`` metres off."""
     whole, smap = karlsruhe()
-    marks = Markings()
+    marks = KarlsruheMarkings()
     rng = np.random.default_rng(seed)
     for pose in sample_poses(smap, n, rng, Camera(), min_visible=4):
         scene = simulate_scene(smap, pose, rng, Camera(), Clutter())

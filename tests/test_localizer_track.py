@@ -13,7 +13,7 @@ from localizer import LocalizationInputError, MapIndex, Options, Prior, TrackSta
 from localizer.simulate import Camera, Clutter, odometry, perturb, sample_trajectories, simulate_scene
 from localizer.track import MAX_FRAMES, Frame, TrackOptions, localize_sequence
 
-from ._localizer_helpers import karlsruhe
+from ._localizer_helpers import KarlsruheMarkings, karlsruhe
 from .test_localizer import ORIGIN, observe, prior_at, random_map
 
 
@@ -496,28 +496,12 @@ def test_bad_track_options_are_input_errors():
             TrackOptions(retrodiction_frames=bad)
 
 
-def _karlsruhe_in(crs: str) -> MapIndex:
-    """The markings of :func:`karlsruhe`'s index, stored in another grid (each moved through WGS84)."""
-    from localizer import GeoFrame
-    from mapbuilder.lanelet2 import layout_markings, read_lanelet2
-
-    from ._localizer_helpers import CRS, KARLSRUHE_OSM
-
-    marks = layout_markings(read_lanelet2(KARLSRUHE_OSM, crs=CRS))
-    frame = GeoFrame(crs)
-    lon, lat = GeoFrame(CRS).to_lonlat(np.array([m.x for m in marks]), np.array([m.y for m in marks]))
-    x, y = frame.to_xy(lon, lat)
-    return MapIndex.from_arrays(x, y, [m.weight for m in marks], crs,
-                                bearing_deg=np.array([m.bearing_deg for m in marks]) - frame.convergence_deg(lon, lat),
-                                length_m=[m.length_m for m in marks], kind=[m.kind for m in marks])  # fmt: skip
-
-
 def test_a_drive_handed_to_a_map_in_another_crs_goes_on_where_it_was():
     """TrackState.to_crs: the drive continued on the same markings stored in another grid gives the same
     poses on the ground, though its grid yaws differ by the two grids' meridian convergences."""
     index, smap = karlsruhe()
     other_crs = "EPSG:31466"  # Gauss-Krüger zone 2: Karlsruhe lies 2.4° east of its meridian
-    other = _karlsruhe_in(other_crs)
+    other = KarlsruheMarkings().index(crs=other_crs)
     rng = np.random.default_rng(31)
     drive = sample_trajectories(smap, 1, 10, 1.5, rng, Camera(), min_visible=5)[0]
     scenes = [simulate_scene(smap, tuple(p), rng, Camera(), Clutter()) for p in drive]
