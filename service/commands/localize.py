@@ -168,7 +168,8 @@ def register(app: typer.Typer) -> None:
         min_probability: float | None = typer.Option(
             None, "--min-probability", help="Posterior probability an answer needs to be ok, "
             f"{MIN_PROBABILITY_RANGE[0]}-{MIN_PROBABILITY_RANGE[1]} "
-            f"(default {Options().ambiguity_probability}); below it the answer is ambiguous (default method).",
+            f"(default {Options().ambiguity_probability}); below it the answer is ambiguous (default method). "
+            "An answer whose camera sees beyond the map's edge stays ambiguous at any threshold.",
         ),
     ) -> None:
         """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed).

@@ -40,7 +40,8 @@ _MIN_PROBABILITY = Field(
     None, ge=MIN_PROBABILITY_RANGE[0], le=MIN_PROBABILITY_RANGE[1],
     description="Posterior probability the answer needs to be ok (default method); below it the answer is "
                 "ambiguous with its hypotheses. Default: the localizer's (see PoseOut.probability). Higher: "
-                "fewer ok answers and fewer of them wrong.")  # fmt: skip
+                "fewer ok answers and fewer of them wrong. An answer whose camera sees beyond the map's edge "
+                "stays ambiguous at any threshold (see PoseOut.reason).")  # fmt: skip
 
 
 #: The examples /docs offers: docs/examples/frame.json and the first two frames
