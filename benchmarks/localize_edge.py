@@ -19,7 +19,16 @@ check, such a pose wins surely (status ``ok``) and wrongly.
 Printed per prior and map: success (``ok`` within 0.5 m and 1°), confidently
 wrong (``ok``, more than 1 m off), ambiguous, failed.
 
-Run: ``.venv/bin/python benchmarks/localize_edge.py [--runs 200] [--seed 0]``
+``--drives``: drives instead of single frames (``--frames`` frames 1.5 m apart
+along the lanelets, as ``localize_track.py``'s, with its odometry noise),
+streamed through :func:`localizer.track.localize_sequence` against the map
+ending 15-35 m ahead of the first frame (the vehicle drives up to the edge,
+and past it by the last frames) or beginning 4-20 m ahead of it (the vehicle
+drives onto the map). The same figures, over every frame of every drive, and
+at the last frame.
+
+Run: ``.venv/bin/python benchmarks/localize_edge.py [--runs 200] [--seed 0]``,
+``.venv/bin/python benchmarks/localize_edge.py --drives [--runs 100] [--frames 12] [--seed 0]``
 """
 
 from __future__ import annotations
@@ -39,7 +48,16 @@ sys.path.insert(0, str(ROOT / "tests"))
 from _localizer_helpers import KarlsruheMarkings, karlsruhe  # noqa: E402
 
 from localizer import Options, Prior, localize  # noqa: E402
-from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene  # noqa: E402
+from localizer.simulate import (  # noqa: E402
+    Camera,
+    Clutter,
+    odometry,
+    perturb,
+    sample_poses,
+    sample_trajectories,
+    simulate_scene,
+)
+from localizer.track import Frame, localize_sequence  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "out"
 
@@ -51,6 +69,7 @@ PRIORS = [
     ("20m/±30°", (20.0, 20.0), 30.0, 14.0, 17.0),
 ]
 MAPS = ("whole map", "ends 5-25 m ahead", "begins 4-20 m ahead", "began 0-20 m behind")
+DRIVE_MAPS = ("ends 15-35 m ahead", "begins 4-20 m ahead")
 VARIANTS = {"default": None, "no edge check": Options(edge_share=None)}
 
 
@@ -85,6 +104,71 @@ def run(args) -> dict:
     return {"poses": len(poses), "seed": args.seed, "results": results}
 
 
+def grade(p, truth) -> dict:
+    if p.easting is None:
+        return {"status": p.status, "err": math.inf, "herr": math.inf}
+    return {"status": p.status, "err": math.hypot(p.easting - truth[0], p.northing - truth[1]),
+            "herr": abs(math.degrees((p.yaw_grid_rad - truth[2] + math.pi) % (2 * math.pi) - math.pi))}
+
+
+def run_drives(args) -> dict:
+    """Each drive against a map it drives off or onto, with and without the edge check."""
+    whole, smap = karlsruhe()
+    marks = KarlsruheMarkings()
+    frame = whole.frame
+    cam = Camera()
+    rng = np.random.default_rng(args.seed)
+    drives = sample_trajectories(smap, args.runs, args.frames, 1.5, rng, cam, min_visible=4)
+    results = {p[0]: {m: {v: [] for v in VARIANTS} for m in DRIVE_MAPS} for p in PRIORS}
+    with tqdm(total=len(PRIORS) * len(drives), unit="drive", desc="edge drives") as bar:
+        for name, dist, heading, sigma, sigma_deg in PRIORS:
+            srng = np.random.default_rng([args.seed, sum(map(ord, name)), 1])
+            for drive in drives:
+                frames = []
+                for k, pose in enumerate(drive):
+                    motion = (0.0, 0.0, 0.0)
+                    if k:
+                        dx, dy, dyaw = odometry(drive[k - 1], pose)
+                        d = math.hypot(dx, dy)
+                        motion = (dx + srng.normal(0, 0.02 * d), dy + srng.normal(0, 0.01 * d),
+                                  dyaw + math.radians(srng.normal(0, 0.1)))
+                    frames.append(Frame(simulate_scene(smap, tuple(pose), srng, cam, Clutter()).observations, motion))
+                init = perturb(drive[0], srng.uniform(*dist), srng.uniform(-heading, heading), srng)
+                lon, lat = frame.to_lonlat(init[0], init[1])
+                prior = Prior(lat=lat, lon=lon, heading_deg=float(frame.grid_yaw_to_heading(init[2], lon, lat)),
+                              position_sigma_m=sigma, heading_sigma_deg=sigma_deg)  # fmt: skip
+                maps = (marks.cut(drive[0], ends_m=srng.uniform(15.0, 35.0)),
+                        marks.cut(drive[0], begins_m=srng.uniform(4.0, 20.0)))
+                for map_name, index in zip(DRIVE_MAPS, maps):
+                    for variant, options in VARIANTS.items():
+                        r = localize_sequence(index, frames, prior, options=options)
+                        results[name][map_name][variant].append([grade(p, t) for p, t in zip(r.poses, drive)])
+                bar.update()
+    return {"drives": len(drives), "frames": args.frames, "seed": args.seed, "results": results}
+
+
+def drive_table(results: dict) -> str:
+    lines = ["| prior | map | variant | success, all frames | confidently wrong, all frames | ambiguous, all frames "
+             "| success, last frame | confidently wrong, last frame |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, maps in results.items():
+        for map_name, variants in maps.items():
+            for variant, drives in variants.items():
+                every = [g for d in drives for g in d]
+                last = [d[-1] for d in drives]
+
+                def rates(rows):
+                    ok = [r for r in rows if r["status"] == "ok"]
+                    return (sum(r["err"] <= 0.5 and r["herr"] <= 1.0 for r in ok) / len(rows),
+                            sum(r["err"] > 1.0 for r in ok) / len(rows),
+                            sum(r["status"] == "ambiguous" for r in rows) / len(rows))
+                s_all, cw_all, amb_all = rates(every)
+                s_last, cw_last, _ = rates(last)
+                lines.append(f"| {name} | {map_name} | {variant} | {s_all:.1%} | {cw_all:.1%} | {amb_all:.1%} "
+                             f"| {s_last:.1%} | {cw_last:.1%} |")
+    return "\n".join(lines)
+
+
 def table(results: dict) -> str:
     lines = ["| prior | map | variant | success | confidently wrong | ambiguous | failed |",
              "|---|---|---|---|---|---|---|"]
@@ -103,9 +187,22 @@ def table(results: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=200, help="scenes per prior")
+    ap.add_argument("--runs", type=int, default=None, help="scenes (200) or drives (100) per prior")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drives", action="store_true", help="drives onto and off the map instead of single frames")
+    ap.add_argument("--frames", type=int, default=12, help="frames per drive")
     args = ap.parse_args()
+    if args.drives:
+        args.runs = args.runs or 100
+        out = run_drives(args)
+        tab = drive_table(out["results"])
+        print(f"{out['drives']} drives of {args.frames} frames, seed {args.seed}")
+        print(tab)
+        OUT.mkdir(parents=True, exist_ok=True)
+        (OUT / f"localize_edge_drives_seed{args.seed}.md").write_text(tab + "\n")
+        (OUT / f"localize_edge_drives_seed{args.seed}.json").write_text(json.dumps(out, default=float))
+        return
+    args.runs = args.runs or 200
     out = run(args)
     tab = table(out["results"])
     print(f"{out['poses']} poses, seed {args.seed}")

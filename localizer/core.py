@@ -474,6 +474,40 @@ def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, pos_c
     return None
 
 
+def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray, options: Options) -> str | None:
+    """:func:`localize`'s check at the map's edge (``Options.edge_share``) for a pose found otherwise.
+
+    Parameters
+    ----------
+    map_index : MapIndex
+        The map.
+    obs : (N, 3) ndarray
+        Checked observations ``(x forward m, y left m, weight)``, as
+        :func:`parse_observations` returns them.
+    pose : tuple of float
+        ``(easting, northing, grid yaw)`` in the map's CRS (metres, radians).
+    pos_cov : (2, 2) ndarray
+        The covariance of the position that rivals were searched in (map
+        axes, m²): its sigma along ``pose``'s heading sets the reach.
+    options : Options
+        ``edge_share``, ``edge_rival_m``, ``edge_reach_m`` and the weights'
+        ``crowd_radius_m``.
+
+    Returns
+    -------
+    str or None
+        Why a sure answer at ``pose`` is not, or None.
+    """
+    if options.edge_share is None or map_index.hull is None or len(obs) == 0:
+        return None
+    w = data_weights(obs[:, 2])
+    if options.crowd_radius_m is not None:
+        w = crowd_weights(obs[:, :2], w, options.crowd_radius_m)
+    rho = float(np.max(np.hypot(obs[:, 0], obs[:, 1])))
+    local = LocalMap(map_index, (pose[0], pose[1]), rho + options.edge_reach_m + 2.0 * EDGE_MARGIN_M)
+    return _beyond_edge(local, obs[:, :2], w, (0.0, 0.0, pose[2]), np.asarray(pos_cov, float), options)
+
+
 def warm_up() -> float:
     """Compile the localizer's kernels, or load them from numba's cache; seconds taken.
 

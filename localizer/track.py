@@ -38,7 +38,15 @@ hypothesis through the frames with the vehicle's odometry:
 
 Each frame's estimate is the best track's pose, ``ok`` when that track holds
 ``Options.ambiguity_probability`` of the posterior, else ``ambiguous`` with the
-tracks as hypotheses. This is the filtering the paper names as future work.
+tracks as hypotheses. At a map's edge the camera sees markings the map
+lacks, and a rival a dash period away, whose view stays on the map, explains
+more of them than the truth does, frame after frame, until the truth's track
+is dropped. So until the drive has been sure of a track with no edge within
+the GPS fix's reach (``Options.edge_share``, as for a single frame; the track
+is then *established*, and keeps it through the drive and into the next
+map), a frame that sees beyond the edge from the best track or a pose within
+that reach starts the drive again: its answer is the single frame's, and the
+tracks go on from it alone. This is the filtering the paper names as future work.
 It keeps no state between calls: the caller either sends the frames of a
 window (e.g. the last second or two) and gets the pose of each, or streams a
 drive a few frames at a time, passing back the :class:`TrackState` of the
@@ -59,7 +67,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .core import DEFAULT_OPTIONS, _check_prior, _make_pose, localize, parse_observations, position_covariance
+from .core import (
+    DEFAULT_OPTIONS,
+    _check_prior,
+    _make_pose,
+    edge_reason,
+    localize,
+    parse_observations,
+    position_covariance,
+)
 from .errors import LocalizationInputError
 from .frames import shared_frame, wrap_angle
 from .geometry import LocalMap
@@ -182,7 +198,8 @@ MAX_SIGMA_M, MAX_SIGMA_YAW = 1000.0, math.pi
 #: GPS fix's is at least a prior's smallest (0.01 m / 0.01°).
 _MIN_STATE_SIGMA = 1e-9
 _SIGMA_LIMITS = {"sigma_m": MAX_SIGMA_M, "sigma_yaw_rad": MAX_SIGMA_YAW}
-_TRACK_KEYS = ("easting", "northing", "yaw_grid_rad", "sigma_m", "sigma_yaw_rad", "log_weight", "matched")
+_TRACK_KEYS = ("easting", "northing", "yaw_grid_rad", "sigma_m", "sigma_yaw_rad", "log_weight", "matched",
+               "established")
 _GPS_KEYS = ("easting", "northing", "yaw_grid_rad", "sigma_m", "sigma_yaw_rad")
 
 
@@ -204,7 +221,9 @@ class TrackState:
         Frames the drive has had so far.
     tracks : tuple of tuple
         ``(easting, northing, grid yaw, sigma_m, sigma_yaw_rad, log_weight,
-        matched)`` per hypothesis followed, most probable first.
+        matched, established)`` per hypothesis followed, most probable first;
+        ``established``: the drive was sure of it once with no map edge within
+        the GPS fix's reach (a state from before it was kept reads false).
     gps : tuple
         ``(easting, northing, grid yaw, sigma_m, sigma_yaw_rad)``: the first
         GPS fix carried along by the odometry (searched around while no track
@@ -227,7 +246,7 @@ class TrackState:
 
     crs: str
     frames: int
-    tracks: tuple[tuple[float, float, float, float, float, float, bool], ...]
+    tracks: tuple[tuple[float, float, float, float, float, float, bool, bool], ...]
     gps: tuple[float, float, float, float, float]
     gps_covariance: tuple[tuple[float, float, float], ...] | None = None
     history: tuple = ()
@@ -241,7 +260,8 @@ class TrackState:
         return {
             "crs": self.crs,
             "frames": self.frames,
-            "tracks": [dict(zip(_TRACK_KEYS, (*(float(v) for v in t[:6]), bool(t[6])))) for t in self.tracks],
+            "tracks": [dict(zip(_TRACK_KEYS, (*(float(v) for v in t[:6]), bool(t[6]), bool(t[7]))))
+                       for t in self.tracks],
             "gps": gps,
             "history": [{"observations": [[float(v) for v in row] for row in obs],
                          "motion": [float(v) for v in motion], "weight": float(weight), "first": bool(first)}
@@ -323,9 +343,12 @@ class TrackState:
         out = []
         for k, t in enumerate(tracks):
             values = _state_numbers(t, _TRACK_KEYS[:6], f"state.tracks[{k}]")
-            if not isinstance(t.get("matched"), bool):
+            for key in ("matched", "established"):
+                if not isinstance(t.get(key, False), bool):
+                    raise LocalizationInputError(f"state.tracks[{k}].{key}: expected true or false")
+            if "matched" not in t:
                 raise LocalizationInputError(f"state.tracks[{k}].matched: expected true or false")
-            out.append((*values, t["matched"]))
+            out.append((*values, t["matched"], t.get("established", False)))
         gps_values = _state_numbers(gps, _GPS_KEYS, "state.gps")
         cov = gps.get("covariance")
         shift = data.get("shift", 0.0)
@@ -456,6 +479,8 @@ class _Track:
     # (east, north, grid yaw) covariance; only the GPS fix carries one (its
     # sigmas above then follow from it)
     cov: np.ndarray | None = None
+    # was sure once with no map edge within the GPS fix's reach (module docstring)
+    established: bool = False
 
 
 def localize_sequence(
@@ -563,12 +588,13 @@ def iter_sequence(
         gps = _gps_track(frame_geo, prior, null)
         first = localize(map_index, parsed[0][0], prior, options=options)
         tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
+        _edge_hold(map_index, tracks, gps, parsed[0][0], null, options)  # its answer had the check
         result.poses.append(first)
         yield first
         rest, seen = parsed[1:], 1
         history = [(parsed[0][0], parsed[0][1], 1.0, True)]
     else:
-        tracks = [_Track(t[:3], t[3], t[4], t[5], t[6]) for t in state.tracks]
+        tracks = [_Track(t[:3], t[3], t[4], t[5], t[6], established=t[7]) for t in state.tracks]
         cov = (np.array(state.gps_covariance, float) if state.gps_covariance is not None
                else np.diag([state.gps[3] ** 2, state.gps[3] ** 2, state.gps[4] ** 2]))
         gps = _with_cov(_Track(state.gps[:3], state.gps[3], state.gps[4], null, False), cov)
@@ -586,13 +612,24 @@ def iter_sequence(
                                             past, shift)
         shift += excess
         history = past + [(obs, motion, weight, False)]
-        result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
+        if _edge_hold(map_index, tracks, gps, obs, null, options) is None:
+            result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
+        else:
+            # Within reach of the map's edge no track has been sure with none
+            # in reach: the frames before carry the edge's bias, so the drive
+            # starts again at this frame, as its first, with a single frame's check.
+            first = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
+            tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
+            _edge_hold(map_index, tracks, gps, obs, null, options)
+            history = [(obs, motion, 1.0, True)]
+            result.poses.append(first)
         yield result.poses[-1]
     history = _last(history, topt.retrodiction_frames)
     result.tracks = len(tracks)
     result.state = TrackState(
         crs, seen + len(rest),
-        tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched)) for t in tracks),
+        tuple((*(float(v) for v in t.pose), *_state_sigmas(t), float(t.log_w), bool(t.matched), bool(t.established))
+              for t in tracks),
         (*(float(v) for v in gps.pose), *_state_sigmas(gps)),
         _frozen(gps.cov),
         tuple((_frozen(obs), motion, float(weight), bool(first)) for obs, motion, weight, first in history),
@@ -878,7 +915,8 @@ def _children(r: Pose, parent: _Track, base: float, weight: float, frame_geo,
     for pose, ls in items:
         pose = tuple(float(v) for v in pose)
         lp = _log_prior(pose, parent)
-        out.append(_Track(pose, s_m, s_yaw, base + weight * (ls - lp) + lp, True, r))
+        out.append(_Track(pose, s_m, s_yaw, base + weight * (ls - lp) + lp, True, r,
+                          established=parent.established))
     return out + keep
 
 
@@ -895,6 +933,7 @@ def _prune(tracks: list[_Track], null: float, topt: TrackOptions) -> tuple[list[
             if _same_track(t, k, topt):
                 k.log_w = float(np.logaddexp(k.log_w, t.log_w))
                 k.matched = k.matched or t.matched
+                k.established = k.established or t.established
                 break
         else:
             kept.append(replace(t))
@@ -913,6 +952,26 @@ def _posterior(tracks: list[_Track], null: float) -> np.ndarray:
     w = np.array([t.log_w for t in tracks] + [null], float)
     w = np.exp(w - w.max())
     return w[:-1] / w.sum()
+
+
+def _edge_hold(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs: np.ndarray, null: float,
+               options: Options) -> str | None:
+    """Why the drive cannot trust its tracks at the map's edge (None: it can), establishing the best.
+
+    While the best track is not established, the camera seeing beyond the map
+    from it or from a pose within the GPS fix's reach along its heading
+    (:func:`localizer.core.edge_reason` with the fix's position covariance:
+    rivals were searched for around it) gives the reason, sure or not. Else
+    a best track the drive is sure of becomes established.
+    """
+    if not tracks or tracks[0].established:
+        return None
+    best = tracks[0]
+    cov = gps.cov[:2, :2] if gps.cov is not None else np.eye(2) * gps.sigma_m**2
+    reason = edge_reason(map_index, obs, best.pose, cov, options)
+    if reason is None and _posterior(tracks, null)[0] >= options.ambiguity_probability:
+        best.established = True
+    return reason
 
 
 def _estimate(tracks, null, options: Options, frame_geo, crs) -> Pose:

@@ -84,3 +84,102 @@ def test_bad_edge_options_are_refused():
     for bad in ({"edge_share": 1.5}, {"edge_share": -0.1}, {"edge_rival_m": -1.0}, {"edge_reach_m": math.nan}):
         with pytest.raises(LocalizationInputError, match=next(iter(bad))):
             Options(**bad)
+
+
+def _drives_onto_a_map(n: int, seed: int = 2):
+    """Drives of 12 frames onto a map that begins 4-20 m ahead of the first, from 8-10 m priors."""
+    from localizer.simulate import odometry, sample_trajectories
+    from localizer.track import Frame
+
+    whole, smap = karlsruhe()
+    marks = KarlsruheMarkings()
+    rng = np.random.default_rng(seed)
+    for drive in sample_trajectories(smap, n, 12, 1.5, rng, Camera(), min_visible=4):
+        frames = [Frame(simulate_scene(smap, tuple(p), rng, Camera(), Clutter()).observations,
+                        odometry(drive[k - 1], p) if k else (0.0, 0.0, 0.0)) for k, p in enumerate(drive)]
+        init = perturb(drive[0], rng.uniform(8.0, 10.0), rng.uniform(-15, 15), rng)
+        lon, lat = whole.frame.to_lonlat(init[0], init[1])
+        prior = Prior(lat=lat, lon=lon, heading_deg=float(whole.frame.grid_yaw_to_heading(init[2], lon, lat)),
+                      position_sigma_m=6.5, heading_sigma_deg=9.0)  # fmt: skip
+        yield drive, frames, prior, marks.cut(drive[0], begins_m=rng.uniform(4.0, 20.0)), whole
+
+
+def test_a_drive_onto_a_map_follows_no_rival_surely():
+    """A drive whose first frames see ground the map does not hold: without the check a track a
+    dash period ahead of the truth wins for good; with it, no frame is sure and wrong, and the
+    held-back frames say why."""
+    from localizer.track import localize_sequence
+
+    wrong_without, wrong_with, reasons = 0, 0, []
+    for drive, frames, prior, cut, _ in _drives_onto_a_map(16):
+        for options, counter in ((Options(edge_share=None), "without"), (None, "with")):
+            r = localize_sequence(cut, frames, prior, options=options)
+            wrong = sum(p.status == "ok" and math.hypot(p.easting - t[0], p.northing - t[1]) > 1.0
+                        for p, t in zip(r.poses, drive))
+            if counter == "without":
+                wrong_without += wrong
+            else:
+                wrong_with += wrong
+                reasons += [p.reason for p in r.poses if p.status == "ambiguous" and p.reason]
+    assert wrong_without >= 12, wrong_without  # frames of 4 of these 16 drives
+    assert wrong_with == 0
+    assert reasons and all("beyond the map's edge" in s for s in reasons)
+
+
+def test_an_established_drive_keeps_its_answers_and_its_state_says_so():
+    """On the whole map the same drives are sure where they were, their tracks established; a
+    state without the flag (from before it was kept) is established again at its next frame."""
+    from localizer.core import edge_reason
+    from localizer.track import Frame, TrackState, localize_sequence
+
+    continued = 0
+    for drive, frames, prior, _, whole in _drives_onto_a_map(4):
+        a = localize_sequence(whole, frames, prior)
+        b = localize_sequence(whole, frames, prior, options=Options(edge_share=None))
+        assert [p.status for p in a.poses] == [p.status for p in b.poses]
+        assert [p.easting for p in a.poses] == [p.easting for p in b.poses]
+        best, cov = a.state.tracks[0][:3], np.array(a.state.gps_covariance)[:2, :2]
+        if a.pose.status != "ok" or edge_reason(whole, np.asarray(frames[-1].observations), best, cov, Options()):
+            continue  # not sure, or sure since before the whole map's own edge came within reach
+        continued += 1
+        data = a.state.to_dict()
+        assert data["tracks"][0]["established"] is True
+        again = TrackState.from_dict(data)
+        assert again == a.state
+        for t in data["tracks"]:
+            del t["established"]
+        old = TrackState.from_dict(data)
+        assert not any(t[7] for t in old.tracks)
+        more = localize_sequence(whole, [Frame(frames[-1].observations, (0.0, 0.0, 0.0))], state=old)
+        assert more.pose.status == "ok" and more.state.tracks[0][7] is True
+    assert continued >= 2
+
+
+def test_a_drive_up_to_a_map_that_ends_is_not_sure_of_a_pose_a_period_back():
+    """The handover case with no overlap: a drive starting 22 m before the map ends, from a
+    3 m fix. Without the check it follows a pose one dash period back, `ok`, frame after frame;
+    with it every frame before the end is `ambiguous`, most saying why (the others were not sure)."""
+    from localizer.simulate import odometry, sample_trajectories
+    from localizer.track import Frame, localize_sequence
+
+    whole, smap = karlsruhe()
+    rng = np.random.default_rng(4)
+    drive = sample_trajectories(smap, 1, 30, 1.5, rng, Camera(), min_visible=6)[0]
+    frames = [Frame(simulate_scene(smap, tuple(p), rng, Camera(), Clutter()).observations,
+                    odometry(drive[k - 1], p) if k else (0.0, 0.0, 0.0)) for k, p in enumerate(drive)]
+    heading = np.array([math.cos(drive[0][2]), math.sin(drive[0][2])])
+    ends = float((0.5 * (drive[-1][:2] - drive[0][:2])) @ heading)
+    assert 20.0 < ends < 24.0
+    cut = KarlsruheMarkings().cut(drive[0], ends_m=ends)
+    lon, lat = whole.frame.to_lonlat(drive[0][0] + 1.5, drive[0][1] - 1.0)
+    prior = Prior(lat=lat, lon=lon, heading_deg=float(whole.frame.grid_yaw_to_heading(drive[0][2] + 0.05, lon, lat)),
+                  position_sigma_m=3.0, heading_sigma_deg=8.0)  # fmt: skip
+    before = [k for k, p in enumerate(drive) if (p[:2] - drive[0][:2]) @ heading < ends]
+    without = localize_sequence(cut, frames, prior, options=Options(edge_share=None)).poses
+    held = localize_sequence(cut, frames, prior).poses
+    off = [math.hypot(p.easting - t[0], p.northing - t[1]) for p, t in zip(without, drive)]
+    assert sum(without[k].status == "ok" and off[k] > 8.0 for k in before) >= 10
+    assert not any(p.status == "ok" and math.hypot(p.easting - t[0], p.northing - t[1]) > 1.0
+                   for p, t in zip(held, drive))
+    assert all(held[k].status == "ambiguous" for k in before)
+    assert sum("map's edge" in (held[k].reason or "") for k in before) >= len(before) // 2

@@ -220,7 +220,9 @@ def test_bad_states_are_input_errors():
     past = {"observations": [[10.0, 1.0, 40.0], [14.5, -1.5, 25.0]], "motion": [1.5, 0.0, 0.01], "weight": 0.4,
             "first": False}
     good = {**good, "tracks": [track], "history": [past]}
-    assert TrackState.from_dict(good).tracks[0] == (457000.0, 5428000.0, 0.1, 0.3, 0.02, 12.5, True)
+    assert TrackState.from_dict(good).tracks[0] == (457000.0, 5428000.0, 0.1, 0.3, 0.02, 12.5, True, False)
+    established = {**good, "tracks": [{**track, "established": True}]}
+    assert TrackState.from_dict(established).tracks[0][7] is True
     assert TrackState.from_dict(good).history == (
         (((10.0, 1.0, 40.0), (14.5, -1.5, 25.0)), (1.5, 0.0, 0.01), 0.4, False),)
     cases = [
@@ -233,6 +235,8 @@ def test_bad_states_are_input_errors():
         ({**good, "tracks": [{**track, "sigma_yaw_rad": 4.0}]}, "state.tracks[0].sigma_yaw_rad"),
         ({**good, "tracks": [{**track, "log_weight": float("nan")}]}, "state.tracks[0].log_weight"),
         ({**good, "tracks": [{**track, "matched": 1}]}, "state.tracks[0].matched"),
+        ({**good, "tracks": [{k: v for k, v in track.items() if k != "matched"}]}, "state.tracks[0].matched"),
+        ({**good, "tracks": [{**track, "established": "yes"}]}, "state.tracks[0].established"),
         ({**good, "gps": {**good["gps"], "easting": "east"}}, "state.gps.easting"),
         ({**good, "gps": None}, "state.gps"),
         ({**good, "gps": {**good["gps"], "covariance": [[1.0, 0.0], [0.0, 1.0]]}}, "a 3x3 matrix"),

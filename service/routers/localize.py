@@ -140,6 +140,8 @@ class DriveTrack(BaseModel):
     sigma_yaw_rad: float = Field(..., gt=0, le=math.pi, description="Heading sigma, radians")
     log_weight: float = Field(..., description="Unnormalised log posterior of the hypothesis")
     matched: bool = Field(..., description="Whether any frame matched along it")
+    established: bool = Field(False, description="Whether the drive was sure of it once with no map edge within "
+                                                 "the GPS fix's reach (false in older states)")
 
 
 class DriveGps(BaseModel):
