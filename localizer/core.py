@@ -394,11 +394,10 @@ def localize(
                 for i, k in enumerate(kept)
             ]
         probability = float(prob[0])
-        status = "ok" if probability >= options.ambiguity_probability else "ambiguous"
-        if status == "ok":
-            edge = _beyond_edge(local, obs_xy, w_data, pose, pos_cov, options)
-            if edge is not None:
-                status = "ambiguous"
+        # At the map's edge a sure answer is not, and no answer's hypotheses
+        # can be trusted to hold the truth (see with_prior_uncertainty).
+        edge = _beyond_edge(local, obs_xy, w_data, pose, pos_cov, options)
+        status = "ok" if probability >= options.ambiguity_probability and edge is None else "ambiguous"
 
     fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
     if fit.inliers < need:
@@ -441,6 +440,28 @@ def localize(
             listed.append(hp)
         out.mixture_covariance = mixture_covariance(
             pose, listed, [h.score for h in out.hypotheses], [h.covariance for h in out.hypotheses])
+        if edge is not None:
+            out.mixture_covariance = with_prior_uncertainty(
+                fit.covariance if out.mixture_covariance is None else out.mixture_covariance,
+                pose, prior_pose, pos_cov, sigma_yaw)
+    return out
+
+
+def with_prior_uncertainty(cov: np.ndarray, pose, prior_pose, pos_cov: np.ndarray, sigma_yaw: float) -> np.ndarray:
+    """``cov`` plus the prior's second moment about ``pose``: the observations are not trusted past the prior.
+
+    At a map's edge (``Options.edge_share``) the truth may be a pose whose
+    view the map does not hold, which the posterior scored down and need not
+    list: the answer is known no better than the prior knows it. Adds
+    ``P + o o'`` to the position block (``P`` the prior's position
+    covariance, m², ``o`` the prior's position less ``pose``'s) and
+    ``sigma_yaw² + dyaw²`` to the yaw's (radians; ``dyaw`` wrapped).
+    """
+    o = np.asarray(prior_pose[:2], float) - np.asarray(pose[:2], float)
+    dyaw = math.remainder(float(prior_pose[2]) - float(pose[2]), 2 * math.pi)
+    out = np.array(cov, float)
+    out[:2, :2] += np.asarray(pos_cov, float) + np.outer(o, o)
+    out[2, 2] += sigma_yaw**2 + dyaw**2
     return out
 
 

@@ -45,8 +45,8 @@ is dropped. So until the drive has been sure of a track with no edge within
 the GPS fix's reach (``Options.edge_share``, as for a single frame; the track
 is then *established*, and keeps it through the drive and into the next
 map), a frame that sees beyond the edge from the best track or a pose within
-that reach starts the drive again: its answer is the single frame's, and the
-tracks go on from it alone. This is the filtering the paper names as future work.
+that reach, and the frame after it, start the drive again: its answer is the
+single frame's, and the tracks go on from it alone. This is the filtering the paper names as future work.
 It keeps no state between calls: the caller either sends the frames of a
 window (e.g. the last second or two) and gets the pose of each, or streams a
 drive a few frames at a time, passing back the :class:`TrackState` of the
@@ -608,16 +608,25 @@ def iter_sequence(
         shift = state.shift
     for obs, motion in rest:
         past = _last(history, topt.retrodiction_frames)
-        tracks, gps, weight, excess = _step(map_index, tracks, gps, obs, motion, options, topt, frame_geo,
-                                            past, shift)
-        shift += excess
-        history = past + [(obs, motion, weight, False)]
-        if _edge_hold(map_index, tracks, gps, obs, null, options) is None:
-            result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
+        # The frame before started the drive (anew) with the edge in reach:
+        # its evidence carries the edge's bias too.
+        held = bool(past) and past[-1][3] and _edge_hold(map_index, tracks, gps, past[-1][0], null, options,
+                                                          establish=False) is not None  # fmt: skip
+        if not held:
+            tracks, gps, weight, excess = _step(map_index, tracks, gps, obs, motion, options, topt, frame_geo,
+                                                past, shift)
+            shift += excess
+            history = past + [(obs, motion, weight, False)]
+            held = _edge_hold(map_index, tracks, gps, obs, null, options) is not None
+            if not held:
+                result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
         else:
-            # Within reach of the map's edge no track has been sure with none
-            # in reach: the frames before carry the edge's bias, so the drive
-            # starts again at this frame, as its first, with a single frame's check.
+            gps = _predict(gps, motion, topt, floor=False)
+        if held:
+            # No track has been sure with no edge in reach, and one is in reach
+            # now or was at the frame before: the frames so far carry the
+            # edge's bias, so the drive starts again at this frame, as its
+            # first, with a single frame's check.
             first = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
             tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
             _edge_hold(map_index, tracks, gps, obs, null, options)
@@ -955,21 +964,21 @@ def _posterior(tracks: list[_Track], null: float) -> np.ndarray:
 
 
 def _edge_hold(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs: np.ndarray, null: float,
-               options: Options) -> str | None:
+               options: Options, establish: bool = True) -> str | None:
     """Why the drive cannot trust its tracks at the map's edge (None: it can), establishing the best.
 
     While the best track is not established, the camera seeing beyond the map
     from it or from a pose within the GPS fix's reach along its heading
     (:func:`localizer.core.edge_reason` with the fix's position covariance:
     rivals were searched for around it) gives the reason, sure or not. Else
-    a best track the drive is sure of becomes established.
+    a best track the drive is sure of becomes established (with ``establish``).
     """
     if not tracks or tracks[0].established:
         return None
     best = tracks[0]
     cov = gps.cov[:2, :2] if gps.cov is not None else np.eye(2) * gps.sigma_m**2
     reason = edge_reason(map_index, obs, best.pose, cov, options)
-    if reason is None and _posterior(tracks, null)[0] >= options.ambiguity_probability:
+    if establish and reason is None and _posterior(tracks, null)[0] >= options.ambiguity_probability:
         best.established = True
     return reason
 

@@ -131,7 +131,10 @@ class Pose:
         and ``d_i`` their offsets from the returned pose (yaw wrapped). The
         returned pose's uncertainty with the ambiguity in it: between rivals
         along a road of repeating dashes it is long along the road and about
-        as narrow across it as one hypothesis's. None when ``ok`` or
+        as narrow across it as one hypothesis's. An answer the map's edge
+        holds back (``Options.edge_share``) adds the prior's own uncertainty
+        about it: its rivals there were scored down by what the map lacks
+        and need not be listed (:func:`localizer.core.with_prior_uncertainty`). None when ``ok`` or
         ``failed``, when no hypothesis is listed (all below
         ``Options.min_hypothesis_probability``) or one has no covariance.
     iterations : int
@@ -350,7 +353,10 @@ class Options:
         away matches them to the map's own dashes and wins, surely and
         wrongly (from 8-10 m with the map ending 5-25 m ahead: 15-22 % of
         answers ``ok`` and more than 1 m off, ``benchmarks/localize_edge.py``).
-        None: no such check.
+        Such an answer, sure or not, carries a ``reason`` and a
+        ``mixture_covariance`` with the prior's uncertainty in it: the truth
+        may be a pose the map's missing markings scored down. None: no such
+        check.
     edge_rival_m : float
         ``edge_share`` applies only when those three sigmas reach at least
         this far (metres): half the 9 m dash period, below which no rival a

@@ -47,8 +47,8 @@ def _graded(p, pose):
 
 def test_a_map_ending_ahead_makes_no_rival_sure():
     """From 8-10 m: without the check, rivals a dash period back win surely; with it, none does,
-    and the answers say why."""
-    without, with_check, reasons = [], [], []
+    the answers say why, and their mixture covariance holds the truth."""
+    without, with_check, reasons, inside = [], [], [], []
     for pose, obs, prior, cut, _ in _edge_scenes(40, 6.5, (8.0, 10.0)):
         without.append(_graded(localize(cut, obs, prior, options=Options(edge_share=None)), pose))
         p = localize(cut, obs, prior)
@@ -56,6 +56,12 @@ def test_a_map_ending_ahead_makes_no_rival_sure():
         if p.reason and p.status == "ambiguous":
             reasons.append(p.reason)
             assert p.hypotheses and p.mixture_covariance is not None
+            # its uncertainty is the prior's at least: the truth in its 95 % ellipse
+            mix = np.asarray(p.mixture_covariance)[:2, :2]
+            assert np.linalg.eigvalsh(mix - np.eye(2) * 6.5**2).min() > -1e-6
+            d = np.array([pose[0] - p.easting, pose[1] - p.northing])
+            inside.append(d @ np.linalg.solve(mix, d) <= 5.991)
+    assert len(inside) >= 10 and all(inside), inside
     wrong_without = sum(s == "ok" and e > 1.0 for s, e in without)
     assert wrong_without >= 5, without  # 10 of these 40 (6-10 on other seeds)
     assert not any(s == "ok" and e > 1.0 for s, e in with_check), with_check
