@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import LocalizationInputError
 from .frames import GeoFrame, wrap_angle
-from .geometry import LocalMap, beyond_extent, homogeneous
+from .geometry import LocalMap, beyond_extent, homogeneous, local_hull
 from .index import MapIndex
 from .pink2008 import pink2008_icp
 from .robust import (
@@ -396,7 +396,7 @@ def localize(
         probability = float(prob[0])
         # At the map's edge a sure answer is not, and no answer's hypotheses
         # can be trusted to hold the truth (see with_prior_uncertainty).
-        edge = _beyond_edge(local, obs_xy, w_data, pose, pos_cov, options)
+        edge = _beyond_edge(local.hull, obs_xy, w_data, pose, pos_cov, options)
         status = "ok" if probability >= options.ambiguity_probability and edge is None else "ambiguous"
 
     fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
@@ -470,7 +470,7 @@ def with_prior_uncertainty(cov: np.ndarray, pose, prior_pose, pos_cov: np.ndarra
 EDGE_MARGIN_M = 1.0
 
 
-def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, pos_cov: np.ndarray,
+def _beyond_edge(hull: np.ndarray, obs_xy: np.ndarray, w: np.ndarray, pose, pos_cov: np.ndarray,
                  options: Options) -> str | None:  # fmt: skip
     """Why an answer the posterior calls sure is not: the camera sees beyond the map's edge from it
     or from a pose within the prior's reach along its heading (``Options.edge_share``); None if not.
@@ -481,12 +481,12 @@ def _beyond_edge(local: LocalMap, obs_xy: np.ndarray, w: np.ndarray, pose, pos_c
     c, s = math.cos(pose[2]), math.sin(pose[2])
     sigma = math.sqrt(max(float(np.array([c, s]) @ pos_cov @ np.array([c, s])), 0.0))
     reach = min(3.0 * sigma, options.edge_reach_m)
-    if options.edge_share is None or not len(local.hull) or 3.0 * sigma < options.edge_rival_m or not w.sum() > 0:
+    if options.edge_share is None or not len(hull) or 3.0 * sigma < options.edge_rival_m or not w.sum() > 0:
         return None
     for shift in (0.0, reach, -reach):
         x = pose[0] + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
         y = pose[1] + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
-        share = float(w[beyond_extent(local.hull, x, y, EDGE_MARGIN_M)].sum() / w.sum())
+        share = float(w[beyond_extent(hull, x, y, EDGE_MARGIN_M)].sum() / w.sum())
         if share > options.edge_share:
             where = ("from this pose" if shift == 0 else
                      f"from {abs(shift):.0f} m {'ahead of' if shift > 0 else 'behind'} it, within the prior's reach")
@@ -517,7 +517,9 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
     Returns
     -------
     str or None
-        Why a sure answer at ``pose`` is not, or None.
+        Why an answer at ``pose`` cannot be trusted to be sure, or to list its
+        rivals: the camera sees beyond the map's edge from it or from a pose
+        within reach; None if not.
     """
     if options.edge_share is None or map_index.hull is None or len(obs) == 0:
         return None
@@ -525,8 +527,8 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
     if options.crowd_radius_m is not None:
         w = crowd_weights(obs[:, :2], w, options.crowd_radius_m)
     rho = float(np.max(np.hypot(obs[:, 0], obs[:, 1])))
-    local = LocalMap(map_index, (pose[0], pose[1]), rho + options.edge_reach_m + 2.0 * EDGE_MARGIN_M)
-    return _beyond_edge(local, obs[:, :2], w, (0.0, 0.0, pose[2]), np.asarray(pos_cov, float), options)
+    hull = local_hull(map_index, pose[:2], rho + options.edge_reach_m + 2.0 * EDGE_MARGIN_M)
+    return _beyond_edge(hull, obs[:, :2], w, (0.0, 0.0, pose[2]), np.asarray(pos_cov, float), options)
 
 
 def warm_up() -> float:

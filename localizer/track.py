@@ -46,7 +46,8 @@ the GPS fix's reach (``Options.edge_share``, as for a single frame; the track
 is then *established*, and keeps it through the drive and into the next
 map), a frame that sees beyond the edge from the best track or a pose within
 that reach, and the frame after it, start the drive again: its answer is the
-single frame's, and the tracks go on from it alone. This is the filtering the paper names as future work.
+single frame's, and the tracks go on from it alone. This is the filtering the
+paper names as future work.
 It keeps no state between calls: the caller either sends the frames of a
 window (e.g. the last second or two) and gets the pose of each, or streams a
 drive a few frames at a time, passing back the :class:`TrackState` of the
@@ -343,11 +344,10 @@ class TrackState:
         out = []
         for k, t in enumerate(tracks):
             values = _state_numbers(t, _TRACK_KEYS[:6], f"state.tracks[{k}]")
-            for key in ("matched", "established"):
-                if not isinstance(t.get(key, False), bool):
-                    raise LocalizationInputError(f"state.tracks[{k}].{key}: expected true or false")
-            if "matched" not in t:
+            if not isinstance(t.get("matched"), bool):
                 raise LocalizationInputError(f"state.tracks[{k}].matched: expected true or false")
+            if not isinstance(t.get("established", False), bool):
+                raise LocalizationInputError(f"state.tracks[{k}].established: expected true or false")
             out.append((*values, t["matched"], t.get("established", False)))
         gps_values = _state_numbers(gps, _GPS_KEYS, "state.gps")
         cov = gps.get("covariance")
