@@ -226,21 +226,17 @@ def main() -> None:
     if args.drives:
         args.runs = args.runs or 100
         out = run_drives(args)
-        tab = drive_table(out["results"])
+        tab, name = drive_table(out["results"]), f"localize_edge_drives_seed{args.seed}"
         print(f"{out['drives']} drives of {args.frames} frames, seed {args.seed}")
-        print(tab)
-        OUT.mkdir(parents=True, exist_ok=True)
-        (OUT / f"localize_edge_drives_seed{args.seed}.md").write_text(tab + "\n")
-        (OUT / f"localize_edge_drives_seed{args.seed}.json").write_text(json.dumps(out, default=float))
-        return
-    args.runs = args.runs or 200
-    out = run(args)
-    tab = table(out["results"])
-    print(f"{out['poses']} poses, seed {args.seed}")
+    else:
+        args.runs = args.runs or 200
+        out = run(args)
+        tab, name = table(out["results"]), f"localize_edge_seed{args.seed}"
+        print(f"{out['poses']} poses, seed {args.seed}")
     print(tab)
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"localize_edge_seed{args.seed}.md").write_text(tab + "\n")
-    (OUT / f"localize_edge_seed{args.seed}.json").write_text(json.dumps(out, default=float))
+    (OUT / f"{name}.md").write_text(tab + "\n")
+    (OUT / f"{name}.json").write_text(json.dumps(out, default=float))
 
 
 if __name__ == "__main__":
