@@ -44,10 +44,12 @@ more of them than the truth does, frame after frame, until the truth's track
 is dropped. So until the drive has been sure of a track with no edge within
 the GPS fix's reach (``Options.edge_share``, as for a single frame; the track
 is then *established*, and keeps it through the drive and into the next
-map), a frame that sees beyond the edge from the best track or a pose within
-that reach, and the frame after it, start the drive again: its answer is the
-single frame's, and the tracks go on from it alone. This is the filtering the
-paper names as future work.
+map; while one is followed the drive goes on as any), a frame that sees
+beyond the edge from the best track or a pose within that reach, and the
+frame after it, start the drive again: its answer is the single frame's,
+and the tracks go on from it (those followed so far go on by the odometry,
+their evidence taken off). This is the filtering the paper names as future
+work.
 It keeps no state between calls: the caller either sends the frames of a
 window (e.g. the last second or two) and gets the pose of each, or streams a
 drive a few frames at a time, passing back the :class:`TrackState` of the
@@ -622,16 +624,21 @@ def iter_sequence(
                 result.poses.append(_estimate(tracks, null, options, frame_geo, crs))
         else:
             gps = _predict(gps, motion, topt, floor=False)
+            tracks = [_predict(t, motion, topt) for t in tracks]
         if held:
             # No track has been sure with no edge in reach, and one is in reach
             # now or was at the frame before: the frames so far carry the
             # edge's bias, so the drive starts again at this frame, as its
-            # first, with a single frame's check.
+            # first, with a single frame's check. The tracks go on by the
+            # odometry with that bias taken off (each as likely as "none of
+            # these"), so that a frame which matches nothing does not end them.
             first = localize(map_index, obs, _prior_of(gps, frame_geo), options=options)
-            tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo), null, topt)
+            carried = [replace(t, log_w=null) for t in tracks]
+            tracks, shift = _prune(_children(first, gps, 0.0, 1.0, frame_geo) + carried, null, topt)
             _edge_hold(map_index, tracks, gps, obs, null, options)
             history = [(obs, motion, 1.0, True)]
-            result.poses.append(first)
+            result.poses.append(first if first.status != "failed" or not tracks
+                                else _estimate(tracks, null, options, frame_geo, crs))
         yield result.poses[-1]
     history = _last(history, topt.retrodiction_frames)
     result.tracks = len(tracks)
@@ -967,13 +974,16 @@ def _edge_hold(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs: np.n
                options: Options, establish: bool = True) -> str | None:
     """Why the drive cannot trust its tracks at the map's edge (None: it can), establishing the best.
 
-    While the best track is not established, the camera seeing beyond the map
-    from it or from a pose within the GPS fix's reach along its heading
+    While no track is established, the camera seeing beyond the map from the
+    best one or from a pose within the GPS fix's reach along its heading
     (:func:`localizer.core.edge_reason` with the fix's position covariance:
     rivals were searched for around it) gives the reason, sure or not. Else
     a best track the drive is sure of becomes established (with ``establish``).
+    A drive with an established track is followed as the filter follows any:
+    once sure it searches for no new rival, and one that overtook its
+    established track near an edge would owe it to the edge.
     """
-    if not tracks or tracks[0].established:
+    if not tracks or any(t.established for t in tracks):
         return None
     best = tracks[0]
     cov = gps.cov[:2, :2] if gps.cov is not None else np.eye(2) * gps.sigma_m**2
