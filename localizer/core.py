@@ -470,19 +470,28 @@ def with_prior_uncertainty(cov: np.ndarray, pose, prior_pose, pos_cov: np.ndarra
 EDGE_MARGIN_M = 1.0
 
 
-def _beyond_edge(hull: np.ndarray, obs_xy: np.ndarray, w: np.ndarray, pose, pos_cov: np.ndarray,
-                 options: Options) -> str | None:  # fmt: skip
-    """Why an answer the posterior calls sure is not: the camera sees beyond the map's edge from it
-    or from a pose within the prior's reach along its heading (``Options.edge_share``); None if not.
+def _edge_reach(pose, pos_cov: np.ndarray, options: Options) -> float | None:
+    """How far along ``pose``'s heading (metres) a rival may lie for ``Options.edge_share``; None
+    where the check does not apply.
 
     ``pos_cov`` is the prior's position covariance (map axes, m²): its sigma along the heading
     sets the reach (a receiver sure along the road reaches no rival a dash period away).
     """
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    sigma = math.sqrt(max(float(np.array([c, s]) @ pos_cov @ np.array([c, s])), 0.0))
-    reach = min(3.0 * sigma, options.edge_reach_m)
-    if options.edge_share is None or not len(hull) or 3.0 * sigma < options.edge_rival_m or not w.sum() > 0:
+    if options.edge_share is None:
         return None
+    u = np.array([math.cos(pose[2]), math.sin(pose[2])])
+    sigma = math.sqrt(max(float(u @ pos_cov @ u), 0.0))
+    return None if 3.0 * sigma < options.edge_rival_m else min(3.0 * sigma, options.edge_reach_m)
+
+
+def _beyond_edge(hull: np.ndarray, obs_xy: np.ndarray, w: np.ndarray, pose, pos_cov: np.ndarray,
+                 options: Options) -> str | None:  # fmt: skip
+    """Why an answer cannot be trusted: the camera sees beyond the map's edge from it or from a
+    pose within the prior's reach along its heading (``Options.edge_share``); None if not."""
+    reach = _edge_reach(pose, pos_cov, options)
+    if reach is None or not len(hull) or not w.sum() > 0:
+        return None
+    c, s = math.cos(pose[2]), math.sin(pose[2])
     for shift in (0.0, reach, -reach):
         x = pose[0] + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
         y = pose[1] + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
@@ -521,14 +530,15 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
         rivals: the camera sees beyond the map's edge from it or from a pose
         within reach; None if not.
     """
-    if options.edge_share is None or map_index.hull is None or len(obs) == 0:
+    pos_cov = np.asarray(pos_cov, float)
+    if map_index.hull is None or len(obs) == 0 or _edge_reach(pose, pos_cov, options) is None:
         return None
     w = data_weights(obs[:, 2])
     if options.crowd_radius_m is not None:
         w = crowd_weights(obs[:, :2], w, options.crowd_radius_m)
     rho = float(np.max(np.hypot(obs[:, 0], obs[:, 1])))
     hull = local_hull(map_index, pose[:2], rho + options.edge_reach_m + 2.0 * EDGE_MARGIN_M)
-    return _beyond_edge(hull, obs[:, :2], w, (0.0, 0.0, pose[2]), np.asarray(pos_cov, float), options)
+    return _beyond_edge(hull, obs[:, :2], w, (0.0, 0.0, pose[2]), pos_cov, options)
 
 
 def warm_up() -> float:
