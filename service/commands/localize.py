@@ -21,8 +21,10 @@ from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, locali
 #: answer from one it must not act on without reading further. Bad input is 1
 #: (as for every command) and a usage error 2 (Click's).
 EXIT_CODES = {"ok": 0, "ambiguous": 3, "failed": 4}
-#: Seconds of silence before ``lanemap localize`` says that it is compiling.
-COMPILE_NOTE_AFTER_S = 2.0
+#: Seconds of silence before ``lanemap localize`` says that it is compiling:
+#: loading the cached kernels takes under a second on an idle machine, but
+#: took over 2 s once on a machine busy with two other processes.
+COMPILE_NOTE_AFTER_S = 4.0
 
 
 def _ready_kernels() -> None:
