@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -48,8 +47,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from _localizer_helpers import KarlsruheMarkings, karlsruhe  # noqa: E402
+from localize_track import grade as track_grade  # noqa: E402
+from localize_track import noisy, prior_at  # noqa: E402
 
-from localizer import Options, Prior, localize  # noqa: E402
+from localizer import Options, localize  # noqa: E402
 from localizer.simulate import (  # noqa: E402
     Camera,
     Clutter,
@@ -91,25 +92,20 @@ def run(args) -> dict:
             for pose in poses:
                 scene = simulate_scene(smap, pose, srng, cam, Clutter())
                 init = perturb(pose, srng.uniform(*dist), srng.uniform(-heading, heading), srng)
-                lon, lat = frame.to_lonlat(init[0], init[1])
-                prior = Prior(lat=lat, lon=lon, heading_deg=float(frame.grid_yaw_to_heading(init[2], lon, lat)),
-                              position_sigma_m=sigma, heading_sigma_deg=sigma_deg)  # fmt: skip
+                prior = prior_at(frame, init, sigma, sigma_deg)
                 maps = (whole, marks.cut(pose, ends_m=srng.uniform(5.0, 25.0)),
                         marks.cut(pose, begins_m=srng.uniform(4.0, 20.0)),
                         marks.cut(pose, begins_m=-srng.uniform(0.0, 20.0)))  # fmt: skip
                 for map_name, index in zip(MAPS, maps):
                     for variant, options in VARIANTS.items():
                         p = localize(index, scene.observations, prior, options=options)
-                        err = math.inf if p.easting is None else math.hypot(p.easting - pose[0], p.northing - pose[1])
-                        herr = math.inf if p.easting is None else abs(
-                            math.degrees((p.yaw_grid_rad - pose[2] + math.pi) % (2 * math.pi) - math.pi))
                         inside = listed = None
                         if p.status == "ambiguous" and p.mixture_covariance is not None:
                             d = np.array([pose[0] - p.easting, pose[1] - p.northing])
                             inside = bool(d @ np.linalg.solve(np.asarray(p.mixture_covariance)[:2, :2], d) <= CHI2_95)
                             listed = bool(d @ np.linalg.solve(listed_mixture(p), d) <= CHI2_95)
                         results[name][map_name][variant].append(
-                            {"status": p.status, "err": err, "herr": herr, "inside": inside, "listed": listed,
+                            {**grade(p, pose), "inside": inside, "listed": listed,
                              "edge": bool(p.reason and "map's edge" in p.reason)})
                 bar.update()
     return {"poses": len(poses), "seed": args.seed, "results": results}
@@ -117,7 +113,7 @@ def run(args) -> dict:
 
 def listed_mixture(p) -> np.ndarray:
     """The position block of the mixture over the listed hypotheses alone (what an answer held
-    back at the edge reported before the prior's along-heading uncertainty was added)."""
+    back at the edge reported before the prior's uncertainty was added to it)."""
     w = np.array([h.score for h in p.hypotheses])
     w = w / w.sum()
     out = np.zeros((2, 2))
@@ -128,10 +124,18 @@ def listed_mixture(p) -> np.ndarray:
 
 
 def grade(p, truth) -> dict:
-    if p.easting is None:
-        return {"status": p.status, "err": math.inf, "herr": math.inf}
-    return {"status": p.status, "err": math.hypot(p.easting - truth[0], p.northing - truth[1]),
-            "herr": abs(math.degrees((p.yaw_grid_rad - truth[2] + math.pi) % (2 * math.pi) - math.pi))}
+    """Status, position error (m) and heading error (degrees) of an answer against the truth."""
+    status, err, herr = track_grade(p, truth)
+    return {"status": status, "err": err, "herr": herr}
+
+
+def rates(rows: list[dict]) -> tuple[float, float, float, float]:
+    """Shares of ``rows`` that are success (``ok`` within 0.5 m and 1°), confidently wrong
+    (``ok``, more than 1 m off), ambiguous and failed."""
+    n = len(rows)
+    ok = [r for r in rows if r["status"] == "ok"]
+    return (sum(r["err"] <= 0.5 and r["herr"] <= 1.0 for r in ok) / n, sum(r["err"] > 1.0 for r in ok) / n,
+            sum(r["status"] == "ambiguous" for r in rows) / n, sum(r["status"] == "failed" for r in rows) / n)
 
 
 def run_drives(args) -> dict:
@@ -149,17 +153,10 @@ def run_drives(args) -> dict:
             for drive in drives:
                 frames = []
                 for k, pose in enumerate(drive):
-                    motion = (0.0, 0.0, 0.0)
-                    if k:
-                        dx, dy, dyaw = odometry(drive[k - 1], pose)
-                        d = math.hypot(dx, dy)
-                        motion = (dx + srng.normal(0, 0.02 * d), dy + srng.normal(0, 0.01 * d),
-                                  dyaw + math.radians(srng.normal(0, 0.1)))
+                    motion = noisy(odometry(drive[k - 1], pose), srng) if k else (0.0, 0.0, 0.0)
                     frames.append(Frame(simulate_scene(smap, tuple(pose), srng, cam, Clutter()).observations, motion))
                 init = perturb(drive[0], srng.uniform(*dist), srng.uniform(-heading, heading), srng)
-                lon, lat = frame.to_lonlat(init[0], init[1])
-                prior = Prior(lat=lat, lon=lon, heading_deg=float(frame.grid_yaw_to_heading(init[2], lon, lat)),
-                              position_sigma_m=sigma, heading_sigma_deg=sigma_deg)  # fmt: skip
+                prior = prior_at(frame, init, sigma, sigma_deg)
                 maps = (marks.cut(drive[0], ends_m=srng.uniform(15.0, 35.0)),
                         marks.cut(drive[0], begins_m=srng.uniform(4.0, 20.0)))
                 for map_name, index in zip(DRIVE_MAPS, maps):
@@ -177,16 +174,8 @@ def drive_table(results: dict) -> str:
     for name, maps in results.items():
         for map_name, variants in maps.items():
             for variant, drives in variants.items():
-                every = [g for d in drives for g in d]
-                last = [d[-1] for d in drives]
-
-                def rates(rows):
-                    ok = [r for r in rows if r["status"] == "ok"]
-                    return (sum(r["err"] <= 0.5 and r["herr"] <= 1.0 for r in ok) / len(rows),
-                            sum(r["err"] > 1.0 for r in ok) / len(rows),
-                            sum(r["status"] == "ambiguous" for r in rows) / len(rows))
-                s_all, cw_all, amb_all = rates(every)
-                s_last, cw_last, _ = rates(last)
+                s_all, cw_all, amb_all, _ = rates([g for d in drives for g in d])
+                s_last, cw_last, _, _ = rates([d[-1] for d in drives])
                 lines.append(f"| {name} | {map_name} | {variant} | {s_all:.1%} | {cw_all:.1%} | {amb_all:.1%} "
                              f"| {s_last:.1%} | {cw_last:.1%} |")
     return "\n".join(lines)
@@ -199,12 +188,7 @@ def table(results: dict) -> str:
     for name, maps in results.items():
         for map_name, variants in maps.items():
             for variant, rows in variants.items():
-                n = len(rows)
-                ok = [r for r in rows if r["status"] == "ok"]
-                succ = sum(r["err"] <= 0.5 and r["herr"] <= 1.0 for r in ok) / n
-                cw = sum(r["err"] > 1.0 for r in ok) / n
-                amb = sum(r["status"] == "ambiguous" for r in rows) / n
-                fail = sum(r["status"] == "failed" for r in rows) / n
+                succ, cw, amb, fail = rates(rows)
                 held = [r for r in rows if r.get("inside") is not None]
                 at_edge = [r for r in held if r["edge"]]
                 cover = f"{np.mean([r['inside'] for r in held]):.1%}" if held else "–"

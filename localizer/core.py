@@ -273,9 +273,7 @@ def localize(
     prior_info = np.zeros((3, 3))
     prior_info[:2, :2] = pos_info
     prior_info[2, 2] = 1 / sigma_yaw**2
-    w_data = data_weights(gamma)
-    if method != "pink2008" and options.crowd_radius_m is not None:
-        w_data = crowd_weights(obs_xy, w_data, options.crowd_radius_m)
+    w_data = data_weights(gamma) if method == "pink2008" else _observation_weights(obs, options)
     sig = noise_sigma(obs_xy, options)
 
     if method == "pink2008":
@@ -470,6 +468,13 @@ def with_prior_uncertainty(cov: np.ndarray, pose, prior_pose, pos_cov: np.ndarra
 EDGE_MARGIN_M = 1.0
 
 
+def _observation_weights(obs: np.ndarray, options: Options) -> np.ndarray:
+    """The default method's weight of each observation: its ``gamma``'s, shared among those
+    that crowd together (``Options.crowd_radius_m``)."""
+    w = data_weights(obs[:, 2])
+    return w if options.crowd_radius_m is None else crowd_weights(obs[:, :2], w, options.crowd_radius_m)
+
+
 def _edge_reach(pose, pos_cov: np.ndarray, options: Options) -> float | None:
     """How far along ``pose``'s heading (metres) a rival may lie for ``Options.edge_share``; None
     where the check does not apply.
@@ -533,9 +538,7 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
     pos_cov = np.asarray(pos_cov, float)
     if map_index.hull is None or len(obs) == 0 or _edge_reach(pose, pos_cov, options) is None:
         return None
-    w = data_weights(obs[:, 2])
-    if options.crowd_radius_m is not None:
-        w = crowd_weights(obs[:, :2], w, options.crowd_radius_m)
+    w = _observation_weights(obs, options)
     rho = float(np.max(np.hypot(obs[:, 0], obs[:, 1])))
     hull = local_hull(map_index, pose[:2], rho + options.edge_reach_m + 2.0 * EDGE_MARGIN_M)
     return _beyond_edge(hull, obs[:, :2], w, (0.0, 0.0, pose[2]), pos_cov, options)

@@ -92,17 +92,24 @@ def test_bad_edge_options_are_refused():
             Options(**bad)
 
 
+def _drive_frames(smap, drive, rng) -> list:
+    """The camera frames of ``drive`` (scenes with the default clutter), each with exact odometry."""
+    from localizer.simulate import odometry
+    from localizer.track import Frame
+
+    return [Frame(simulate_scene(smap, tuple(p), rng, Camera(), Clutter()).observations,
+                  odometry(drive[k - 1], p) if k else (0.0, 0.0, 0.0)) for k, p in enumerate(drive)]
+
+
 def _drives_onto_a_map(n: int, seed: int = 2):
     """Drives of 12 frames onto a map that begins 4-20 m ahead of the first, from 8-10 m priors."""
-    from localizer.simulate import odometry, sample_trajectories
-    from localizer.track import Frame
+    from localizer.simulate import sample_trajectories
 
     whole, smap = karlsruhe()
     marks = KarlsruheMarkings()
     rng = np.random.default_rng(seed)
     for drive in sample_trajectories(smap, n, 12, 1.5, rng, Camera(), min_visible=4):
-        frames = [Frame(simulate_scene(smap, tuple(p), rng, Camera(), Clutter()).observations,
-                        odometry(drive[k - 1], p) if k else (0.0, 0.0, 0.0)) for k, p in enumerate(drive)]
+        frames = _drive_frames(smap, drive, rng)
         init = perturb(drive[0], rng.uniform(8.0, 10.0), rng.uniform(-15, 15), rng)
         lon, lat = whole.frame.to_lonlat(init[0], init[1])
         prior = Prior(lat=lat, lon=lon, heading_deg=float(whole.frame.grid_yaw_to_heading(init[2], lon, lat)),
@@ -165,14 +172,13 @@ def test_a_drive_up_to_a_map_that_ends_is_not_sure_of_a_pose_a_period_back():
     """The handover case with no overlap: a drive starting 22 m before the map ends, from a
     3 m fix. Without the check it follows a pose one dash period back, `ok`, frame after frame;
     with it every frame before the end is `ambiguous`, most saying why (the others were not sure)."""
-    from localizer.simulate import odometry, sample_trajectories
-    from localizer.track import Frame, localize_sequence
+    from localizer.simulate import sample_trajectories
+    from localizer.track import localize_sequence
 
     whole, smap = karlsruhe()
     rng = np.random.default_rng(4)
     drive = sample_trajectories(smap, 1, 30, 1.5, rng, Camera(), min_visible=6)[0]
-    frames = [Frame(simulate_scene(smap, tuple(p), rng, Camera(), Clutter()).observations,
-                    odometry(drive[k - 1], p) if k else (0.0, 0.0, 0.0)) for k, p in enumerate(drive)]
+    frames = _drive_frames(smap, drive, rng)
     heading = np.array([math.cos(drive[0][2]), math.sin(drive[0][2])])
     ends = float((0.5 * (drive[-1][:2] - drive[0][:2])) @ heading)
     assert 20.0 < ends < 24.0
