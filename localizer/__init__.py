@@ -118,7 +118,7 @@ Example
 from .core import METHODS, localize, parse_observations, warm_up
 from .errors import LocalizationInputError
 from .frames import GeoFrame, bearing_to_yaw, shared_frame, wrap_angle, yaw_to_bearing
-from .index import MapIndex
+from .index import EXTENT_RULES, MapExtent, MapIndex
 from .track import (
     Frame,
     SequenceResult,
@@ -131,12 +131,14 @@ from .track import (
 from .types import ErrorEllipse, Hypothesis, Options, Pose, Prior
 
 __all__ = [
+    "EXTENT_RULES",
     "METHODS",
     "ErrorEllipse",
     "GeoFrame",
     "shared_frame",
     "Hypothesis",
     "LocalizationInputError",
+    "MapExtent",
     "MapIndex",
     "Options",
     "Frame",

@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import LocalizationInputError
 from .frames import GeoFrame, wrap_angle
-from .geometry import LocalMap, beyond_extent, homogeneous, local_hull
+from .geometry import LocalMap, homogeneous
 from .index import MapIndex
 from .pink2008 import pink2008_icp
 from .robust import (
@@ -394,7 +394,7 @@ def localize(
         probability = float(prob[0])
         # At the map's edge a sure answer is not, and no answer's hypotheses
         # can be trusted to hold the truth (see with_prior_uncertainty).
-        edge = _beyond_edge(local.hull, obs_xy, w_data, pose, pos_cov, options)
+        edge = _beyond_edge(map_index, local.origin, obs_xy, w_data, pose, pos_cov, options)
         status = "ok" if probability >= options.ambiguity_probability and edge is None else "ambiguous"
 
     fit = fits.get(pose) or fit_statistics(local, obs_xy, w_data, sig, pose, options, prior_info)
@@ -463,11 +463,6 @@ def with_prior_uncertainty(cov: np.ndarray, pose, prior_pose, pos_cov: np.ndarra
     return out
 
 
-#: Observations this far beyond the map's extent count for ``Options.edge_share`` (metres):
-#: a marking at the edge is still seen with the range noise of a far observation.
-EDGE_MARGIN_M = 1.0
-
-
 def _observation_weights(obs: np.ndarray, options: Options) -> np.ndarray:
     """The default method's weight of each observation: its ``gamma``'s, shared among those
     that crowd together (``Options.crowd_radius_m``)."""
@@ -489,18 +484,24 @@ def _edge_reach(pose, pos_cov: np.ndarray, options: Options) -> float | None:
     return None if 3.0 * sigma < options.edge_rival_m else min(3.0 * sigma, options.edge_reach_m)
 
 
-def _beyond_edge(hull: np.ndarray, obs_xy: np.ndarray, w: np.ndarray, pose, pos_cov: np.ndarray,
-                 options: Options) -> str | None:  # fmt: skip
+def _beyond_edge(map_index: MapIndex, origin, obs_xy: np.ndarray, w: np.ndarray, pose,
+                 pos_cov: np.ndarray, options: Options) -> str | None:  # fmt: skip
     """Why an answer cannot be trusted: the camera sees beyond the map's edge from it or from a
-    pose within the prior's reach along its heading (``Options.edge_share``); None if not."""
+    pose within the prior's reach along its heading (``Options.edge_share``); None if not.
+
+    ``pose`` is in coordinates about ``origin`` (map CRS, metres)."""
     reach = _edge_reach(pose, pos_cov, options)
-    if reach is None or not len(hull) or not w.sum() > 0:
+    if reach is None or not w.sum() > 0:
         return None
+    extent = map_index.extent  # drawn here on first use, where a check needs it
+    if extent is None:
+        return None
+    ox, oy = float(origin[0]) + pose[0], float(origin[1]) + pose[1]
     c, s = math.cos(pose[2]), math.sin(pose[2])
     for shift in (0.0, reach, -reach):
-        x = pose[0] + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
-        y = pose[1] + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
-        share = float(w[beyond_extent(hull, x, y, EDGE_MARGIN_M)].sum() / w.sum())
+        x = ox + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
+        y = oy + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
+        share = float(w[extent.beyond(x, y)].sum() / w.sum())
         if share > options.edge_share:
             where = ("from this pose" if shift == 0 else
                      f"from {abs(shift):.0f} m {'ahead of' if shift > 0 else 'behind'} it, within the prior's reach")
@@ -536,12 +537,10 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
         within reach; None if not.
     """
     pos_cov = np.asarray(pos_cov, float)
-    if map_index.hull is None or len(obs) == 0 or _edge_reach(pose, pos_cov, options) is None:
+    if len(obs) == 0 or _edge_reach(pose, pos_cov, options) is None:
         return None
-    w = _observation_weights(obs, options)
-    rho = float(np.max(np.hypot(obs[:, 0], obs[:, 1])))
-    hull = local_hull(map_index, pose[:2], rho + options.edge_reach_m + 2.0 * EDGE_MARGIN_M)
-    return _beyond_edge(hull, obs[:, :2], w, (0.0, 0.0, pose[2]), pos_cov, options)
+    return _beyond_edge(map_index, (0.0, 0.0), obs[:, :2], _observation_weights(obs, options), pose, pos_cov,
+                        options)
 
 
 def warm_up() -> float:

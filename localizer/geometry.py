@@ -113,7 +113,6 @@ class LocalMap:
         self._h = np.ascontiguousarray(self.half, float)
         # What the compiled lookups take: the tables and their bucket grid.
         self.tables = (self._c, self._uc, self._h, self.max_half) + _bucket_grid(self._c, GRID_CELL_M)
-        self.hull = local_hull(index, self.origin, radius)
         if index.expect_xy is not None and sel.size:
             keep = index.expect_of(sel)
             self.expect_xy = index.expect_xy[keep] - self.origin
@@ -338,23 +337,3 @@ def closest_points(p, max_dist, tables):
         tgt[j] = p[j] - e if m < tables[0].size else _FAR
         idx[j] = m
     return dist, tgt, idx
-
-
-def local_hull(index: MapIndex, origin, radius: float) -> np.ndarray:
-    """The map's extent (:attr:`MapIndex.hull`) as half-planes in coordinates about ``origin``
-    (map CRS, metres), less those that no point within ``radius`` metres of it can cross."""
-    hull = np.zeros((0, 3)) if index.hull is None else np.array(index.hull, float)
-    if hull.size:
-        hull[:, 2] += hull[:, :2] @ np.asarray(origin, float)
-        hull = hull[hull[:, 2] >= -radius]
-    return hull
-
-
-def beyond_extent(hull: np.ndarray, x, y, margin: float) -> np.ndarray:
-    """Whether points lie more than ``margin`` metres beyond one of the half-planes ``hull``
-    (:attr:`LocalMap.hull`, in the same coordinates)."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    out = np.zeros(np.broadcast(x, y).shape, bool)
-    for nx, ny, c in hull:
-        out |= nx * x + ny * y + c > margin
-    return out

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+import shapely
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from .errors import LocalizationInputError
 from .frames import GeoFrame
@@ -163,11 +164,10 @@ class MapIndex:
         Marking index of each expected point.
     expect_solid : (E,) ndarray of bool
         The expected point lies on a line-like marking.
-    hull : (F, 3) ndarray or None
-        The map's extent: the convex hull of its markings as half-planes
-        ``(nx, ny, c)``, a point ``p`` inside all of them where
-        ``nx * px + ny * py + c <= 0`` (unit normals, metres). Beyond it the
-        map says nothing (:func:`map_extent`, ``Options.edge_share``).
+    extent_rule : str
+        How the map's extent (:attr:`extent`, beyond which it says nothing)
+        is drawn from its markings: ``"hull"`` or ``"markings"``
+        (:func:`map_extent`).
     """
 
     xy: np.ndarray
@@ -179,7 +179,7 @@ class MapIndex:
     expect_xy: np.ndarray | None = None
     expect_owner: np.ndarray | None = None
     expect_solid: np.ndarray | None = None
-    hull: np.ndarray | None = None
+    extent_rule: str = "hull"
 
     @property
     def crs(self) -> str:
@@ -204,6 +204,7 @@ class MapIndex:
         bearing_deg=None,
         length_m=None,
         measured=None,
+        extent: str = "hull",
     ) -> "MapIndex":
         """Build the index of a map.
 
@@ -241,12 +242,21 @@ class MapIndex:
             Markings whose geometry was measured from imagery (detections),
             which may be cut short or run long; default none (exact geometry,
             e.g. a surveyed map without kinds).
+        extent : {"hull", "markings"}
+            How far the map speaks for the ground (:func:`map_extent`):
+            ``"hull"`` for a map that holds every marking painted within its
+            markings' convex hull, ``"markings"`` for a map whose world goes
+            on past it inside that hull (a route, separate parts of a city).
+            The default method's check at a map's edge
+            (``Options.edge_share``) reads it.
 
         Raises
         ------
         LocalizationInputError
             On NaN/inf, mismatched lengths, non-positive weights or a bad CRS.
         """
+        if extent not in EXTENT_RULES:
+            raise LocalizationInputError(f"extent: {extent!r} is not one of {', '.join(EXTENT_RULES)}")
         frame = GeoFrame(crs)
         xs = _column("x", x)
         ys = _column("y", y, xs.size)
@@ -288,7 +298,18 @@ class MapIndex:
             arr.setflags(write=False)
         tree = cKDTree(xy) if xs.size else cKDTree(np.zeros((0, 2)))
         return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame,
-                   expect_xy=exy, expect_owner=owner, expect_solid=esolid, hull=map_extent(xy))
+                   expect_xy=exy, expect_owner=owner, expect_solid=esolid, extent_rule=extent)
+
+    @cached_property
+    def extent(self) -> "MapExtent | None":
+        """Where the map speaks for the ground (:func:`map_extent` by :attr:`extent_rule`); None
+        for a map without area.
+
+        Built on first use (a race builds it twice, harmlessly): it is the
+        costliest part of a large map's index, and only the default method's
+        check at a map's edge (``Options.edge_share``) reads it.
+        """
+        return map_extent(self.xy, self.extent_rule)
 
     @cached_property
     def expect_groups(self) -> tuple[np.ndarray, np.ndarray]:
@@ -329,19 +350,90 @@ class MapIndex:
         return float(d)
 
 
-def map_extent(xy: np.ndarray) -> np.ndarray | None:
-    """The convex hull of marking centroids as half-planes (see :attr:`MapIndex.hull`).
+#: Delaunay triangles between markings whose sides are all at most this long
+#: make up a map's extent, metres: a road's width and the gaps of its dashes
+#: and junctions, but not the unmapped stretch between two parts of a map.
+EXTENT_LINK_M = 30.0
+#: How a map's extent is drawn when its markings alone say (:func:`map_extent`).
+EXTENT_RULES = ("hull", "markings")
+#: How far a point must lie outside the triangles to be beyond the map,
+#: metres: a marking at the edge is still seen with the range noise of a far
+#: observation.
+EXTENT_MARGIN_M = 1.0
 
-    None for fewer than three markings or markings on one line (no area).
+
+@dataclass(frozen=True)
+class MapExtent:
+    """The ground a map speaks for: beyond it, an unmapped marking may be painted.
+
+    Attributes
+    ----------
+    area : shapely.Polygon or shapely.MultiPolygon
+        The extent grown by ``margin_m`` (map CRS, metres), prepared for
+        point queries.
+    rule : str
+        How it was drawn: ``"hull"`` or ``"markings"`` (:func:`map_extent`).
+    link_m, margin_m : float
+        The other parameters it was built with.
     """
+
+    area: shapely.Geometry
+    rule: str
+    link_m: float
+    margin_m: float
+
+    def beyond(self, x, y) -> np.ndarray:
+        """Whether the points ``(x, y)`` (map CRS, metres) lie more than ``margin_m`` outside."""
+        return ~shapely.intersects_xy(self.area, np.asarray(x, float), np.asarray(y, float))
+
+
+def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M,
+               margin_m: float = EXTENT_MARGIN_M) -> MapExtent | None:  # fmt: skip
+    """The extent of a map whose markings are at ``xy`` (map CRS, metres), by ``rule``.
+
+    ``"hull"``: the markings' convex hull, for a map that holds every marking
+    painted within it (an area surveyed whole). ``"markings"``: the union of
+    the Delaunay triangles between markings whose sides are all at most
+    ``link_m`` long, and of the markings themselves, for a map whose world
+    goes on past it in places its hull covers: the streets of a route, parts
+    of a city, a survey with a stretch of road left out. It ends where the
+    markings do, and open ground between them wider than ``link_m`` (a city
+    block between mapped streets) lies outside too. Either is grown by
+    ``margin_m`` (with mitred corners, so that a point is beyond a hull when it
+    lies more than ``margin_m`` beyond one of its sides).
+
+    Returns None for fewer than three markings or markings on one line (no
+    area).
+
+    Raises
+    ------
+    LocalizationInputError
+        On an unknown ``rule``.
+    """
+    if rule not in EXTENT_RULES:
+        raise LocalizationInputError(f"extent: {rule!r} is not one of {', '.join(EXTENT_RULES)}")
     xy = np.asarray(xy, float).reshape(-1, 2)
     if len(xy) < 3:
         return None
     centre = xy.mean(axis=0)
     try:
-        eq = ConvexHull(xy - centre).equations.copy()
+        if rule == "hull":
+            hull = ConvexHull(xy - centre)
+        else:
+            tri = Delaunay(xy - centre)
     except QhullError:
         return None
-    eq[:, 2] -= eq[:, :2] @ centre  # back from the centred coordinates
-    eq.setflags(write=False)
-    return eq
+    if rule == "hull":
+        area = shapely.Polygon(xy[hull.vertices]).buffer(margin_m, join_style="mitre", mitre_limit=1e6)
+    else:
+        corners = xy[tri.simplices]  # (T, 3, 2)
+        short = (np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2) <= link_m).all(axis=1)
+        parts = [shapely.coverage_union_all(shapely.polygons(corners[short]))] if short.any() else []
+        # Markings in no kept triangle: a lone stop line, the end of a sparse line.
+        lone = np.ones(len(xy), bool)
+        lone[np.unique(tri.simplices[short])] = False
+        if lone.any():
+            parts.append(shapely.multipoints(xy[lone]))
+        area = shapely.union_all(parts).buffer(margin_m, quad_segs=4)
+    shapely.prepare(area)
+    return MapExtent(area=area, rule=rule, link_m=float(link_m), margin_m=float(margin_m))

@@ -345,8 +345,8 @@ class Options:
         observation keeps its own weight. Not used by ``pink2008``.
     edge_share : float or None
         An answer is at most ``ambiguous`` when more than this share of the
-        observations' weight lies beyond the map's extent (the convex hull of
-        its markings, :attr:`MapIndex.hull`, by more than 1 m) at its pose,
+        observations' weight lies beyond the map's extent (the ground between
+        its markings, :attr:`MapIndex.extent`, by more than 1 m) at its pose,
         or at its pose moved along its heading, either way, by three of the
         prior's position sigmas along that heading. At a map's edge the
         camera sees markings the map does not hold; a pose one dash period

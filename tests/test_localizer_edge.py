@@ -7,22 +7,58 @@ import math
 import numpy as np
 import pytest
 
-from localizer import MapIndex, Options, Prior, localize
+from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
 from localizer.index import map_extent
 from localizer.simulate import Camera, Clutter, perturb, sample_poses, simulate_scene
 
 from ._localizer_helpers import KarlsruheMarkings, karlsruhe
 
 
-def test_the_extent_is_the_markings_convex_hull():
+def test_the_hull_extent_is_the_markings_convex_hull_and_a_metre():
     xy = np.array([[0, 0], [10, 0], [10, 10], [0, 10], [5, 5]], float) + [457000, 5428000]
-    hull = map_extent(xy)
-    inside = (hull[:, :2] @ [457005, 5428005] + hull[:, 2]).max()
-    outside = (hull[:, :2] @ [457013, 5428005] + hull[:, 2]).max()
-    assert inside == pytest.approx(-5) and outside == pytest.approx(3)  # metres beyond the nearest side
+    ext = map_extent(xy)
+    assert ext.rule == "hull"
+    x0, y0 = 457000.0, 5428000.0
+    # a point is beyond when more than a metre beyond one of the hull's sides, corners included
+    assert not ext.beyond([x0 + 5, x0 + 10.9, x0 + 10.9], [y0 + 5, y0 + 5, y0 + 10.9]).any()
+    assert ext.beyond([x0 + 11.1, x0 + 5, x0 + 11.1], [y0 + 5, y0 - 1.1, y0 + 10.5]).all()
     assert map_extent(xy[:2]) is None and map_extent(np.array([[0, 0], [1, 1], [2, 2.0]])) is None
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1])
-    assert np.allclose(index.hull, hull)
+    assert index.extent_rule == "hull" and index.extent.area.equals(ext.area)
+
+
+def test_the_markings_extent_ends_where_the_markings_do():
+    """Two stretches of a dashed road 200 m apart and a lone stop line: the hull spans the ground
+    between them, the markings' extent ends a metre past each."""
+    along = np.arange(0.0, 100.0, 9.0)
+    road = np.concatenate([np.column_stack([along, np.zeros_like(along)]),
+                           np.column_stack([along, np.full_like(along, 3.5)])])  # fmt: skip
+    xy = np.concatenate([road, road + [300.0, 0.0], [[150.0, -200.0]]]) + [457000, 5428000]
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent="markings")
+    ext = index.extent
+    assert ext.rule == "markings"
+    x = 457000 + np.array([50.0, 4.5, 99.0 + 0.9, 99.0 + 1.1, 200.0, 150.0, 150.0 + 1.1])
+    y = 5428000 + np.array([1.75, 1.75, 1.75, 1.75, 1.75, -200.0, -200.0])
+    assert ext.beyond(x, y).tolist() == [False, False, False, True, True, False, True]
+    hull = MapIndex.from_arrays(xy[:, 0], xy[:, 1]).extent
+    assert not hull.beyond(x[:6], y[:6]).any()
+    with pytest.raises(LocalizationInputError, match="extent"):
+        MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent="convex")
+
+
+def test_a_stretch_left_out_of_a_map_is_its_edge_with_the_markings_extent():
+    """A map with 60 m of road left out 5-25 m ahead, inside the hull of what it holds: by the
+    hull a rival a dash period away wins surely; by the markings' extent no answer is sure there."""
+    marks = KarlsruheMarkings()
+    by_hull, by_markings = [], []
+    for pose, obs, prior, _, _ in _edge_scenes(40, 6.5, (8.0, 10.0), seed=3):
+        start = float(np.random.default_rng(len(by_hull)).uniform(5.0, 25.0))
+        by_hull.append(_graded(localize(marks.gap(pose, start), obs, prior), pose))
+        p = localize(marks.gap(pose, start, extent="markings"), obs, prior)
+        by_markings.append((*_graded(p, pose), "beyond the map's edge" in (p.reason or "")))
+    assert sum(s == "ok" and e > 1.0 for s, e in by_hull) >= 4, by_hull  # 6 of these 40 (4 on seeds 2 and 4)
+    assert not any(s == "ok" and e > 1.0 for s, e, _ in by_markings), by_markings
+    assert sum(s == "ambiguous" and edge for s, _, edge in by_markings) >= 35, by_markings
 
 
 def _edge_scenes(n: int, sigma: float, dist: tuple[float, float], seed: int = 1):
