@@ -894,3 +894,43 @@ def test_an_answer_at_the_maps_edge_says_why_it_is_not_sure(tmp_path, karlsruhe_
         assert out["hypotheses"] and out["probability"] >= 0.95
     finally:
         server.stop()
+
+
+def test_the_server_draws_a_maps_extent_as_its_setting_says(tmp_path, karlsruhe_fc):  # noqa: F811
+    """A map with a stretch of road left out ahead of the vehicle, inside the hull of what it holds:
+    a server with ``LANEMAP_MAP_EXTENT=markings`` answers ambiguous there and names the map's edge,
+    where by the hull a pose a dash period off is sure."""
+    import copy
+
+    from localizer import localize
+    from tests._api_helpers import start_server
+    from tests._localizer_helpers import KarlsruheMarkings
+    from tests.test_localizer_edge import _edge_scenes
+
+    marks = KarlsruheMarkings()
+    for pose, obs, prior, _, _ in _edge_scenes(40, 6.5, (8.0, 10.0), seed=3):
+        gap = marks.gap(pose, 10.0)
+        by_hull = localize(gap, obs, prior)
+        if by_hull.status == "ok" and math.hypot(by_hull.easting - pose[0], by_hull.northing - pose[1]) > 1:
+            break
+    else:
+        pytest.fail("no scene before a stretch left out is answered wrongly by the hull")
+    fw = from_wgs84(CRS)
+    kept = {tuple(np.round(xy, 3)) for xy in gap.xy}
+    fc = copy.deepcopy(karlsruhe_fc)
+    fc["features"] = [f for f in fc["features"]
+                      if tuple(np.round(fw.transform(*f["geometry"]["coordinates"]), 3)) in kept]  # fmt: skip
+    assert 0 < len(fc["features"]) < len(karlsruhe_fc["features"])
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                          env={"LANEMAP_MAP_EXTENT": "markings"})  # fmt: skip
+    try:
+        map_id = server.new_map()
+        assert httpx.post(f"{server.base_url}/collections/{map_id}/import", json=fc, headers=server.auth,
+                          timeout=60).status_code == 201  # fmt: skip
+        body = {"gps": {"lat": prior.lat, "lon": prior.lon, "heading_deg": prior.heading_deg,
+                        "position_sigma_m": prior.position_sigma_m, "heading_sigma_deg": prior.heading_sigma_deg},
+                "observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in obs]}  # fmt: skip
+        out = httpx.post(f"{server.base_url}/collections/{map_id}/localize", json=body, timeout=60).json()
+        assert out["status"] == "ambiguous" and "beyond the map's edge" in out["reason"], out
+    finally:
+        server.stop()

@@ -295,3 +295,29 @@ def test_cli_streams_a_drive_through_a_state_file(stored_map, tmp_path, monkeypa
     state.write_text('{"crs": "EPSG:25832", "frames": 0}')
     res = run(frames[3:], "--state", str(state))
     assert res.exit_code == 1 and "not a drive's state" in res.stderr and "state.frames" in res.stderr
+
+
+def test_the_extent_rule_is_the_clis_option_or_the_servers_setting(stored_map, tmp_path, monkeypatch):
+    """The Karlsruhe map is seven separate parts: by their hull a fix 8 m off near a
+    part's end is answered surely; by the markings' extent (--extent markings, or
+    LANEMAP_MAP_EXTENT=markings as for the server) the camera sees past the map's edge."""
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    path = tmp_path / "obs.json"
+    for seed in range(40):
+        _, scene, lat, lon, heading = frame_and_prior(seed)
+        path.write_text(json.dumps([{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]))
+        args = ["localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+                "--observations", str(path), "--position-sigma", "8", "--heading-sigma", "8"]  # fmt: skip
+        hull = CliRunner().invoke(app, args)
+        markings = CliRunner().invoke(app, [*args, "--extent", "markings"])
+        if hull.exit_code == 0 and markings.exit_code == 3:
+            break
+    else:
+        pytest.fail("no frame was sure by the hull and held back by the markings' extent")
+    held = json.loads(markings.stdout)
+    assert held["status"] == "ambiguous" and "beyond the map's edge" in held["reason"]
+    assert json.loads(CliRunner().invoke(app, [*args, "--extent", "hull"]).stdout) == json.loads(hull.stdout)
+    monkeypatch.setenv("LANEMAP_MAP_EXTENT", "markings")
+    assert json.loads(CliRunner().invoke(app, args).stdout) == held
+    bad = CliRunner().invoke(app, [*args, "--extent", "convex"])
+    assert bad.exit_code == 1 and bad.output.count("\n") == 1 and "--extent must be one of hull, markings" in bad.output

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
+from localizer import EXTENT_RULES, METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
 from localizer.robust import along_across_sigmas
 from service.cli_errors import fail
 from service.cli_io import is_stdio
@@ -173,6 +173,12 @@ def register(app: typer.Typer) -> None:
             f"(default {Options().ambiguity_probability}); below it the answer is ambiguous (default method). "
             "An answer whose camera sees beyond the map's edge stays ambiguous at any threshold.",
         ),
+        extent: str = typer.Option(
+            "hull", "--extent", envvar="LANEMAP_MAP_EXTENT", metavar="hull|markings",
+            help="How far the map speaks for the ground, for the check at its edge: hull (its markings' convex "
+            "hull: an area mapped whole) or markings (the ground between them: a route, or parts of a city "
+            "whose streets go on unmapped).",
+        ),
     ) -> None:
         """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed).
 
@@ -201,6 +207,8 @@ def register(app: typer.Typer) -> None:
         obs = load_observations(observations) if observations is not None else None
         if method not in METHODS:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+        if extent not in EXTENT_RULES:
+            fail(f"--extent must be one of {', '.join(EXTENT_RULES)}, got {extent!r}")
         if seq is not None and method != "default":
             fail("--frames works with the default method only")
         if min_probability is not None:
@@ -222,7 +230,7 @@ def register(app: typer.Typer) -> None:
         arrays = store.marking_arrays(map_id)
         _ready_kernels()
         try:
-            index = index_from_markings(arrays, info.crs)
+            index = index_from_markings(arrays, info.crs, extent)
             # Without --position-sigma the fix takes the library's default sigma.
             sigma = {} if position_sigma is None else {"position_sigma_m": position_sigma}
             prior = None if lat is None else Prior(

@@ -308,9 +308,11 @@ def map_index(ctx: Context, map_id: str):
         info = ctx.store.get_map(map_id)
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
-        index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs)
+        index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs, ctx.settings.map_extent)
+        _ = index.extent  # drawn here once, not by the first requests at once
         ctx.indexes[map_id] = (revision, index)
-        log.info("map %s: spatial index of %d markings at revision %d", map_id, len(index), revision)
+        log.info("map %s: spatial index of %d markings at revision %d (extent: %s)", map_id, len(index), revision,
+                 ctx.settings.map_extent)
         return index, revision
 
 
