@@ -2,15 +2,20 @@
 
 The camera sees the world; the map holds only part of it. Each scene of
 ``localize_paper.py``'s kind (the real Karlsruhe geometry, the default
-clutter) is localized four times with the same prior: against the whole
-map; against the map ending 5-25 m ahead of the vehicle (cut along a line
-across its heading: a vehicle driving off the map, or a map that ends where
-the next begins); against the map beginning 4-20 m ahead (a vehicle
-driving onto the map: the nearest markings it sees are not in it); and
-against the map beginning 0-20 m behind it (a vehicle that has just driven
-onto it: everything in view is mapped). Each with the localizer's defaults
-and without the edge check (``Options.edge_share=None``, the behaviour
-before it).
+clutter) is localized with the same prior against: the whole map; the map
+ending 5-25 m ahead of the vehicle (cut along a line across its heading: a
+vehicle driving off the map, or a map that ends where the next begins); the
+map beginning 4-20 m ahead (a vehicle driving onto the map: the nearest
+markings it sees are not in it); the map beginning 0-20 m behind it (a
+vehicle that has just driven onto it: everything in view is mapped); the
+map less 60 m of road (80 m wide) beginning 5-25 m ahead, the markings
+beyond it kept (a stretch left out of a map whose world goes on there,
+inside the hull of what the map holds). Each of these by the default extent
+(the markings' hull), with the localizer's defaults and without the edge
+check (``Options.edge_share=None``, the behaviour before it). Then, with
+the extent drawn by the markings themselves (``extent="markings"``), the
+map with the stretch left out and the whole map (the Karlsruhe map is
+seven separate parts, whose simulated world ends where they do).
 
 What the camera sees beyond the cut matches nothing at the true pose, while
 a pose one dash period away matches it to the map's own dashes: without the
@@ -26,8 +31,9 @@ along the lanelets, as ``localize_track.py``'s, with its odometry noise),
 streamed through :func:`localizer.track.localize_sequence` against the map
 ending 15-35 m ahead of the first frame (the vehicle drives up to the edge,
 and past it by the last frames) or beginning 4-20 m ahead of it (the vehicle
-drives onto the map). The same figures, over every frame of every drive, and
-at the last frame.
+drives onto the map), and against the map less 60 m of road beginning 15-35 m
+ahead of the first frame, by either extent. The same figures, over every
+frame of every drive, and at the last frame.
 
 Run: ``.venv/bin/python benchmarks/localize_edge.py [--runs 200] [--seed 0]``,
 ``.venv/bin/python benchmarks/localize_edge.py --drives [--runs 100] [--frames 12] [--seed 0]``
@@ -71,8 +77,14 @@ PRIORS = [
     ("8-10m/±15°", (8.0, 10.0), 15.0, 6.5, 9.0),
     ("20m/±30°", (20.0, 20.0), 30.0, 14.0, 17.0),
 ]
-MAPS = ("whole map", "ends 5-25 m ahead", "begins 4-20 m ahead", "began 0-20 m behind")
-DRIVE_MAPS = ("ends 15-35 m ahead", "begins 4-20 m ahead")
+MAPS = ("whole map", "ends 5-25 m ahead", "begins 4-20 m ahead", "began 0-20 m behind",
+        "60 m left out 5-25 m ahead", "60 m left out 5-25 m ahead, extent by markings",
+        "whole map, extent by markings")
+DRIVE_MAPS = ("ends 15-35 m ahead", "begins 4-20 m ahead", "60 m left out 15-35 m ahead",
+              "60 m left out 15-35 m ahead, extent by markings")
+#: Maps whose extent is drawn by the markings (``extent="markings"``): without the check they
+#: answer as their hull's twin above, so only the check runs.
+BY_MARKINGS = {m for m in MAPS + DRIVE_MAPS if m.endswith("extent by markings")}
 #: The 95 % quantile of chi-square with 2 degrees of freedom: a position's 95 % ellipse.
 CHI2_95 = 5.991
 VARIANTS = {"default": None, "no edge check": Options(edge_share=None)}
@@ -85,25 +97,32 @@ def run(args) -> dict:
     cam = Camera()
     rng = np.random.default_rng(args.seed)
     poses = sample_poses(smap, args.runs, rng, cam, min_visible=4)
-    results = {p[0]: {m: {v: [] for v in VARIANTS} for m in MAPS} for p in PRIORS}
+    results = {p[0]: {m: {v: [] for v in VARIANTS if m not in BY_MARKINGS or VARIANTS[v] is None} for m in MAPS}
+               for p in PRIORS}  # fmt: skip
+    whole_by_markings = marks.index(extent="markings")
     with tqdm(total=len(PRIORS) * len(poses), unit="scene", desc="edge scenes") as bar:
         for name, dist, heading, sigma, sigma_deg in PRIORS:
             srng = np.random.default_rng([args.seed, sum(map(ord, name))])
-            for pose in poses:
+            for i, pose in enumerate(poses):
                 scene = simulate_scene(smap, pose, srng, cam, Clutter())
                 init = perturb(pose, srng.uniform(*dist), srng.uniform(-heading, heading), srng)
                 prior = prior_at(frame, init, sigma, sigma_deg)
                 maps = (whole, marks.cut(pose, ends_m=srng.uniform(5.0, 25.0)),
                         marks.cut(pose, begins_m=srng.uniform(4.0, 20.0)),
                         marks.cut(pose, begins_m=-srng.uniform(0.0, 20.0)))  # fmt: skip
+                # its own stream, so that the rows above draw what they drew before
+                gap = np.random.default_rng([args.seed, i, 60]).uniform(5.0, 25.0)
+                maps += (marks.gap(pose, gap), marks.gap(pose, gap, extent="markings"), whole_by_markings)
                 for map_name, index in zip(MAPS, maps):
-                    for variant, options in VARIANTS.items():
+                    for variant in results[name][map_name]:
+                        options = VARIANTS[variant]
                         p = localize(index, scene.observations, prior, options=options)
                         inside = listed = None
                         if p.status == "ambiguous" and p.mixture_covariance is not None:
                             d = np.array([pose[0] - p.easting, pose[1] - p.northing])
                             inside = bool(d @ np.linalg.solve(np.asarray(p.mixture_covariance)[:2, :2], d) <= CHI2_95)
-                            listed = bool(d @ np.linalg.solve(listed_mixture(p), d) <= CHI2_95)
+                            if p.hypotheses:  # none where all lie below Options.min_hypothesis_probability
+                                listed = bool(d @ np.linalg.solve(listed_mixture(p), d) <= CHI2_95)
                         results[name][map_name][variant].append(
                             {**grade(p, pose), "inside": inside, "listed": listed,
                              "edge": bool(p.reason and "map's edge" in p.reason)})
@@ -146,11 +165,12 @@ def run_drives(args) -> dict:
     cam = Camera()
     rng = np.random.default_rng(args.seed)
     drives = sample_trajectories(smap, args.runs, args.frames, 1.5, rng, cam, min_visible=4)
-    results = {p[0]: {m: {v: [] for v in VARIANTS} for m in DRIVE_MAPS} for p in PRIORS}
+    results = {p[0]: {m: {v: [] for v in VARIANTS if m not in BY_MARKINGS or VARIANTS[v] is None}
+                      for m in DRIVE_MAPS} for p in PRIORS}  # fmt: skip
     with tqdm(total=len(PRIORS) * len(drives), unit="drive", desc="edge drives") as bar:
         for name, dist, heading, sigma, sigma_deg in PRIORS:
             srng = np.random.default_rng([args.seed, sum(map(ord, name)), 1])
-            for drive in drives:
+            for i, drive in enumerate(drives):
                 frames = []
                 for k, pose in enumerate(drive):
                     motion = noisy(odometry(drive[k - 1], pose), srng) if k else (0.0, 0.0, 0.0)
@@ -159,8 +179,11 @@ def run_drives(args) -> dict:
                 prior = prior_at(frame, init, sigma, sigma_deg)
                 maps = (marks.cut(drive[0], ends_m=srng.uniform(15.0, 35.0)),
                         marks.cut(drive[0], begins_m=srng.uniform(4.0, 20.0)))
+                gap = np.random.default_rng([args.seed, i, 60]).uniform(15.0, 35.0)
+                maps += (marks.gap(drive[0], gap), marks.gap(drive[0], gap, extent="markings"))
                 for map_name, index in zip(DRIVE_MAPS, maps):
-                    for variant, options in VARIANTS.items():
+                    for variant in results[name][map_name]:
+                        options = VARIANTS[variant]
                         r = localize_sequence(index, frames, prior, options=options)
                         results[name][map_name][variant].append([grade(p, t) for p, t in zip(r.poses, drive)])
                 bar.update()
@@ -193,8 +216,9 @@ def table(results: dict) -> str:
                 at_edge = [r for r in held if r["edge"]]
                 cover = f"{np.mean([r['inside'] for r in held]):.1%}" if held else "–"
                 if at_edge:
+                    listed = [r["listed"] for r in at_edge if r["listed"] is not None]
                     cover += (f"; held at the edge {np.mean([r['inside'] for r in at_edge]):.1%} "
-                              f"({np.mean([r['listed'] for r in at_edge]):.1%} over the listed hypotheses)")
+                              f"({np.mean(listed):.1%} over the listed hypotheses)")
                 lines.append(f"| {name} | {map_name} | {variant} | {succ:.1%} | {cw:.1%} | {amb:.1%} | {fail:.1%} "
                              f"| {cover} |")
     return "\n".join(lines)
