@@ -55,6 +55,9 @@ maps = Table(
     Column("revision", Integer, nullable=False, default=0),
     # The oldest revision the change feed answers from (the deletions before it were pruned).
     Column("feed_since", Integer, nullable=False, default=0, server_default="0"),
+    # How far the map speaks for the ground ("hull" or "markings", store.MAP_COVERAGES);
+    # NULL: as the server is set (LANEMAP_MAP_COVERAGE).
+    Column("coverage", String(16)),
     Column("created_at", DateTime(timezone=True), nullable=False),
     Column("updated_at", DateTime(timezone=True), nullable=False),
 )

@@ -138,6 +138,8 @@ class MapInfo:
     count: int | None = None
     #: The oldest revision the change feed answers from (0: every one; :meth:`Store.prune_removed`).
     feed_since: int = 0
+    #: How far the map speaks for the ground (:data:`MAP_COVERAGES`); None: as the server is set.
+    coverage: str | None = None
 
     def bounds_wgs84(self) -> tuple[float, float, float, float] | None:
         """Bounds as (west, south, east, north), degrees."""
@@ -484,6 +486,17 @@ def _insert_many(conn: Connection, table, rows: list[dict[str, Any]]) -> None:
 
 #: Longest map title, characters.
 MAX_TITLE_LENGTH = 500
+#: How far a map speaks for the ground, for localization's check at its edge:
+#: ``"hull"``, everything painted within its markings' convex hull is in it (an
+#: area mapped whole); ``"markings"``, only the ground between its markings (a
+#: route, or parts of a city whose streets go on unmapped inside that hull).
+MAP_COVERAGES = ("hull", "markings")
+
+
+def check_coverage(coverage: str | None) -> None:
+    """Refuse a map coverage that is not one of :data:`MAP_COVERAGES` (None: the server's)."""
+    if coverage is not None and coverage not in MAP_COVERAGES:
+        raise StoreError(f"coverage: must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
 
 #: What a Marking is read from in bulk: no timestamps (parsing them dominates big
 #: reads) and ``extra`` as raw text, decoded only when it holds something.
@@ -684,9 +697,12 @@ class Store:
         return make_url(self.url).render_as_string(hide_password=True)
 
     # ------------------------------------------------------------------ maps
-    def create_map(self, map_id: str, title: str = "", crs: str | None = None) -> MapInfo:
-        """Create an empty map. ``crs`` must be metric; None: chosen at the first import or build."""
+    def create_map(self, map_id: str, title: str = "", crs: str | None = None,
+                   coverage: str | None = None) -> MapInfo:  # fmt: skip
+        """Create an empty map. ``crs`` must be metric; None: chosen at the first import or build.
+        ``coverage``: :data:`MAP_COVERAGES`, or None for the server's setting."""
         check_map_id(map_id)
+        check_coverage(coverage)
         if len(title or "") > MAX_TITLE_LENGTH:
             raise StoreError(f"title: at most {MAX_TITLE_LENGTH} characters, got {len(title)}")
         if crs is not None:
@@ -705,7 +721,7 @@ class Store:
                 conn.execute(
                     insert(maps).values(
                         id=map_id, title=title or "", crs=crs, revision=start, feed_since=start,
-                        created_at=now, updated_at=now,
+                        coverage=coverage, created_at=now, updated_at=now,
                     )
                 )  # fmt: skip
                 if retired is not None:
@@ -721,6 +737,16 @@ class Store:
         with self._write() as conn:
             self._map_row(conn, map_id, lock=True)
             conn.execute(update(maps).where(maps.c.id == map_id).values(title=title, updated_at=_now()))
+        return self.get_map(map_id)
+
+    def set_coverage(self, map_id: str, coverage: str | None) -> MapInfo:
+        """Say how far the map speaks for the ground (:data:`MAP_COVERAGES`; None: as the server
+        is set). Its markings and revision stay; a localization index follows it
+        (:meth:`map_head`)."""
+        check_coverage(coverage)
+        with self._write() as conn:
+            self._map_row(conn, map_id, lock=True)
+            conn.execute(update(maps).where(maps.c.id == map_id).values(coverage=coverage, updated_at=_now()))
         return self.get_map(map_id)
 
     def adopt_crs(self, map_id: str, crs: str) -> str:
@@ -754,7 +780,7 @@ class Store:
         return MapInfo(
             id=row.id, title=row.title, crs=row.crs, bounds=bounds, revision=row.revision,
             created_at=_utc(row.created_at), updated_at=_utc(row.updated_at), count=count,
-            feed_since=int(row.feed_since),
+            feed_since=int(row.feed_since), coverage=row.coverage,
         )  # fmt: skip
 
     def get_map(self, map_id: str, *, with_count: bool = False) -> MapInfo:
@@ -799,10 +825,14 @@ class Store:
             conn.execute(insert(retired_maps).values(id=map_id, revision=int(row.revision), deleted_at=_now()))
 
     def map_revision(self, map_id: str) -> int:
-        """The map's revision (it grows with every change of its markings).
+        """The map's revision (it grows with every change of its markings)."""
+        return self.map_head(map_id)[0]
 
-        Every localization asks for it (the service rebuilds its cached index
-        when it moved on), so it is one statement on a pooled driver connection,
+    def map_head(self, map_id: str) -> tuple[int, str | None]:
+        """The map's revision and coverage (None: as the server is set).
+
+        Every localization asks for them (the service rebuilds its cached index
+        when either moved on), so it is one statement on a pooled driver connection,
         without SQLAlchemy's transaction round trips: a single SELECT reads one
         committed snapshot by itself. Any driver failure takes the regular path,
         which reports it as every other read does.
@@ -812,21 +842,22 @@ class Store:
             conn = self.engine.raw_connection()
             try:
                 cur = conn.cursor()
-                cur.execute(self._revision_sql, (map_id,))
+                cur.execute(self._head_sql, (map_id,))
                 row = cur.fetchone()
                 cur.close()
             finally:
                 conn.close()
         except Exception:  # noqa: BLE001 - the regular path raises the store's own errors
             with self._read() as c:
-                return int(self._map_row(c, map_id).revision)
+                r = self._map_row(c, map_id)
+                return int(r.revision), r.coverage
         if row is None:
             raise UnknownMapError(map_id)
-        return int(row[0])
+        return int(row[0]), row[1]
 
     @property
-    def _revision_sql(self) -> str:
-        return "SELECT revision FROM maps WHERE id = " + ("?" if self.dialect == "sqlite" else "%s")
+    def _head_sql(self) -> str:
+        return "SELECT revision, coverage FROM maps WHERE id = " + ("?" if self.dialect == "sqlite" else "%s")
 
     def _next_revision(self, conn: Connection, map_id: str) -> int:
         """Move the map on to its next revision and return it: the first write of a
