@@ -35,7 +35,7 @@ class Context:
     data_dir: Path
     tokens: list[Token]
     jobs: Any = None  # service.jobs.JobRunner
-    indexes: dict[str, tuple[int, Any]] = field(default_factory=dict)
+    indexes: dict[str, tuple[tuple[int, str], Any]] = field(default_factory=dict)  # (revision, coverage), index
     index_lock: threading.Lock = field(default_factory=threading.Lock)
     #: localizations admitted and not yet answered (changed on the event loop only)
     localize_pending: int = 0

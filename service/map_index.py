@@ -23,7 +23,7 @@ def localize_options(min_probability: float | None) -> Options | None:
     return None if min_probability is None else Options(ambiguity_probability=min_probability)
 
 
-def index_from_markings(arrays: MarkingArrays, crs: str, extent: str = "hull") -> MapIndex:
+def index_from_markings(arrays: MarkingArrays, crs: str, coverage: str = "hull") -> MapIndex:
     """The :class:`localizer.MapIndex` of a map's markings (``Store.marking_arrays``).
 
     The store keeps bearings clockwise from true north; the index wants grid
@@ -33,8 +33,9 @@ def index_from_markings(arrays: MarkingArrays, crs: str, extent: str = "hull") -
     it infers that from their geometry. Detections (``source="detected"``)
     of unknown kind cut short or run long get slack along their axis
     (:func:`localizer.index.length_slack`); imported markings do not.
-    ``extent`` is how far the map speaks for the ground
-    (``LANEMAP_MAP_EXTENT``, :func:`localizer.index.map_extent`).
+    ``coverage`` is how far the map speaks for the ground (the map's own, or
+    ``LANEMAP_MAP_COVERAGE``): the index's extent rule
+    (:func:`localizer.index.map_extent`).
 
     Raises
     ------
@@ -42,12 +43,12 @@ def index_from_markings(arrays: MarkingArrays, crs: str, extent: str = "hull") -
         On values the index cannot use (a bad CRS, non-positive weights).
     """
     if not len(arrays):
-        return MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, crs, extent=extent)
+        return MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, crs, extent=coverage)
     frame = GeoFrame(crs)
     lon, lat = frame.to_lonlat(float(np.mean(arrays.x)), float(np.mean(arrays.y)))
     return MapIndex.from_arrays(
         arrays.x, arrays.y, arrays.weight, crs,
         bearing_deg=np.asarray(arrays.bearing_deg) - frame.convergence_deg(lon, lat),
         length_m=arrays.length_m, kind=arrays.kind,
-        measured=None if arrays.source is None else arrays.source == "detected", extent=extent,
+        measured=None if arrays.source is None else arrays.source == "detected", extent=coverage,
     )

@@ -86,13 +86,13 @@ class ServiceSettings(BaseSettings):
         until ``lanemap maps prune-feed``.
     feed_prune_interval_s : float
         How often the server prunes the feeds when a retention is set, seconds.
-    map_extent : {"hull", "markings"}
-        ``LANEMAP_MAP_EXTENT``: how far a map speaks for the ground, for the
-        localizer's check at a map's edge (:func:`localizer.index.map_extent`):
-        ``hull``, the convex hull of its markings (maps of an area surveyed
-        whole), or ``markings``, the ground between them (maps of routes or
-        of separate parts of a city, whose streets go on unmapped inside
-        that hull).
+    map_coverage : {"hull", "markings"}
+        ``LANEMAP_MAP_COVERAGE``: how far a map that does not say (its
+        ``coverage``) speaks for the ground, for the localizer's check at a
+        map's edge (:func:`localizer.index.map_extent`): ``hull``, the convex
+        hull of its markings (maps of an area surveyed whole), or ``markings``,
+        the ground between them (maps of routes or of separate parts of a
+        city, whose streets go on unmapped inside that hull).
     log_format : {"text", "json"}
         ``LANEMAP_LOG_FORMAT``: the server's log as uvicorn's text lines, or
         as one JSON object per line for a log collector (:mod:`service.logs`).
@@ -118,7 +118,7 @@ class ServiceSettings(BaseSettings):
     feed_retention_days: float | None = Field(None, gt=0, allow_inf_nan=False)
     feed_prune_interval_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
     log_format: Literal["text", "json"] = "text"
-    map_extent: Literal["hull", "markings"] = "hull"
+    map_coverage: Literal["hull", "markings"] = "hull"
 
     @field_validator("feed_retention_days", mode="before")
     @classmethod

@@ -896,10 +896,11 @@ def test_an_answer_at_the_maps_edge_says_why_it_is_not_sure(tmp_path, karlsruhe_
         server.stop()
 
 
-def test_the_server_draws_a_maps_extent_as_its_setting_says(tmp_path, karlsruhe_fc):  # noqa: F811
-    """A map with a stretch of road left out ahead of the vehicle, inside the hull of what it holds:
-    a server with ``LANEMAP_MAP_EXTENT=markings`` answers ambiguous there and names the map's edge,
-    where by the hull a pose a dash period off is sure."""
+def test_a_maps_coverage_is_its_own_or_the_servers(tmp_path, karlsruhe_fc):  # noqa: F811
+    """A map with a stretch of road left out ahead of the vehicle, inside the hull of what it holds.
+    A server with ``LANEMAP_MAP_COVERAGE=markings`` answers ambiguous there and names the map's edge,
+    where by the hull a pose a dash period off is sure; a map's own coverage (PATCH) goes before
+    the server's, and the next request is answered by it."""
     import copy
 
     from localizer import localize
@@ -922,15 +923,41 @@ def test_the_server_draws_a_maps_extent_as_its_setting_says(tmp_path, karlsruhe_
                       if tuple(np.round(fw.transform(*f["geometry"]["coordinates"]), 3)) in kept]  # fmt: skip
     assert 0 < len(fc["features"]) < len(karlsruhe_fc["features"])
     server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
-                          env={"LANEMAP_MAP_EXTENT": "markings"})  # fmt: skip
+                          env={"LANEMAP_MAP_COVERAGE": "markings"})  # fmt: skip
     try:
         map_id = server.new_map()
-        assert httpx.post(f"{server.base_url}/collections/{map_id}/import", json=fc, headers=server.auth,
-                          timeout=60).status_code == 201  # fmt: skip
+        url = f"{server.base_url}/collections/{map_id}"
+        assert httpx.post(f"{url}/import", json=fc, headers=server.auth, timeout=60).status_code == 201
         body = {"gps": {"lat": prior.lat, "lon": prior.lon, "heading_deg": prior.heading_deg,
                         "position_sigma_m": prior.position_sigma_m, "heading_sigma_deg": prior.heading_sigma_deg},
                 "observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in obs]}  # fmt: skip
-        out = httpx.post(f"{server.base_url}/collections/{map_id}/localize", json=body, timeout=60).json()
+
+        def answer():
+            return httpx.post(f"{url}/localize", json=body, timeout=60).json()
+
+        got = httpx.get(url).json()
+        assert (got["coverage"], got["coverageSet"]) == ("markings", False)
+        out = answer()
         assert out["status"] == "ambiguous" and "beyond the map's edge" in out["reason"], out
+        r = httpx.patch(url, json={"coverage": "hull"}, headers=server.auth)
+        assert r.status_code == 200 and (r.json()["coverage"], r.json()["coverageSet"]) == ("hull", True)
+        assert r.json()["revision"] == got["revision"]  # its markings did not change
+        out = answer()
+        # the stored map went through WGS84: the same answer to a tenth of a millimetre
+        assert out["status"] == "ok" and out["easting"] == pytest.approx(by_hull.easting, abs=1e-4), out
+        # a title alone leaves the coverage; null gives the server's back
+        r = httpx.patch(url, json={"title": "with a gap"}, headers=server.auth)
+        assert (r.json()["title"], r.json()["coverage"]) == ("with a gap", "hull")
+        r = httpx.patch(url, json={"coverage": None}, headers=server.auth)
+        assert (r.json()["coverage"], r.json()["coverageSet"]) == ("markings", False)
+        assert answer()["status"] == "ambiguous"
+        refused = (({}, "nothing-to-change"), ({"coverage": "convex"}, None), ({"title": None}, "invalid-title"))
+        for bad, slug in refused:
+            r = httpx.patch(url, json=bad, headers=server.auth)
+            assert r.status_code == 422 and r.headers["content-type"] == "application/problem+json", (bad, r.text)
+            assert slug is None or r.json()["type"].endswith(slug)
+        r = httpx.post(f"{server.base_url}/collections", json={"id": "route", "coverage": "markings"},
+                       headers=server.auth)  # fmt: skip
+        assert r.status_code == 201 and (r.json()["coverage"], r.json()["coverageSet"]) == ("markings", True)
     finally:
         server.stop()

@@ -297,11 +297,13 @@ def test_cli_streams_a_drive_through_a_state_file(stored_map, tmp_path, monkeypa
     assert res.exit_code == 1 and "not a drive's state" in res.stderr and "state.frames" in res.stderr
 
 
-def test_the_extent_rule_is_the_clis_option_or_the_servers_setting(stored_map, tmp_path, monkeypatch):
-    """The Karlsruhe map is seven separate parts: by their hull a fix 8 m off near a
-    part's end is answered surely; by the markings' extent (--extent markings, or
-    LANEMAP_MAP_EXTENT=markings as for the server) the camera sees past the map's edge."""
+def test_a_maps_coverage_is_the_options_the_maps_own_or_the_servers(stored_map, tmp_path, monkeypatch):
+    """The Karlsruhe map is seven separate parts: by their hull a fix 8 m off near a part's end
+    is answered surely; covering only the ground between its markings, the camera sees past the
+    map's edge. --coverage decides, else the map's own coverage (lanemap maps update), else
+    LANEMAP_MAP_COVERAGE as for the server, else the hull."""
     monkeypatch.setenv("LANEMAP_DATABASE_URL", stored_map)
+    monkeypatch.delenv("LANEMAP_MAP_COVERAGE", raising=False)
     path = tmp_path / "obs.json"
     for seed in range(40):
         _, scene, lat, lon, heading = frame_and_prior(seed)
@@ -309,15 +311,37 @@ def test_the_extent_rule_is_the_clis_option_or_the_servers_setting(stored_map, t
         args = ["localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
                 "--observations", str(path), "--position-sigma", "8", "--heading-sigma", "8"]  # fmt: skip
         hull = CliRunner().invoke(app, args)
-        markings = CliRunner().invoke(app, [*args, "--extent", "markings"])
+        markings = CliRunner().invoke(app, [*args, "--coverage", "markings"])
         if hull.exit_code == 0 and markings.exit_code == 3:
             break
     else:
         pytest.fail("no frame was sure by the hull and held back by the markings' extent")
-    held = json.loads(markings.stdout)
+    held, sure = json.loads(markings.stdout), json.loads(hull.stdout)
     assert held["status"] == "ambiguous" and "beyond the map's edge" in held["reason"]
-    assert json.loads(CliRunner().invoke(app, [*args, "--extent", "hull"]).stdout) == json.loads(hull.stdout)
-    monkeypatch.setenv("LANEMAP_MAP_EXTENT", "markings")
-    assert json.loads(CliRunner().invoke(app, args).stdout) == held
-    bad = CliRunner().invoke(app, [*args, "--extent", "convex"])
-    assert bad.exit_code == 1 and bad.output.count("\n") == 1 and "--extent must be one of hull, markings" in bad.output
+
+    def answer(*extra):
+        return json.loads(CliRunner().invoke(app, [*args, *extra]).stdout)
+
+    assert answer("--coverage", "hull") == sure
+    monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "markings")
+    assert answer() == held and answer("--coverage", "hull") == sure
+    monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "hull")
+    try:
+        res = CliRunner().invoke(app, ["maps", "update", "ka", "--coverage", "markings"])
+        assert res.exit_code == 0 and "coverage markings" in res.output, res.output
+        assert json.loads(CliRunner().invoke(app, ["maps", "show", "ka"]).stdout)["coverage"] == "markings"
+        assert answer() == held and answer("--coverage", "hull") == sure
+    finally:
+        res = CliRunner().invoke(app, ["maps", "update", "ka", "--coverage", "default"])
+        assert res.exit_code == 0 and "as the server is set" in res.output, res.output
+    assert json.loads(CliRunner().invoke(app, ["maps", "show", "ka"]).stdout)["coverage"] is None
+    assert answer() == sure
+    bad = CliRunner().invoke(app, [*args, "--coverage", "convex"])
+    assert bad.exit_code == 1 and bad.output.count("\n") == 1, bad.output
+    assert "--coverage must be one of hull, markings" in bad.output
+    bad = CliRunner().invoke(app, ["maps", "update", "ka", "--coverage", "convex", "--title", "never written"])
+    assert bad.exit_code == 1 and "--coverage must be one of hull, markings or default" in bad.output, bad.output
+    assert json.loads(CliRunner().invoke(app, ["maps", "show", "ka"]).stdout)["title"] != "never written"
+    monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "convex")
+    bad = CliRunner().invoke(app, args)
+    assert bad.exit_code == 1 and "LANEMAP_MAP_COVERAGE must be one of hull, markings" in bad.output

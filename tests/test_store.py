@@ -87,6 +87,40 @@ def test_map_lifecycle(store):
         assert conn.execute(text("SELECT count(*) FROM edits")).scalar() == 0
 
 
+def test_a_maps_coverage_is_kept_and_checked(store):
+    """How far a map speaks for the ground: its own (``hull`` or ``markings``) or None (the
+    server's); setting it moves neither its markings nor its revision."""
+    info = store.create_map("route", crs="EPSG:25832", coverage="markings")
+    assert info.coverage == "markings" and store.map_head("route") == (0, "markings")
+    store.add_markings("route", [_m(0, 0)])
+    rev = store.map_revision("route")
+    assert store.set_coverage("route", "hull").coverage == "hull"
+    assert store.set_coverage("route", None).coverage is None
+    assert store.map_head("route") == (rev, None)
+    with pytest.raises(StoreError, match="coverage: must be one of hull, markings"):
+        store.set_coverage("route", "convex")
+    with pytest.raises(StoreError, match="coverage: must be one of hull, markings"):
+        store.create_map("other", coverage="Hull")
+    assert [i.id for i in store.list_maps()] == ["route"]
+    with pytest.raises(UnknownMapError):
+        store.set_coverage("nowhere", "hull")
+
+
+def test_maps_from_before_the_coverage_cover_as_the_server_is_set(db_url):
+    old = Store(db_url, upgrade=False)
+    old.upgrade("0003")
+    with old.engine.begin() as conn:
+        conn.execute(text("INSERT INTO maps (id, title, crs, revision, created_at, updated_at) "
+                          "VALUES ('old', '', 'EPSG:25832', 7, CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"))
+    old.close()
+    up = Store(db_url, upgrade=False)
+    assert up.upgrade() == ("0003", migrate.head_revision())
+    up.close()
+    store = Store(db_url)
+    assert store.get_map("old").coverage is None and store.map_head("old") == (7, None)
+    store.close()
+
+
 def test_add_markings_fills_lonlat_and_is_all_or_nothing(store):
     store.create_map("ka", crs="EPSG:25832")
     ids = store.add_markings("ka", [_m(0, 0), _m(5, 5)], who="alice", comment="first")

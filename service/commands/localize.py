@@ -173,11 +173,12 @@ def register(app: typer.Typer) -> None:
             f"(default {Options().ambiguity_probability}); below it the answer is ambiguous (default method). "
             "An answer whose camera sees beyond the map's edge stays ambiguous at any threshold.",
         ),
-        extent: str = typer.Option(
-            "hull", "--extent", envvar="LANEMAP_MAP_EXTENT", metavar="hull|markings",
+        coverage: str | None = typer.Option(
+            None, "--coverage", metavar="hull|markings",
             help="How far the map speaks for the ground, for the check at its edge: hull (its markings' convex "
             "hull: an area mapped whole) or markings (the ground between them: a route, or parts of a city "
-            "whose streets go on unmapped).",
+            "whose streets go on unmapped). Default: the map's own coverage, else LANEMAP_MAP_COVERAGE as "
+            "for the server, else hull.",
         ),
     ) -> None:
         """Localize against MAP and print the pose as JSON (status ok, ambiguous or failed).
@@ -207,8 +208,8 @@ def register(app: typer.Typer) -> None:
         obs = load_observations(observations) if observations is not None else None
         if method not in METHODS:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
-        if extent not in EXTENT_RULES:
-            fail(f"--extent must be one of {', '.join(EXTENT_RULES)}, got {extent!r}")
+        if coverage is not None and coverage not in EXTENT_RULES:
+            fail(f"--coverage must be one of {', '.join(EXTENT_RULES)}, got {coverage!r}")
         if seq is not None and method != "default":
             fail("--frames works with the default method only")
         if min_probability is not None:
@@ -228,9 +229,10 @@ def register(app: typer.Typer) -> None:
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
         arrays = store.marking_arrays(map_id)
+        coverage = coverage or info.coverage or _server_coverage()
         _ready_kernels()
         try:
-            index = index_from_markings(arrays, info.crs, extent)
+            index = index_from_markings(arrays, info.crs, coverage)
             # Without --position-sigma the fix takes the library's default sigma.
             sigma = {} if position_sigma is None else {"position_sigma_m": position_sigma}
             prior = None if lat is None else Prior(
@@ -271,3 +273,13 @@ def _spread(pose) -> str:
         return ""
     along, across = along_across_sigmas(pose.mixture_covariance, pose.yaw_grid_rad)
     return f"; with them, the position is known to ±{along:.2f} m along the heading and ±{across:.2f} m across it"
+
+
+def _server_coverage() -> str:
+    """``LANEMAP_MAP_COVERAGE`` as the server reads it (unset: ``hull``)."""
+    import os
+
+    value = os.environ.get("LANEMAP_MAP_COVERAGE", "hull")
+    if value not in EXTENT_RULES:
+        fail(f"LANEMAP_MAP_COVERAGE must be one of {', '.join(EXTENT_RULES)}, got {value!r}")
+    return value

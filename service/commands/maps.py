@@ -6,7 +6,13 @@ import json
 
 import typer
 
-from mapbuilder.store import Store
+from mapbuilder.store import MAP_COVERAGES, MAX_TITLE_LENGTH, Store
+
+
+COVERAGE_HELP = ("How far the map speaks for the ground, for localization at its edge: hull (everything painted "
+                 "within its markings' convex hull is in it: an area mapped whole) or markings (only the ground "
+                 "between them: a route, or parts of a city whose streets go on unmapped). Default: as the "
+                 "server is set (LANEMAP_MAP_COVERAGE).")
 
 
 def register(app: typer.Typer) -> None:
@@ -33,9 +39,14 @@ def register(app: typer.Typer) -> None:
         crs: str = typer.Option(
             None, "--crs", help="Metric storage CRS, e.g. EPSG:25832. Default: the UTM zone of the first import."
         ),
+        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings", help=COVERAGE_HELP),
     ) -> None:
         """Create an empty map."""
-        info = Store().create_map(map_id, title, crs)
+        if coverage is not None and coverage not in MAP_COVERAGES:
+            from ..cli_errors import fail
+
+            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
+        info = Store().create_map(map_id, title, crs, coverage)
         typer.echo(f"created map {info.id} ({info.crs or 'CRS chosen at the first import or build'})")
 
     @maps.command("show")
@@ -63,11 +74,27 @@ def register(app: typer.Typer) -> None:
     @maps.command("update")
     def update(
         map_id: str = typer.Argument(..., metavar="MAP"),
-        title: str = typer.Option(..., "--title", help="The map's new title."),
+        title: str = typer.Option(None, "--title", help="The map's new title."),
+        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|default",
+                                     help=COVERAGE_HELP + " default: back to the server's setting."),
     ) -> None:
-        """Change a map's title (its id, CRS and markings stay)."""
-        info = Store().set_title(map_id, title)
-        typer.echo(f"map {info.id} is now titled {info.title!r}")
+        """Change a map's title or coverage (its id, CRS and markings stay)."""
+        from ..cli_errors import fail
+
+        if title is None and coverage is None:
+            fail("give --title, --coverage or both")
+        # both checked before either is written
+        if coverage is not None and coverage not in (*MAP_COVERAGES, "default"):
+            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)} or default, got {coverage!r}")
+        if title is not None and len(title) > MAX_TITLE_LENGTH:
+            fail(f"--title: at most {MAX_TITLE_LENGTH} characters, got {len(title)}")
+        store = Store()
+        if coverage is not None:
+            info = store.set_coverage(map_id, None if coverage == "default" else coverage)
+            typer.echo(f"map {info.id}: coverage {info.coverage or 'as the server is set'}")
+        if title is not None:
+            info = store.set_title(map_id, title)
+            typer.echo(f"map {info.id} is now titled {info.title!r}")
 
     @maps.command("delete")
     def delete(
@@ -154,6 +181,7 @@ def _info_dict(i) -> dict:
         "markings": i.count,
         "revision": i.revision,
         "changes_since": i.feed_since,
+        "coverage": i.coverage,
         "created_at": i.created_at.isoformat(),
         "updated_at": i.updated_at.isoformat(),
     }

@@ -6,7 +6,7 @@ import logging
 import math
 from datetime import UTC
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from fastapi import APIRouter, Body, Depends, Header, Query, Request, Response
 from fastapi import Path as PathParam
@@ -83,6 +83,14 @@ FEATURE_EXAMPLE = {
 }  # fmt: skip
 
 
+COVERAGE_DOC = (
+    "How far the map speaks for the ground, for localization at its edge: `hull`, everything painted within "
+    "its markings' convex hull is in it (an area mapped whole); `markings`, only the ground between its "
+    "markings (a route, or parts of a city whose streets go on unmapped inside that hull). "
+    "Default (null): as the server is set (`LANEMAP_MAP_COVERAGE`)."
+)
+
+
 class CollectionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     id: str = Field(..., description="1-64 letters, digits, '.', '_' or '-', starting with a letter or digit",
@@ -92,10 +100,11 @@ class CollectionIn(BaseModel):
         None, description="Metric storage CRS, e.g. EPSG:25832; default: the UTM zone of the first data",
         max_length=100,
     )
+    coverage: Literal["hull", "markings"] | None = Field(None, description=COVERAGE_DOC)
 
 
 # ---------------------------------------------------------------------------- collections
-def collection_of(info: MapInfo, request: Request) -> dict[str, Any]:
+def collection_of(info: MapInfo, request: Request, default_coverage: str) -> dict[str, Any]:
     base = f"{base_url(request)}/collections/{info.id}"
     out: dict[str, Any] = {
         "id": info.id,
@@ -108,6 +117,9 @@ def collection_of(info: MapInfo, request: Request) -> dict[str, Any]:
         "revision": info.revision,
         # A copy at a revision before this one cannot follow the change feed: it reads the map whole.
         "changesSince": info.feed_since,
+        # As localization takes it; coverageSet: the map's own (false: the server's setting).
+        "coverage": info.coverage or default_coverage,
+        "coverageSet": info.coverage is not None,
         "links": [
             link(base, "self", JSON),
             link(f"{base}/items", "items", GEOJSON, "Markings"),
@@ -133,7 +145,7 @@ def list_collections(request: Request, ctx: Context = Depends(get_ctx)) -> dict:
     maps = ctx.store.list_maps()
     return {
         "links": [link(f"{base_url(request)}/collections", "self", JSON)],
-        "collections": [collection_of(m, request) for m in maps],
+        "collections": [collection_of(m, request, ctx.settings.map_coverage) for m in maps],
     }
 
 
@@ -141,15 +153,16 @@ def list_collections(request: Request, ctx: Context = Depends(get_ctx)) -> dict:
 def create_collection(
     body: CollectionIn, request: Request, ctx: Context = Depends(get_ctx), who: str = Depends(require_write)
 ):
-    info = ctx.store.create_map(body.id, body.title, body.crs)
+    info = ctx.store.create_map(body.id, body.title, body.crs, body.coverage)
     info.count = 0
     url = f"{base_url(request)}/collections/{info.id}"
-    return JSONResponse(collection_of(info, request), status_code=201, headers={"Location": url})
+    return JSONResponse(collection_of(info, request, ctx.settings.map_coverage), status_code=201,
+                        headers={"Location": url})  # fmt: skip
 
 
 @router.get("/collections/{mapId}", tags=["Maps"], summary="One map")
 def get_collection(request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx)) -> dict:
-    return collection_of(ctx.store.get_map(mapId, with_count=True), request)
+    return collection_of(ctx.store.get_map(mapId, with_count=True), request, ctx.settings.map_coverage)
 
 
 @router.get(
@@ -191,18 +204,29 @@ def get_summary(
 
 class CollectionPatch(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    title: str = Field(..., max_length=MAX_TITLE_LENGTH, description="The map's new title")
+    title: str | None = Field(None, max_length=MAX_TITLE_LENGTH, description="The map's new title")
+    coverage: Literal["hull", "markings"] | None = Field(
+        None, description=COVERAGE_DOC + " null sets it back to the server's.")
 
 
-@router.patch("/collections/{mapId}", tags=["Maps"], summary="Retitle a map")
+@router.patch("/collections/{mapId}", tags=["Maps"], summary="Retitle a map, or say how far it covers the ground")
 def patch_collection(
     body: CollectionPatch, request: Request, mapId: str = MapId, ctx: Context = Depends(get_ctx),
     who: str = Depends(require_write),
 ) -> dict:
-    """Change the map's title; its id, CRS and markings stay as they are."""
-    info = ctx.store.set_title(mapId, body.title)
-    log.info("map %s retitled by %s", mapId, who)
-    return collection_of(ctx.store.get_map(info.id, with_count=True), request)
+    """Change the map's title or coverage (the members given); its id, CRS and markings stay as they are."""
+    given = body.model_fields_set
+    if not given:
+        raise Problem(422, "give the map's new title, coverage or both", "nothing-to-change")
+    if "title" in given:
+        if body.title is None:
+            raise Problem(422, "title: a map's title is a string (\"\" for none)", "invalid-title")
+        ctx.store.set_title(mapId, body.title)
+        log.info("map %s retitled by %s", mapId, who)
+    if "coverage" in given:
+        ctx.store.set_coverage(mapId, body.coverage)
+        log.info("map %s: coverage %s, set by %s", mapId, body.coverage or "as the server is set", who)
+    return collection_of(ctx.store.get_map(mapId, with_count=True), request, ctx.settings.map_coverage)
 
 
 @router.delete("/collections/{mapId}", tags=["Maps"], summary="Delete a map", status_code=204)

@@ -299,20 +299,21 @@ REVISION_HEADER = "X-Map-Revision"
 
 
 def map_index(ctx: Context, map_id: str):
-    """The map's spatial index, rebuilt when the map's revision moved on, and that revision."""
-    revision = ctx.store.map_revision(map_id)
+    """The map's spatial index, rebuilt when the map's revision or coverage moved on, and that revision."""
+    revision, coverage = ctx.store.map_head(map_id)
+    coverage = coverage or ctx.settings.map_coverage
     with ctx.index_lock:
         cached = ctx.indexes.get(map_id)
-        if cached is not None and cached[0] == revision:
+        if cached is not None and cached[0] == (revision, coverage):
             return cached[1], revision
         info = ctx.store.get_map(map_id)
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
-        index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs, ctx.settings.map_extent)
+        index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs, coverage)
         _ = index.extent  # drawn here once, not by the first requests at once
-        ctx.indexes[map_id] = (revision, index)
-        log.info("map %s: spatial index of %d markings at revision %d (extent: %s)", map_id, len(index), revision,
-                 ctx.settings.map_extent)
+        ctx.indexes[map_id] = ((revision, coverage), index)
+        log.info("map %s: spatial index of %d markings at revision %d (coverage: %s)", map_id, len(index), revision,
+                 coverage)
         return index, revision
 
 
