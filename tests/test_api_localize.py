@@ -859,12 +859,31 @@ def test_the_kinds_a_map_was_imported_with_reach_the_localizer(api):
     assert errors[False][1] > 0.5, errors
 
 
+def _features_of(index, whole: dict) -> dict:
+    """The features of the Karlsruhe collection ``whole`` that a part of the map (an index of
+    some of them) holds."""
+    import copy
+
+    fw = from_wgs84(CRS)
+    kept = {tuple(np.round(xy, 3)) for xy in index.xy}
+    fc = copy.deepcopy(whole)
+    fc["features"] = [f for f in fc["features"]
+                      if tuple(np.round(fw.transform(*f["geometry"]["coordinates"]), 3)) in kept]  # fmt: skip
+    assert 0 < len(fc["features"]) < len(whole["features"])
+    return fc
+
+
+def _request_of(prior, obs) -> dict:
+    """The localization request of a library ``Prior`` and observations."""
+    return {"gps": {"lat": prior.lat, "lon": prior.lon, "heading_deg": prior.heading_deg,
+                    "position_sigma_m": prior.position_sigma_m, "heading_sigma_deg": prior.heading_sigma_deg},
+            "observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in obs]}  # fmt: skip
+
+
 def test_an_answer_at_the_maps_edge_says_why_it_is_not_sure(tmp_path, karlsruhe_fc):  # noqa: F811
     """A frame whose camera sees past the end of the map, with a wide prior: over HTTP the answer
     is ambiguous and its reason names the map's edge, where the localizer without its edge check
     is sure of a pose a dash period off."""
-    import copy
-
     from localizer import Options, localize
     from tests._api_helpers import start_server
     from tests.test_localizer_edge import _edge_scenes
@@ -875,20 +894,13 @@ def test_an_answer_at_the_maps_edge_says_why_it_is_not_sure(tmp_path, karlsruhe_
             break
     else:
         pytest.fail("no scene at the edge is answered wrongly without the check")
-    fw = from_wgs84(CRS)
-    kept = {tuple(np.round(xy, 3)) for xy in cut.xy}
-    fc = copy.deepcopy(karlsruhe_fc)
-    fc["features"] = [f for f in fc["features"]
-                      if tuple(np.round(fw.transform(*f["geometry"]["coordinates"]), 3)) in kept]  # fmt: skip
-    assert 0 < len(fc["features"]) < len(karlsruhe_fc["features"])
+    fc = _features_of(cut, karlsruhe_fc)
     server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data")
     try:
         map_id = server.new_map()
         assert httpx.post(f"{server.base_url}/collections/{map_id}/import", json=fc, headers=server.auth,
                           timeout=60).status_code == 201  # fmt: skip
-        body = {"gps": {"lat": prior.lat, "lon": prior.lon, "heading_deg": prior.heading_deg,
-                        "position_sigma_m": prior.position_sigma_m, "heading_sigma_deg": prior.heading_sigma_deg},
-                "observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in obs]}  # fmt: skip
+        body = _request_of(prior, obs)
         out = httpx.post(f"{server.base_url}/collections/{map_id}/localize", json=body, timeout=60).json()
         assert out["status"] == "ambiguous" and "beyond the map's edge" in out["reason"], out
         assert out["hypotheses"] and out["probability"] >= 0.95
@@ -901,8 +913,6 @@ def test_a_maps_coverage_is_its_own_or_the_servers(tmp_path, karlsruhe_fc):  # n
     A server with ``LANEMAP_MAP_COVERAGE=markings`` answers ambiguous there and names the map's edge,
     where by the hull a pose a dash period off is sure; a map's own coverage (PATCH) goes before
     the server's, and the next request is answered by it."""
-    import copy
-
     from localizer import localize
     from tests._api_helpers import start_server
     from tests._localizer_helpers import KarlsruheMarkings
@@ -916,21 +926,14 @@ def test_a_maps_coverage_is_its_own_or_the_servers(tmp_path, karlsruhe_fc):  # n
             break
     else:
         pytest.fail("no scene before a stretch left out is answered wrongly by the hull")
-    fw = from_wgs84(CRS)
-    kept = {tuple(np.round(xy, 3)) for xy in gap.xy}
-    fc = copy.deepcopy(karlsruhe_fc)
-    fc["features"] = [f for f in fc["features"]
-                      if tuple(np.round(fw.transform(*f["geometry"]["coordinates"]), 3)) in kept]  # fmt: skip
-    assert 0 < len(fc["features"]) < len(karlsruhe_fc["features"])
+    fc = _features_of(gap, karlsruhe_fc)
     server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
                           env={"LANEMAP_MAP_COVERAGE": "markings"})  # fmt: skip
     try:
         map_id = server.new_map()
         url = f"{server.base_url}/collections/{map_id}"
         assert httpx.post(f"{url}/import", json=fc, headers=server.auth, timeout=60).status_code == 201
-        body = {"gps": {"lat": prior.lat, "lon": prior.lon, "heading_deg": prior.heading_deg,
-                        "position_sigma_m": prior.position_sigma_m, "heading_sigma_deg": prior.heading_sigma_deg},
-                "observations": [{"x": float(x), "y": float(y), "weight": float(w)} for x, y, w in obs]}  # fmt: skip
+        body = _request_of(prior, obs)
 
         def answer():
             return httpx.post(f"{url}/localize", json=body, timeout=60).json()
