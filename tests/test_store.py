@@ -13,6 +13,7 @@ from mapbuilder import migrate
 from mapbuilder.model import Marking
 from mapbuilder.schema import GRID_CELL_M
 from mapbuilder.store import (
+    MAP_COVERAGES,
     Change,
     ConflictError,
     InvalidMarkingError,
@@ -104,6 +105,20 @@ def test_a_maps_coverage_is_kept_and_checked(store):
     assert [i.id for i in store.list_maps()] == ["route"]
     with pytest.raises(UnknownMapError):
         store.set_coverage("nowhere", "hull")
+
+
+def test_the_coverages_a_map_may_say_are_the_extents_the_localizer_draws():
+    """The store (which imports nothing of the localizer's), the server's setting and the API
+    name the same values."""
+    from typing import get_args
+
+    from localizer import EXTENT_RULES
+    from service.routers.collections import CollectionIn
+    from service.settings import ServiceSettings
+
+    assert MAP_COVERAGES == EXTENT_RULES
+    assert get_args(ServiceSettings.model_fields["map_coverage"].annotation) == EXTENT_RULES
+    assert get_args(get_args(CollectionIn.model_fields["coverage"].annotation)[0]) == EXTENT_RULES
 
 
 def test_maps_from_before_the_coverage_cover_as_the_server_is_set(db_url):

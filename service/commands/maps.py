@@ -8,7 +8,6 @@ import typer
 
 from mapbuilder.store import MAP_COVERAGES, MAX_TITLE_LENGTH, Store
 
-
 COVERAGE_HELP = ("How far the map speaks for the ground, for localization at its edge: hull (everything painted "
                  "within its markings' convex hull is in it: an area mapped whole) or markings (only the ground "
                  "between them: a route, or parts of a city whose streets go on unmapped). Default: as the "
