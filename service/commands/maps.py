@@ -10,8 +10,7 @@ from mapbuilder.store import MAP_COVERAGES, MAX_TITLE_LENGTH, Store
 
 COVERAGE_HELP = ("How far the map speaks for the ground, for localization at its edge: hull (everything painted "
                  "within its markings' convex hull is in it: an area mapped whole) or markings (only the ground "
-                 "between them: a route, or parts of a city whose streets go on unmapped). Default: as the "
-                 "server is set (LANEMAP_MAP_COVERAGE).")
+                 "between them: a route, or parts of a city whose streets go on unmapped).")
 
 
 def register(app: typer.Typer) -> None:
@@ -38,7 +37,8 @@ def register(app: typer.Typer) -> None:
         crs: str = typer.Option(
             None, "--crs", help="Metric storage CRS, e.g. EPSG:25832. Default: the UTM zone of the first import."
         ),
-        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings", help=COVERAGE_HELP),
+        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings",
+                                     help=COVERAGE_HELP + " Default: as the server is set (LANEMAP_MAP_COVERAGE)."),
     ) -> None:
         """Create an empty map."""
         if coverage is not None and coverage not in MAP_COVERAGES:
@@ -75,7 +75,8 @@ def register(app: typer.Typer) -> None:
         map_id: str = typer.Argument(..., metavar="MAP"),
         title: str = typer.Option(None, "--title", help="The map's new title."),
         coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|default",
-                                     help=COVERAGE_HELP + " default: back to the server's setting."),
+                                     help=COVERAGE_HELP + " default: as the server is set again "
+                                     "(LANEMAP_MAP_COVERAGE)."),
     ) -> None:
         """Change a map's title or coverage (its id, CRS and markings stay)."""
         from ..cli_errors import fail
