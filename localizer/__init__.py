@@ -62,7 +62,13 @@ Methods
        hypothesis (all clutter) takes its share.
        The posterior probabilities decide ``ok`` versus ``ambiguous``
        (repeating 9 m dashes, parallel lanes 3.5 m apart): ``ok`` needs 95 %;
-       the answer carries its own (``Pose.probability``). When the best of
+       the answer carries its own (``Pose.probability``). Where the camera
+       sees past the map's edge from the answer, or from a pose within the
+       prior's reach along the road, no answer is ``ok`` (``Options.edge_share``):
+       a pose a dash period away matches the markings the map lacks. The
+       edge is that of the index's extent: its markings' convex hull, or
+       with ``MapIndex.from_arrays(..., extent="markings")`` the ground
+       between them (a route, parts of a city). When the best of
        the first 20 candidates holds less than 99.9 %, the next 20 coarse
        optima are refined and scored too (``Options.extra_candidates``): a
        truth crowded out of the first ones, or a rival that makes a
