@@ -730,24 +730,34 @@ class Store:
             raise MapExistsError(map_id) from None
         return self.get_map(map_id)
 
-    def set_title(self, map_id: str, title: str) -> MapInfo:
-        """Give a map a new title (its id, which addresses it, stays)."""
-        if len(title) > MAX_TITLE_LENGTH:
+    def update_map(self, map_id: str, *, title: str | None = None, coverage: str | None = None,
+                   set_coverage: bool = False) -> MapInfo:  # fmt: skip
+        """Give a map a new ``title`` (None: keep it) and, with ``set_coverage``, a new ``coverage``
+        (:data:`MAP_COVERAGES`; None: as the server is set), in one transaction and both checked
+        before either is written. Its id, CRS, markings and revision stay; a localization index
+        follows the coverage (:meth:`map_head`)."""
+        if title is not None and len(title) > MAX_TITLE_LENGTH:
             raise StoreError(f"title: at most {MAX_TITLE_LENGTH} characters, got {len(title)}")
+        if set_coverage:
+            check_coverage(coverage)
+        values = {"updated_at": _now()}
+        if title is not None:
+            values["title"] = title
+        if set_coverage:
+            values["coverage"] = coverage
         with self._write() as conn:
             self._map_row(conn, map_id, lock=True)
-            conn.execute(update(maps).where(maps.c.id == map_id).values(title=title, updated_at=_now()))
+            conn.execute(update(maps).where(maps.c.id == map_id).values(**values))
         return self.get_map(map_id)
+
+    def set_title(self, map_id: str, title: str) -> MapInfo:
+        """Give a map a new title (its id, which addresses it, stays)."""
+        return self.update_map(map_id, title=title)
 
     def set_coverage(self, map_id: str, coverage: str | None) -> MapInfo:
         """Say how far the map speaks for the ground (:data:`MAP_COVERAGES`; None: as the server
-        is set). Its markings and revision stay; a localization index follows it
-        (:meth:`map_head`)."""
-        check_coverage(coverage)
-        with self._write() as conn:
-            self._map_row(conn, map_id, lock=True)
-            conn.execute(update(maps).where(maps.c.id == map_id).values(coverage=coverage, updated_at=_now()))
-        return self.get_map(map_id)
+        is set)."""
+        return self.update_map(map_id, coverage=coverage, set_coverage=True)
 
     def adopt_crs(self, map_id: str, crs: str) -> str:
         """Give a map that has no storage CRS yet ``crs`` (metric); the map's CRS.

@@ -26,6 +26,9 @@ TOKEN_FILE = "api-token"
 #: prometheus_client's variable for its multiprocess mode: the folder in which
 #: every server process counts its metrics (``service.metrics``).
 PROMETHEUS_MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
+#: How far a map speaks for the ground (``mapbuilder.store.MAP_COVERAGES``, the localizer's
+#: ``EXTENT_RULES``): the server's setting and the API's member.
+MapCoverage = Literal["hull", "markings"]
 
 
 class ServiceSettings(BaseSettings):
@@ -118,7 +121,7 @@ class ServiceSettings(BaseSettings):
     feed_retention_days: float | None = Field(None, gt=0, allow_inf_nan=False)
     feed_prune_interval_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
     log_format: Literal["text", "json"] = "text"
-    map_coverage: Literal["hull", "markings"] = "hull"
+    map_coverage: MapCoverage = "hull"
 
     @field_validator("feed_retention_days", mode="before")
     @classmethod

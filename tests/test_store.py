@@ -105,6 +105,13 @@ def test_a_maps_coverage_is_kept_and_checked(store):
     assert [i.id for i in store.list_maps()] == ["route"]
     with pytest.raises(UnknownMapError):
         store.set_coverage("nowhere", "hull")
+    # a title and a coverage are written together, or neither
+    with pytest.raises(StoreError, match="title: at most"):
+        store.update_map("route", title="x" * 501, coverage="markings", set_coverage=True)
+    assert store.get_map("route").coverage is None
+    info = store.update_map("route", title="Route 1", coverage="markings", set_coverage=True)
+    assert (info.title, info.coverage) == ("Route 1", "markings")
+    assert store.update_map("route", title="Route 2").coverage == "markings"
 
 
 def test_the_coverages_a_map_may_say_are_the_extents_the_localizer_draws():

@@ -6,7 +6,7 @@ import json
 
 import typer
 
-from mapbuilder.store import MAP_COVERAGES, MAX_TITLE_LENGTH, Store
+from mapbuilder.store import MAP_COVERAGES, Store
 
 COVERAGE_HELP = ("How far the map speaks for the ground, for localization at its edge: hull (everything painted "
                  "within its markings' convex hull is in it: an area mapped whole) or markings (only the ground "
@@ -83,17 +83,13 @@ def register(app: typer.Typer) -> None:
 
         if title is None and coverage is None:
             fail("give --title, --coverage or both")
-        # both checked before either is written
         if coverage is not None and coverage not in (*MAP_COVERAGES, "default"):
             fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)} or default, got {coverage!r}")
-        if title is not None and len(title) > MAX_TITLE_LENGTH:
-            fail(f"--title: at most {MAX_TITLE_LENGTH} characters, got {len(title)}")
-        store = Store()
+        info = Store().update_map(map_id, title=title, coverage=None if coverage == "default" else coverage,
+                                  set_coverage=coverage is not None)  # fmt: skip
         if coverage is not None:
-            info = store.set_coverage(map_id, None if coverage == "default" else coverage)
             typer.echo(f"map {info.id}: coverage {info.coverage or 'as the server is set'}")
         if title is not None:
-            info = store.set_title(map_id, title)
             typer.echo(f"map {info.id} is now titled {info.title!r}")
 
     @maps.command("delete")

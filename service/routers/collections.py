@@ -6,7 +6,7 @@ import logging
 import math
 from datetime import UTC
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Header, Query, Request, Response
 from fastapi import Path as PathParam
@@ -18,6 +18,7 @@ from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, M
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
+from ..settings import MapCoverage
 from ._common import (
     CRS84,
     GEOJSON,
@@ -100,7 +101,7 @@ class CollectionIn(BaseModel):
         None, description="Metric storage CRS, e.g. EPSG:25832; default: the UTM zone of the first data",
         max_length=100,
     )
-    coverage: Literal["hull", "markings"] | None = Field(None, description=COVERAGE_DOC)
+    coverage: MapCoverage | None = Field(None, description=COVERAGE_DOC)
 
 
 # ---------------------------------------------------------------------------- collections
@@ -205,8 +206,7 @@ def get_summary(
 class CollectionPatch(BaseModel):
     model_config = ConfigDict(extra="forbid")
     title: str | None = Field(None, max_length=MAX_TITLE_LENGTH, description="The map's new title")
-    coverage: Literal["hull", "markings"] | None = Field(
-        None, description=COVERAGE_DOC + " null sets it back to the server's.")
+    coverage: MapCoverage | None = Field(None, description=COVERAGE_DOC + " null sets it back to the server's.")
 
 
 @router.patch("/collections/{mapId}", tags=["Maps"], summary="Retitle a map, or say how far it covers the ground")
@@ -218,13 +218,12 @@ def patch_collection(
     given = body.model_fields_set
     if not given:
         raise Problem(422, "give the map's new title, coverage or both", "nothing-to-change")
+    if "title" in given and body.title is None:
+        raise Problem(422, "title: a map's title is a string (\"\" for none)", "invalid-title")
+    ctx.store.update_map(mapId, title=body.title, coverage=body.coverage, set_coverage="coverage" in given)
     if "title" in given:
-        if body.title is None:
-            raise Problem(422, "title: a map's title is a string (\"\" for none)", "invalid-title")
-        ctx.store.set_title(mapId, body.title)
         log.info("map %s retitled by %s", mapId, who)
     if "coverage" in given:
-        ctx.store.set_coverage(mapId, body.coverage)
         log.info("map %s: coverage %s, set by %s", mapId, body.coverage or "as the server is set", who)
     return collection_of(ctx.store.get_map(mapId, with_count=True), request, ctx.settings.map_coverage)
 
