@@ -32,7 +32,7 @@ Usage::
 
     .venv/bin/python benchmarks/build_quality.py [--n 6] [--size 150] [--model M.onnx] [--verify]
         [--verifier V.onnx] [--threshold T] [--threshold-low T | --no-hysteresis]
-        [--verify-threshold T] [--no-continuation] [--halves-m M] [--seed S]
+        [--verify-threshold T] [--no-continuation | --continuation-min P] [--halves-m M] [--seed S]
 """
 
 from __future__ import annotations
@@ -168,6 +168,9 @@ def main() -> None:
     ap.add_argument("--verifier", default=None, help="ONNX cluster verifier (default: shipped)")
     ap.add_argument("--no-continuation", action="store_true",
                     help="drop what the verifier rejects even when it continues what it keeps")
+    ap.add_argument("--continuation-min", type=float,
+                    default=ClusterParams.verify_continuation_min,
+                    help="verifier probability a continuation needs to be taken back")
     ap.add_argument("--halves-m", type=float, default=ClusterParams.verify_halves_m,
                     help="check rejected clusters this long again on each half (0: off)")
     ap.add_argument("--usgs-only", action="store_true")
@@ -187,6 +190,7 @@ def main() -> None:
                             threshold_low=args.threshold_low, join_gap_m=args.join_gap,
                             verify=args.verify, verify_threshold=args.verify_threshold,
                             verify_continuation=not args.no_continuation,
+                            verify_continuation_min=args.continuation_min,
                             verify_halves_m=args.halves_m)
     params = BuildParams(model=args.model, cluster=cluster, verifier=args.verifier)
     totals = {k: 0 for k in ("tp_det", "n_det", "tp_truth", "n_truth", "tp_truth_discrete",

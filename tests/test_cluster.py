@@ -328,6 +328,27 @@ def test_rejected_pieces_that_continue_an_accepted_line_are_taken_back():
     assert continues_accepted(c, keep, rounds=1).tolist()[:3] == [True, True, False]
     assert not continues_accepted(c, np.zeros(7, bool)).any()
 
+    # A kerb the verifier accepts in one place: its neighbour, rejected outright
+    # (probability below the floor), is not taken back, nor anything beyond it;
+    # a piece it only doubts is.
+    keep = np.array([True, False, False, False, False, True, False])
+    prob = np.array([0.9, 0.02, 0.3, 0.3, 0.3, 0.7, 0.3])
+    got = continues_accepted(c, keep, prob=prob, min_prob=0.15)
+    assert got.tolist() == [True, False, False, False, False, True, True]
+    prob[1] = 0.2
+    got = continues_accepted(c, keep, prob=prob, min_prob=0.15)
+    assert got.tolist()[:3] == [True, True, True]
+    assert continues_accepted(c, keep, prob=prob, min_prob=0.25).tolist()[:3] == [
+        True, False, False]
+
+
+def test_the_continuation_floor_is_a_probability():
+    ClusterParams(verify_continuation_min=0.0)
+    ClusterParams(verify_threshold=0.05)  # a loose verifier keeps the default floor
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="verify_continuation_min"):
+            ClusterParams(verify_continuation_min=bad)
+
 
 def test_wide_short_clusters_stay_whole():
     """A stop line (0.5 m wide, 6 m across the road) is one marking; a solid line of
