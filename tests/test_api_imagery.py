@@ -169,6 +169,10 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
                               "tile_px": 8}, headers=api.auth), 422, "tile_px")  # fmt: skip
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
                               "verify_threshold": 1.5}, headers=api.auth), 422, "verify_threshold")  # fmt: skip
+    for floor in (1.0, -0.1):
+        assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds",
+                                  json={"imagery": img["id"], "verify_continuation_min": floor},
+                                  headers=api.auth), 422, "verify_continuation_min")  # fmt: skip
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
                               "threshold_low": 0.3}, headers=api.auth), 422, "threshold_low")  # fmt: skip
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],

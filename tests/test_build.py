@@ -461,6 +461,8 @@ def test_cli_build_reports_bad_input_in_one_line(tmp_path, monkeypatch):
           str(tmp_path / "none.onnx")], "verifier"),
         (["build", str(USGS_BASE), "--map", "m", "--verify", "--verifier", str(bad)], "model"),
         (["build", str(USGS_BASE), "--map", "m", "--verify-threshold", "1.5"], "verify_threshold"),
+        (["build", str(USGS_BASE), "--map", "m", "--continuation-min", "1"],
+         "verify_continuation_min"),
         (["build", str(USGS_BASE), "--map", "m", "--threshold-low", "0.3"], "threshold_low"),
         (["build", str(USGS_BASE), "--map", "m", "--threshold-low", "0.1", "--no-hysteresis"],
          "--no-hysteresis"),
@@ -518,17 +520,26 @@ def test_cli_verify_threshold_trades_markings_and_is_recorded(tmp_path, monkeypa
     runner = CliRunner()
     counts = {}
     for map_id, extra in (("loose", ["--verify-threshold", "0.05"]), ("default", []),
-                          ("strict", ["--verify-threshold", "0.999"])):
+                          ("strict", ["--verify-threshold", "0.999"]),
+                          ("every-continuation", ["--continuation-min", "0"])):
         res = runner.invoke(app, ["build", str(USGS_BASE), "--map", map_id, "--no-progress", *extra])
         assert res.exit_code == 0, res.output
         store = Store(url)
         counts[map_id] = len(list(store.iter_markings(map_id)))
         (job,) = store.find_jobs(kind="build", map_id=map_id)
         store.close()
+        cluster = job.params["params"]["cluster"]
+        if extra[:1] == ["--continuation-min"]:
+            assert cluster["verify_continuation_min"] == 0.0
+            assert cluster["verify_threshold"] == ClusterParams.verify_threshold
+            continue
         want = float(extra[1]) if extra else ClusterParams.verify_threshold
-        assert job.params["params"]["cluster"]["verify_threshold"] == want
+        assert cluster["verify_threshold"] == want
+        assert cluster["verify_continuation_min"] == ClusterParams.verify_continuation_min
     assert counts["loose"] > counts["default"] > counts["strict"], counts
     assert counts["default"] >= 4  # the four visible stall lines
+    # without a floor, continuations take back what the verifier rejects outright too
+    assert counts["every-continuation"] >= counts["default"], counts
 
 
 def test_cli_hysteresis_grows_markings_and_is_recorded(tmp_path, monkeypatch):

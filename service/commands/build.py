@@ -58,6 +58,11 @@ def build(
         ClusterParams.verify_threshold, "--verify-threshold",
         help="Verifier probability a marking needs to be kept: lower keeps more (recall), "
         "higher drops more (precision)."),
+    continuation_min: float = typer.Option(
+        ClusterParams.verify_continuation_min, "--continuation-min",
+        help="Verifier probability a rejected piece of a line needs to be kept because it "
+        "continues a kept one: lower takes back more of what the verifier doubts, kerbs "
+        "included; at or above --verify-threshold, none."),
     restart: bool = typer.Option(
         False, "--restart", help="Start afresh instead of resuming an unfinished build."
     ),
@@ -94,7 +99,8 @@ def build(
             model=str(model) if model is not None else None,
             cluster=ClusterParams(threshold=threshold, threshold_low=threshold_low,
                                   max_length_m=piece_m, verify=verify,
-                                  verify_threshold=verify_threshold),
+                                  verify_threshold=verify_threshold,
+                                  verify_continuation_min=continuation_min),
             verifier=str(verifier) if verifier is not None else None,
         )
     except ValueError as exc:

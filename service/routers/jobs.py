@@ -42,6 +42,11 @@ class BuildIn(BaseModel):
         ClusterParams.verify_threshold, gt=0, lt=1,
         description="Verifier probability a marking needs to be kept: lower keeps more markings, "
         "higher drops more false ones")
+    verify_continuation_min: float = Field(
+        ClusterParams.verify_continuation_min, ge=0, lt=1,
+        description="Verifier probability a rejected piece of a line needs to be kept because it "
+        "continues a kept one: lower takes back more of what the verifier doubts, kerbs included; "
+        "at or above `verify_threshold`, none")
 
 
 def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
@@ -114,7 +119,8 @@ def post_build(
         params = BuildParams(tile_px=body.tile_px, halo_m=body.halo_m,
                              cluster=ClusterParams(threshold=threshold, threshold_low=threshold_low,
                                                    verify=body.verify,
-                                                   verify_threshold=body.verify_threshold))
+                                                   verify_threshold=body.verify_threshold,
+                                                   verify_continuation_min=body.verify_continuation_min))
     except ValueError as exc:
         raise Problem(422, f"body: {exc}", "invalid-build") from None
     try:
