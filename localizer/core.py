@@ -498,10 +498,12 @@ def _beyond_edge(map_index: MapIndex, origin, obs_xy: np.ndarray, w: np.ndarray,
         return None
     ox, oy = float(origin[0]) + pose[0], float(origin[1]) + pose[1]
     c, s = math.cos(pose[2]), math.sin(pose[2])
-    for shift in (0.0, reach, -reach):
-        x = ox + c * (obs_xy[:, 0] + shift) - s * obs_xy[:, 1]
-        y = oy + s * (obs_xy[:, 0] + shift) + c * obs_xy[:, 1]
-        share = float(w[extent.beyond(x, y)].sum() / w.sum())
+    shifts = np.array([0.0, reach, -reach])
+    fwd = obs_xy[None, :, 0] + shifts[:, None]  # (3, N): the pose, then moved ahead and behind
+    x = ox + c * fwd - s * obs_xy[None, :, 1]
+    y = oy + s * fwd + c * obs_xy[None, :, 1]
+    shares = extent.beyond(x, y) @ w / w.sum()  # one query of the extent for all three
+    for shift, share in zip(shifts, shares.tolist()):
         if share > options.edge_share:
             where = ("from this pose" if shift == 0 else
                      f"from {abs(shift):.0f} m {'ahead of' if shift > 0 else 'behind'} it, within the prior's reach")

@@ -255,8 +255,7 @@ class MapIndex:
         LocalizationInputError
             On NaN/inf, mismatched lengths, non-positive weights or a bad CRS.
         """
-        if extent not in EXTENT_RULES:
-            raise LocalizationInputError(f"extent: {extent!r} is not one of {', '.join(EXTENT_RULES)}")
+        _check_extent_rule(extent)  # here, though the extent is drawn later, on first use
         frame = GeoFrame(crs)
         xs = _column("x", x)
         ys = _column("y", y, xs.size)
@@ -362,6 +361,11 @@ EXTENT_RULES = ("hull", "markings")
 EXTENT_MARGIN_M = 1.0
 
 
+def _check_extent_rule(rule: str) -> None:
+    if rule not in EXTENT_RULES:
+        raise LocalizationInputError(f"extent: {rule!r} is not one of {', '.join(EXTENT_RULES)}")
+
+
 @dataclass(frozen=True)
 class MapExtent:
     """The ground a map speaks for: beyond it, an unmapped marking may be painted.
@@ -410,8 +414,7 @@ def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M
     LocalizationInputError
         On an unknown ``rule``.
     """
-    if rule not in EXTENT_RULES:
-        raise LocalizationInputError(f"extent: {rule!r} is not one of {', '.join(EXTENT_RULES)}")
+    _check_extent_rule(rule)
     xy = np.asarray(xy, float).reshape(-1, 2)
     if len(xy) < 3:
         return None
