@@ -168,6 +168,10 @@ class MapIndex:
         How the map's extent (:attr:`extent`, beyond which it says nothing)
         is drawn from its markings: ``"hull"`` or ``"markings"``
         (:func:`map_extent`).
+    extent_area : shapely geometry or None
+        Ground known from elsewhere to hold every marking painted on it (the
+        footprint of the imagery the map was built from), map CRS; the extent
+        is the union of it and the rule's.
     """
 
     xy: np.ndarray
@@ -180,6 +184,7 @@ class MapIndex:
     expect_owner: np.ndarray | None = None
     expect_solid: np.ndarray | None = None
     extent_rule: str = "hull"
+    extent_area: shapely.Geometry | None = None
 
     @property
     def crs(self) -> str:
@@ -205,6 +210,7 @@ class MapIndex:
         length_m=None,
         measured=None,
         extent: str = "hull",
+        extent_area: shapely.Geometry | None = None,
     ) -> "MapIndex":
         """Build the index of a map.
 
@@ -249,6 +255,12 @@ class MapIndex:
             on past it inside that hull (a route, separate parts of a city).
             The default method's check at a map's edge
             (``Options.edge_share``) reads it.
+        extent_area : shapely geometry, optional
+            Ground, in ``crs``, known to hold every marking painted on it
+            whether or not the markings show it: the footprint of the imagery
+            a map was built from. The extent is its union with the rule's
+            (with ``"markings"``: every marking placed beyond the imagery by
+            hand or by an import adds its own ground).
 
         Raises
         ------
@@ -256,6 +268,8 @@ class MapIndex:
             On NaN/inf, mismatched lengths, non-positive weights or a bad CRS.
         """
         _check_extent_rule(extent)  # here, though the extent is drawn later, on first use
+        if extent_area is not None and not isinstance(extent_area, shapely.Geometry):
+            raise LocalizationInputError("extent_area: expected a shapely geometry")
         frame = GeoFrame(crs)
         xs = _column("x", x)
         ys = _column("y", y, xs.size)
@@ -297,7 +311,8 @@ class MapIndex:
             arr.setflags(write=False)
         tree = cKDTree(xy) if xs.size else cKDTree(np.zeros((0, 2)))
         return cls(xy=xy, weight=w, axis=axis, half_length=half, tree=tree, frame=frame,
-                   expect_xy=exy, expect_owner=owner, expect_solid=esolid, extent_rule=extent)
+                   expect_xy=exy, expect_owner=owner, expect_solid=esolid, extent_rule=extent,
+                   extent_area=extent_area)
 
     @cached_property
     def extent(self) -> "MapExtent | None":
@@ -308,7 +323,7 @@ class MapIndex:
         costliest part of a large map's index, and only the default method's
         check at a map's edge (``Options.edge_share``) reads it.
         """
-        return map_extent(self.xy, self.extent_rule)
+        return map_extent(self.xy, self.extent_rule, area=self.extent_area)
 
     @cached_property
     def expect_groups(self) -> tuple[np.ndarray, np.ndarray]:
@@ -391,8 +406,33 @@ class MapExtent:
         return ~shapely.intersects_xy(self.area, np.asarray(x, float), np.asarray(y, float))
 
 
+def _rule_area(xy: np.ndarray, rule: str, link_m: float) -> shapely.Geometry | None:
+    """The area of ``rule`` over the markings at ``xy``, not grown (None: no area)."""
+    if len(xy) < 3:
+        return None
+    centre = xy.mean(axis=0)
+    try:
+        if rule == "hull":
+            hull = ConvexHull(xy - centre)
+        else:
+            tri = Delaunay(xy - centre)
+    except QhullError:
+        return None
+    if rule == "hull":
+        return shapely.Polygon(xy[hull.vertices])
+    corners = xy[tri.simplices]  # (T, 3, 2)
+    short = (np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2) <= link_m).all(axis=1)
+    parts = [shapely.coverage_union_all(shapely.polygons(corners[short]))] if short.any() else []
+    # Markings in no kept triangle: a lone stop line, the end of a sparse line.
+    lone = np.ones(len(xy), bool)
+    lone[np.unique(tri.simplices[short])] = False
+    if lone.any():
+        parts.append(shapely.multipoints(xy[lone]))
+    return shapely.union_all(parts)
+
+
 def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M,
-               margin_m: float = EXTENT_MARGIN_M) -> MapExtent | None:  # fmt: skip
+               margin_m: float = EXTENT_MARGIN_M, area: shapely.Geometry | None = None) -> MapExtent | None:  # fmt: skip
     """The extent of a map whose markings are at ``xy`` (map CRS, metres), by ``rule``.
 
     ``"hull"``: the markings' convex hull, for a map that holds every marking
@@ -406,8 +446,16 @@ def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M
     ``margin_m`` (with mitred corners, so that a point is beyond a hull when it
     lies more than ``margin_m`` beyond one of its sides).
 
+    ``area`` (map CRS) is ground known from elsewhere to hold every marking
+    painted on it, such as the footprint of the imagery the map was built
+    from: the extent is its union with the rule's. With ``"markings"``, only
+    the markings within ``link_m`` of ground outside ``area`` are triangulated
+    (a triangle with sides of at most ``link_m`` that reaches beyond ``area``
+    has all its corners there), so a map built wholly from imagery costs
+    little more than its footprint.
+
     Returns None for fewer than three markings or markings on one line (no
-    area).
+    area), unless ``area`` is given and not empty.
 
     Raises
     ------
@@ -416,27 +464,19 @@ def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M
     """
     _check_extent_rule(rule)
     xy = np.asarray(xy, float).reshape(-1, 2)
-    if len(xy) < 3:
+    given = None if area is None or area.is_empty else shapely.make_valid(area)
+    if given is not None and rule == "markings" and len(xy):
+        inner = given.buffer(-link_m)
+        if not inner.is_empty:
+            xy = xy[~shapely.contains_xy(inner, xy[:, 0], xy[:, 1])]
+    own = _rule_area(xy, rule, link_m)
+    parts = [g for g in (own, given) if g is not None]
+    if not parts:
         return None
-    centre = xy.mean(axis=0)
-    try:
-        if rule == "hull":
-            hull = ConvexHull(xy - centre)
-        else:
-            tri = Delaunay(xy - centre)
-    except QhullError:
-        return None
-    if rule == "hull":
-        area = shapely.Polygon(xy[hull.vertices]).buffer(margin_m, join_style="mitre", mitre_limit=1e6)
+    area = shapely.union_all(parts) if len(parts) > 1 else parts[0]
+    if rule == "hull" and given is None:
+        area = area.buffer(margin_m, join_style="mitre", mitre_limit=1e6)
     else:
-        corners = xy[tri.simplices]  # (T, 3, 2)
-        short = (np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2) <= link_m).all(axis=1)
-        parts = [shapely.coverage_union_all(shapely.polygons(corners[short]))] if short.any() else []
-        # Markings in no kept triangle: a lone stop line, the end of a sparse line.
-        lone = np.ones(len(xy), bool)
-        lone[np.unique(tri.simplices[short])] = False
-        if lone.any():
-            parts.append(shapely.multipoints(xy[lone]))
-        area = shapely.union_all(parts).buffer(margin_m, quad_segs=4)
+        area = area.buffer(margin_m, quad_segs=4)
     shapely.prepare(area)
     return MapExtent(area=area, rule=rule, link_m=float(link_m), margin_m=float(margin_m))

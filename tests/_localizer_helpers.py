@@ -85,17 +85,18 @@ class KarlsruheMarkings:
         self.length = np.array([m.length_m for m in marks])
         self.kind = np.array([m.kind for m in marks], object)
 
-    def index(self, keep=None, crs: str = CRS, extent: str = "hull") -> MapIndex:
+    def index(self, keep=None, crs: str = CRS, extent: str = "hull", extent_area=None) -> MapIndex:
         """The index of the markings ``keep`` (a boolean mask; all when None), stored in ``crs``
         (each moved through WGS84, its bearing turned by the grid's convergence there), its
-        extent drawn by ``extent``."""
+        extent drawn by ``extent`` (and ``extent_area``, in ``CRS``: only with ``crs`` the same)."""
         keep = np.ones(len(self.xy), bool) if keep is None else np.asarray(keep, bool)
         lon, lat = GeoFrame(CRS).to_lonlat(self.xy[keep, 0], self.xy[keep, 1])
         frame = GeoFrame(crs)
         x, y = frame.to_xy(lon, lat)
         return MapIndex.from_arrays(x, y, self.weight[keep], crs,
                                     bearing_deg=self.bearing_true[keep] - frame.convergence_deg(lon, lat),
-                                    length_m=self.length[keep], kind=self.kind[keep], extent=extent)  # fmt: skip
+                                    length_m=self.length[keep], kind=self.kind[keep], extent=extent,
+                                    extent_area=extent_area)  # fmt: skip
 
     def cut(self, pose, ends_m: float = np.inf, begins_m: float = -np.inf) -> MapIndex:
         """The index of the markings between ``begins_m`` and ``ends_m`` along the heading of
@@ -104,13 +105,32 @@ class KarlsruheMarkings:
         along = (self.xy - np.asarray(pose[:2])) @ d
         return self.index((along <= ends_m) & (along >= begins_m))
 
+    def imaged(self, without=None):
+        """Imagery of the whole map (its markings' bounding box grown by 100 m), less the
+        polygon ``without``: the ground a build from it imaged (shapely, in ``CRS``)."""
+        import shapely
+
+        (x0, y0), (x1, y1) = self.xy.min(axis=0) - 100.0, self.xy.max(axis=0) + 100.0
+        ground = shapely.box(x0, y0, x1, y1)
+        return ground if without is None else ground.difference(without)
+
     def gap(self, pose, from_m: float, length_m: float = 60.0, half_width_m: float = 40.0,
             extent: str = "hull") -> MapIndex:  # fmt: skip
         """The index of the markings less a stretch of ground ``from_m`` to ``from_m + length_m``
         ahead of ``pose`` and ``half_width_m`` either side of its heading: a map with a stretch of
-        road left out, inside the hull of what it holds, whose world goes on there."""
+        road left out, inside the hull of what it holds, whose world goes on there. ``extent``
+        ``"imagery"``: built from imagery of the whole map but that stretch (:meth:`imaged`), the
+        extent the markings' joined to the imagery's ground, as a server draws it."""
+        import shapely
+
         d = np.array([np.cos(pose[2]), np.sin(pose[2])])
+        n = np.array([-d[1], d[0]])
         rel = self.xy - np.asarray(pose[:2])
-        along, across = rel @ d, rel @ np.array([-d[1], d[0]])
+        along, across = rel @ d, rel @ n
         out = (along > from_m) & (along < from_m + length_m) & (np.abs(across) < half_width_m)
-        return self.index(~out, extent=extent)
+        if extent != "imagery":
+            return self.index(~out, extent=extent)
+        corners = [np.asarray(pose[:2]) + a * d + c * n for a, c in
+                   ((from_m, -half_width_m), (from_m + length_m, -half_width_m),
+                    (from_m + length_m, half_width_m), (from_m, half_width_m))]
+        return self.index(~out, extent="markings", extent_area=self.imaged(shapely.Polygon(corners)))

@@ -61,6 +61,59 @@ def test_a_stretch_left_out_of_a_map_is_its_edge_with_the_markings_extent():
     assert sum(s == "ambiguous" and edge for s, _, edge in by_markings) >= 35, by_markings
 
 
+def test_an_extent_with_imaged_ground_is_that_ground_and_the_markings_beyond_it():
+    """A road imaged along 100 m of its length, dashes on all of it, a lone marking placed by
+    hand far beyond: the extent is the imaged ground (grown by a metre) joined to the markings'
+    own extent where they leave it; ground inside the hull that nothing vouches for is beyond."""
+    import shapely
+
+    x0, y0 = 457000.0, 5428000.0
+    along = np.arange(0.0, 160.0, 9.0)
+    xy = np.concatenate([np.column_stack([along, np.zeros_like(along)]),
+                         np.column_stack([along, np.full_like(along, 3.5)]), [[60.0, 80.0]]]) + [x0, y0]
+    imaged = shapely.box(x0 - 10, y0 - 20, x0 + 100, y0 + 20)
+    index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent="markings", extent_area=imaged)
+    ext = index.extent
+    assert ext.rule == "markings" and index.extent_area is imaged
+    x = x0 + np.array([-10.9, 50.0, 99.0, 130.0, 153.0 + 0.9, 153.0 + 1.1, 60.0, 60.0, 130.0])
+    y = y0 + np.array([-15.0, 19.9, -20.5, 1.75, 1.75, 1.75, 80.5, 40.0, 15.0])
+    # the imaged ground to a metre past its sides, the road beyond it to a metre past its last
+    # dash, the lone
+    # marking; not the ground between road and marking, nor beside the road beyond the imagery
+    assert ext.beyond(x, y).tolist() == [False, False, False, False, False, True, False, True, True]
+    assert not MapIndex.from_arrays(xy[:, 0], xy[:, 1]).extent.beyond(x[7], y[7])  # the hull's
+    # markings inside the imaged ground add nothing to it: the extent is the same without them
+    inside = (xy[:, 0] > x0 + 35) & (xy[:, 0] < x0 + 65) & (np.abs(xy[:, 1] - y0) < 5)
+    assert inside.sum() >= 6
+    assert map_extent(xy[~inside], "markings", area=imaged).area.equals(ext.area)
+    # the ground alone makes an extent where the markings do not
+    assert not map_extent(xy[:2], "markings", area=imaged).beyond(x0 + 50, y0 + 19.9)
+    assert map_extent(xy[:2], "markings", area=shapely.Polygon()) is None
+    with pytest.raises(LocalizationInputError, match="extent_area"):
+        MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent_area=[(0, 0), (1, 0), (1, 1)])
+
+
+def test_a_stretch_the_imagery_left_out_is_a_maps_edge_and_the_imaged_ground_is_not():
+    """Before a stretch of road the imagery left out (the map built from the rest) no answer is
+    sure, as by the markings' extent; on the whole imaged map answers are as sure as by the hull,
+    where the markings' extent alone holds most of them back at the ends of the map's parts."""
+    marks = KarlsruheMarkings()
+    whole = {"imagery": marks.index(extent="markings", extent_area=marks.imaged()),
+             "hull": marks.index(), "markings": marks.index(extent="markings")}
+    gap, sure = [], {k: 0 for k in whole}
+    for i, (pose, obs, prior, _, _) in enumerate(_edge_scenes(40, 6.5, (8.0, 10.0), seed=3)):
+        start = float(np.random.default_rng(i).uniform(5.0, 25.0))
+        p = localize(marks.gap(pose, start, extent="imagery"), obs, prior)
+        gap.append((*_graded(p, pose), "beyond the map's edge" in (p.reason or "")))
+        for k, index in whole.items():
+            s, e = _graded(localize(index, obs, prior), pose)
+            sure[k] += s == "ok" and e <= 0.5
+    assert not any(s == "ok" and e > 1.0 for s, e, _ in gap), gap
+    assert sum(s == "ambiguous" and edge for s, _, edge in gap) >= 35, gap
+    # 24, 23 and 5 of these 40
+    assert sure["imagery"] >= sure["hull"] - 1 and sure["imagery"] >= sure["markings"] + 10, sure
+
+
 def _edge_scenes(n: int, sigma: float, dist: tuple[float, float], seed: int = 1):
     """Scenes with the map cut 5-25 m ahead of the vehicle, and a prior ``dist`` metres off."""
     whole, smap = karlsruhe()
