@@ -448,7 +448,10 @@ def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M
 
     ``area`` (map CRS) is ground known from elsewhere to hold every marking
     painted on it, such as the footprint of the imagery the map was built
-    from: the extent is its union with the rule's. With ``"markings"``, only
+    from: the extent is its union with the rule's. It is not grown: past
+    the imagery's border nothing is known, and a marking painted just past
+    it, unmapped, must count as beyond the map (the markings near the border
+    have their margin from the rule's extent). With ``"markings"``, only
     the markings within ``link_m`` of ground outside ``area`` are triangulated
     (a triangle with sides of at most ``link_m`` that reaches beyond ``area``
     has all its corners there), so a map built wholly from imagery costs
@@ -469,14 +472,13 @@ def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M
         inner = given.buffer(-link_m)
         if not inner.is_empty:
             xy = xy[~shapely.contains_xy(inner, xy[:, 0], xy[:, 1])]
-    own = _rule_area(xy, rule, link_m)
-    parts = [g for g in (own, given) if g is not None]
-    if not parts:
+    area = _rule_area(xy, rule, link_m)
+    if area is not None:
+        area = (area.buffer(margin_m, join_style="mitre", mitre_limit=1e6) if rule == "hull"
+                else area.buffer(margin_m, quad_segs=4))
+    if given is not None:
+        area = given if area is None else shapely.union(area, given)
+    if area is None:
         return None
-    area = shapely.union_all(parts) if len(parts) > 1 else parts[0]
-    if rule == "hull" and given is None:
-        area = area.buffer(margin_m, join_style="mitre", mitre_limit=1e6)
-    else:
-        area = area.buffer(margin_m, quad_segs=4)
     shapely.prepare(area)
     return MapExtent(area=area, rule=rule, link_m=float(link_m), margin_m=float(margin_m))

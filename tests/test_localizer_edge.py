@@ -75,12 +75,14 @@ def test_an_extent_with_imaged_ground_is_that_ground_and_the_markings_beyond_it(
     index = MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent="markings", extent_area=imaged)
     ext = index.extent
     assert ext.rule == "markings" and index.extent_area is imaged
-    x = x0 + np.array([-10.9, 50.0, 99.0, 130.0, 153.0 + 0.9, 153.0 + 1.1, 60.0, 60.0, 130.0])
-    y = y0 + np.array([-15.0, 19.9, -20.5, 1.75, 1.75, 1.75, 80.5, 40.0, 15.0])
-    # the imaged ground to a metre past its sides, the road beyond it to a metre past its last
-    # dash, the lone
-    # marking; not the ground between road and marking, nor beside the road beyond the imagery
-    assert ext.beyond(x, y).tolist() == [False, False, False, False, False, True, False, True, True]
+    x = x0 + np.array([-9.9, 50.0, 99.0, 130.0, 153.0 + 0.9, 153.0 + 1.1, 60.0, 60.0, 130.0, -10.1, 50.0])
+    y = y0 + np.array([-15.0, 19.9, -19.9, 1.75, 1.75, 1.75, 80.5, 40.0, 15.0, -15.0, 20.1])
+    # the imaged ground, the road beyond it to a metre past its last dash, the lone marking; not
+    # the ground between road and marking, nor beside the road beyond the imagery, nor past the
+    # imagery's border: the imaged ground is not grown (nothing is known past it)
+    assert ext.beyond(x, y).tolist() == [False, False, False, False, False, True, False, True, True, True, True]
+    # a marking beyond the imagery has its metre, as by the markings' rule alone
+    assert ext.beyond([x0 + 108.0, x0 + 108.0], [y0 - 0.9, y0 - 1.1]).tolist() == [False, True]
     assert not MapIndex.from_arrays(xy[:, 0], xy[:, 1]).extent.beyond(x[7], y[7])  # the hull's
     # markings inside the imaged ground add nothing to it: the extent is the same without them
     inside = (xy[:, 0] > x0 + 35) & (xy[:, 0] < x0 + 65) & (np.abs(xy[:, 1] - y0) < 5)
