@@ -42,6 +42,7 @@ from .raster import (
     ImageryError,
     PixelGrid,
     default_storage_crs,
+    imaged_ground,
     inspect_imagery,
     make_reader,
 )
@@ -155,6 +156,8 @@ class TileResult:
     timings: dict[str, float] = field(default_factory=dict)
     #: CPU seconds of the worker process on this tile (all its threads).
     cpu_seconds: float = 0.0
+    #: The ground the tile's core images, WKB in the map's CRS (:func:`imaged_ground`).
+    ground: bytes | None = None
 
 
 @dataclass
@@ -495,10 +498,12 @@ def process_tile(task: TileTask) -> TileResult:
     row = clusters.row + task.read[1]
     own = (col >= c0) & (col < c0 + w) & (row >= r0) & (row < r0 + h)
     markings = clusters_to_markings(clusters.take(own), task.grid.crs, task.key)
+    cr, cc = r0 - task.read[1], c0 - task.read[0]
+    ground = imaged_ground(valid[cr: cr + h, cc: cc + w], window_transform(Window(*task.core), task.grid.affine))
     t3 = time.perf_counter()
     timings = {"read": t1 - t0, "classify": t2 - t1, "cluster": t3 - t2}
     return TileResult(task.key, markings, task.megapixels, t3 - t0, timings,
-                      time.process_time() - cpu0)
+                      time.process_time() - cpu0, ground)
 
 
 # --------------------------------------------------------------------------- planning
@@ -824,7 +829,8 @@ def build_map(
     try:
         with bar:
             for result in results:
-                n_markings += store.replace_detected(map_id, result.key, result.markings, job_id)
+                n_markings += store.replace_detected(map_id, result.key, result.markings, job_id,
+                                                     ground=result.ground)
                 mpx += result.megapixels
                 cpu += result.cpu_seconds
                 for k, v in result.timings.items():

@@ -342,3 +342,53 @@ def make_reader(path: str | os.PathLike, grid: PixelGrid) -> GridReader:
             add_alpha=mask in ("none", "mask"),
         )
     return GridReader(src, vrt, mask, grid)
+
+
+#: Side of the cells the ground a window images is drawn in, metres
+#: (:func:`imaged_ground`).
+GROUND_CELL_M = 2.0
+
+
+def imaged_ground(valid: np.ndarray, transform: Affine, cell_m: float = GROUND_CELL_M) -> bytes:
+    """The ground a window's imagery shows, as WKB of a polygon in the grid's CRS.
+
+    Parameters
+    ----------
+    valid : (H, W) ndarray of bool
+        The window's valid pixels (:meth:`GridReader.read`).
+    transform : Affine
+        From the window's pixel (col, row) to the CRS, metres.
+    cell_m : float
+        The footprint is drawn in square cells of about this side, metres;
+        a cell counts only when every pixel in it is valid, so the footprint
+        never claims ground the imagery leaves out (it may leave out up to a
+        cell along a nodata border).
+
+    Returns
+    -------
+    bytes
+        WKB of a Polygon or MultiPolygon (empty when no cell is wholly valid).
+    """
+    import shapely
+    from rasterio.features import shapes
+    from shapely.geometry import shape
+
+    h, w = valid.shape
+    if valid.all():
+        x0, y0 = transform * (0, 0)
+        x1, y1 = transform * (w, h)
+        return shapely.to_wkb(shapely.box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)))
+    res = math.hypot(transform.a, transform.d)
+    c = max(1, int(round(cell_m / res)))
+    rows, cols = -(-h // c), -(-w // c)
+    # Cells cut by the window's own border count by the pixels inside it.
+    padded = np.ones((rows * c, cols * c), bool)
+    padded[:h, :w] = valid
+    cells = padded.reshape(rows, c, cols, c).all(axis=(1, 3))
+    polys = [shape(g) for g, _ in
+             shapes(cells.view(np.uint8), mask=cells, connectivity=4, transform=transform * Affine.scale(c))]
+    x0, y0 = transform * (0, 0)
+    x1, y1 = transform * (w, h)
+    window = shapely.box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
+    ground = shapely.intersection(shapely.union_all(polys), window) if polys else shapely.Polygon()
+    return shapely.to_wkb(ground)

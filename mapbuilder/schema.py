@@ -21,6 +21,7 @@ from sqlalchemy import (
     ForeignKey,
     Index,
     Integer,
+    LargeBinary,
     MetaData,
     String,
     Table,
@@ -55,7 +56,7 @@ maps = Table(
     Column("revision", Integer, nullable=False, default=0),
     # The oldest revision the change feed answers from (the deletions before it were pruned).
     Column("feed_since", Integer, nullable=False, default=0, server_default="0"),
-    # How far the map speaks for the ground ("hull" or "markings", store.MAP_COVERAGES);
+    # How far the map speaks for the ground ("hull", "markings" or "imagery", store.MAP_COVERAGES);
     # NULL: as the server is set (LANEMAP_MAP_COVERAGE).
     Column("coverage", String(16)),
     Column("created_at", DateTime(timezone=True), nullable=False),
@@ -207,4 +208,16 @@ job_tiles = Table(
     Column("tile_key", String(128), primary_key=True),
     Column("n_markings", Integer, nullable=False, default=0),
     Column("done_at", DateTime(timezone=True), nullable=False),
+)
+
+# The ground each tile of a build imaged (WKB polygon, map CRS), whichever job
+# built it last: a map whose coverage is "imagery" speaks for this ground.
+# Kept apart from job_tiles so that it outlives the jobs.
+imaged_ground = Table(
+    "imaged_ground",
+    metadata,
+    Column("map_id", String(64), ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True),
+    Column("tile_key", String(128), primary_key=True),
+    Column("footprint", LargeBinary, nullable=False),
+    Column("built_at", DateTime(timezone=True), nullable=False),
 )

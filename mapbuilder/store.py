@@ -33,7 +33,8 @@ from . import migrate
 from .crs import CRSError, from_wgs84, metric_crs, to_wgs84, utm_crs_for
 from .model import SOURCES, STATUSES, Marking
 from .schema import (
-    GRID_CELL_M, changesets, edits, imagery, job_tiles, jobs, maps, markings, removed_markings, retired_maps,
+    GRID_CELL_M, changesets, edits, imaged_ground, imagery, job_tiles, jobs, maps, markings, removed_markings,
+    retired_maps,
 )  # fmt: skip
 from .settings import Settings
 
@@ -43,6 +44,8 @@ MAP_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 JOB_STATUSES = ("accepted", "running", "successful", "failed", "dismissed")
 #: Seconds to wait for a PostgreSQL connection unless the URL sets ``connect_timeout``.
 PG_CONNECT_TIMEOUT_S = 10
+#: The grid the ground a map's builds imaged is joined on, metres (:meth:`Store.imaged_footprint`).
+GROUND_GRID_M = 0.001
 #: Distance within which a person's decision suppresses a rebuilt detection, metres.
 SUPPRESS_RADIUS_M = 0.5
 
@@ -489,8 +492,10 @@ MAX_TITLE_LENGTH = 500
 #: How far a map speaks for the ground, for localization's check at its edge:
 #: ``"hull"``, everything painted within its markings' convex hull is in it (an
 #: area mapped whole); ``"markings"``, only the ground between its markings (a
-#: route, or parts of a city whose streets go on unmapped inside that hull).
-MAP_COVERAGES = ("hull", "markings")
+#: route, or parts of a city whose streets go on unmapped inside that hull);
+#: ``"imagery"``, the ground its builds imaged (:meth:`Store.imaged_footprint`)
+#: and the ground between its markings beyond it (a map built from imagery).
+MAP_COVERAGES = ("hull", "markings", "imagery")
 
 
 def check_coverage(coverage: str | None) -> None:
@@ -1684,7 +1689,8 @@ class Store:
 
     # ------------------------------------------------------------------ builds
     def replace_detected(
-        self, map_id: str, tile_key: str, items: list[Marking], job_id: int | None = None
+        self, map_id: str, tile_key: str, items: list[Marking], job_id: int | None = None,
+        ground: bytes | None = None,
     ) -> int:
         """Replace a tile's unreviewed detections with a new set, in one transaction.
 
@@ -1692,7 +1698,9 @@ class Store:
         ``rejected``) are never touched, and new detections within
         :data:`SUPPRESS_RADIUS_M` of one are dropped: a rebuild keeps manual edits.
         With ``job_id``, the tile is recorded as done for that job in the same
-        transaction, so a resumed build neither repeats nor loses it.
+        transaction, so a resumed build neither repeats nor loses it. ``ground``
+        (WKB of a polygon in the map's CRS) is the ground the tile's imagery
+        shows, recorded with it for :meth:`imaged_footprint`.
 
         Returns
         -------
@@ -1743,8 +1751,37 @@ class Store:
                 conn.execute(
                     insert(job_tiles).values(job_id=job_id, tile_key=tile_key, n_markings=len(rows), done_at=now)
                 )
+            if ground is not None:
+                g = imaged_ground.c
+                conn.execute(delete(imaged_ground).where(g.map_id == map_id, g.tile_key == tile_key))
+                conn.execute(insert(imaged_ground).values(map_id=map_id, tile_key=tile_key, footprint=bytes(ground),
+                                                          built_at=now))
             self._touch_map(conn, map_id, [r["x"] for r in rows], [r["y"] for r in rows])
         return len(rows)
+
+    def imaged_footprint(self, map_id: str):
+        """The ground the map's builds imaged: the union of its tiles' recorded ground.
+
+        Returns
+        -------
+        shapely.Polygon or shapely.MultiPolygon or None
+            In the map's CRS, metres; None when no build recorded any ground
+            (no build yet, or only builds of schema revisions before 0005).
+        """
+        import shapely
+
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            blobs = conn.execute(
+                select(imaged_ground.c.footprint).where(imaged_ground.c.map_id == map_id)
+            ).scalars().all()  # fmt: skip
+        if not blobs:
+            return None
+        # On a millimetre grid: neighbouring tiles' borders, each computed from its own
+        # window, differ in the last bits and would leave slivers between them.
+        ground = shapely.union_all(shapely.from_wkb(np.array([bytes(b) for b in blobs], dtype=object)),
+                                   grid_size=GROUND_GRID_M)
+        return None if ground.is_empty else ground
 
     def done_tiles(self, job_id: int) -> set[str]:
         with self._read() as conn:

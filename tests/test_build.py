@@ -580,6 +580,7 @@ def usgs_builds(tmp_path_factory):
     for name, path in [("plain", USGS_BASE), ("alpha", USGS_ALPHA), ("nodata", USGS_NODATA)]:
         build_map(store, name, [path], BuildParams(tile_px=128), workers=1, progress=False)
         out[name] = _detected(store, name)
+        out[name + " ground"] = store.imaged_footprint(name)
     store.close()
     return out
 
@@ -638,6 +639,29 @@ def test_usgs_masked_variants_give_the_same_stall_lines(usgs_builds):
             for m in usgs_builds[name]:
                 c, r = inv @ (m.x, m.y)
                 assert mask[int(r), int(c)] > 0
+
+
+def test_a_build_records_the_ground_its_imagery_shows(usgs_builds):
+    """The real crop: whole, its ground is the image's bounds; with an alpha band or a nodata
+    value, no masked pixel lies in it, and the ground it leaves out is the masked pixels and at
+    most a 2 m cell beside them."""
+    import rasterio
+    import shapely
+
+    with rasterio.open(USGS_BASE) as ds:
+        plain = usgs_builds["plain ground"]  # 15 tiles, joined on a millimetre grid
+        assert plain.geom_type == "Polygon" and plain.symmetric_difference(shapely.box(*ds.bounds)).area < 0.1
+        whole = shapely.box(*ds.bounds).area
+    for name, path in (("alpha", USGS_ALPHA), ("nodata", USGS_NODATA)):
+        ground = usgs_builds[name + " ground"]
+        with rasterio.open(path) as ds:
+            masked = ds.dataset_mask() == 0
+            r, c = np.nonzero(masked)
+            x, y = ds.transform * (c + 0.5, r + 0.5)
+            px = abs(ds.transform.a * ds.transform.e)
+        assert masked.any() and not shapely.contains_xy(ground, x, y).any(), name
+        # each masked blob costs at most its own 2 m cells and their neighbours
+        assert whole - masked.sum() * px - 120.0 < ground.area < whole - masked.sum() * px, name
 
 
 #: Detections the CNN-verified build may make elsewhere in the USGS crop.

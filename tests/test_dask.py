@@ -31,6 +31,7 @@ def test_dask_cluster_build_matches_local(tmp_path, sqlite_url):
     assert remote.tiles_run == local.tiles_run == local.tiles_total > 4
     assert remote.markings == local.markings > 10
     assert _rows(store, "dask") == _rows(store, "local")
+    assert store.imaged_footprint("dask").equals(store.imaged_footprint("local"))  # the workers' ground
     assert store.get_job(remote.job_id).status == "successful"
     store.close()
 

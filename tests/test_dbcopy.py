@@ -8,6 +8,7 @@ import sys
 from datetime import UTC
 
 import pytest
+import shapely
 from sqlalchemy import select
 
 from mapbuilder.dbcopy import TABLES, CopyError, copy_database
@@ -36,7 +37,8 @@ def _fill(store: Store) -> None:
     store.revert_changeset("ka", res.changeset_id, who="alice")
     job = store.create_job("build", "ka", {"imagery": "1"})
     store.replace_detected("ka", "t0", [_m(200.0 + k) for k in range(5)], job_id=job)
-    store.replace_detected("ka", "t0", [_m(200.2 + k) for k in range(5)], job_id=job)
+    store.replace_detected("ka", "t0", [_m(200.2 + k) for k in range(5)], job_id=job,
+                           ground=shapely.to_wkb(shapely.box(E0, N0, E0 + 100, N0 + 100)))
     store.update_job(job, status="successful", progress=100.0)
     store.add_imagery("ka", "/srv/imagery/ka.tif", "EPSG:25832", (E0, N0, E0 + 100, N0 + 100), 0.1)
     last = store.apply_changeset("ka", [Change("create", marking=_m(300.0))], who="bob").results[0]["id"]
@@ -69,6 +71,7 @@ def test_a_copy_holds_every_row_and_goes_on_giving_new_ids(direction, tmp_path, 
     assert _rows(target) == before
     assert report.rows == {name: len(rows) for name, rows in before.items()}
     assert report.rows["markings"] == 25 and report.rows["removed_markings"] == 7 and report.rows["job_tiles"] == 1
+    assert report.rows["imaged_ground"] == 1 and target.imaged_footprint("ka").equals(source.imaged_footprint("ka"))
     assert ("markings", 25, 25) in seen and ("markings", 7, 25) in seen  # batch by batch
     # The copy is a working store: the change feed reads the same, and new ids continue past
     # every id the source gave out (the deleted last marking's included).

@@ -14,6 +14,7 @@ from tests._build_helpers import USGS_ALPHA, USGS_BASE, USGS_NODATA
 from mapbuilder.raster import (
     ImageryError,
     default_storage_crs,
+    imaged_ground,
     inspect_imagery,
     open_grid,
 )
@@ -180,3 +181,30 @@ def test_rotated_geotransform_is_warped_north_up(tmp_path):
     assert 0.6 < valid.mean() < 0.95
     assert not valid[0, 0] and not valid[-1, -1]
     assert rgb[valid].mean() > 40
+
+
+def test_the_ground_a_window_images_is_its_wholly_valid_cells():
+    """A window with a nodata corner and a hole: the footprint is drawn in 2 m cells that are
+    valid throughout, so no masked pixel lies in it, and it never reaches past the window."""
+    import shapely
+    from affine import Affine
+
+    t = Affine(0.1, 0, 500000.0, 0, -0.1, 5400000.0)  # 10 cm pixels, north up
+    valid = np.ones((300, 500), bool)
+    full = shapely.from_wkb(imaged_ground(valid, t))
+    assert full.equals(shapely.box(500000.0, 5399970.0, 500050.0, 5400000.0))
+    rows, cols = np.mgrid[:300, :500]
+    valid[rows + cols < 150] = False  # a triangle of nodata in the north-west corner
+    valid[100:130, 200:260] = False  # a hole, 3 m x 6 m
+    ground = shapely.from_wkb(imaged_ground(valid, t))
+    assert ground.is_valid and not ground.is_empty
+    r, c = np.nonzero(~valid)
+    x, y = t * (c + 0.5, r + 0.5)
+    assert not shapely.contains_xy(ground, x, y).any()
+    assert shapely.box(500000.0, 5399970.0, 500050.0, 5400000.0).contains(ground)
+    # what it leaves out is the masked ground and at most a cell along its borders
+    masked_m2 = (~valid).sum() * 0.01
+    assert masked_m2 < 1500.0 - ground.area < masked_m2 + 2.0 * (2 * 15 * 1.42 + 2 * (3 + 6) + 4 * 2)
+    r, c = 150, 400  # deep inside the valid ground
+    assert ground.contains(shapely.Point(*(t * (c, r))))
+    assert shapely.from_wkb(imaged_ground(np.zeros((40, 40), bool), t)).is_empty

@@ -116,16 +116,17 @@ def test_a_maps_coverage_is_kept_and_checked(store):
 
 def test_the_coverages_a_map_may_say_are_the_extents_the_localizer_draws():
     """The store (which imports nothing of the localizer's), the server's setting and the API
-    name the same values."""
+    name the same values: the localizer's extent rules, and ``imagery`` (the markings' rule
+    joined to the ground the map's builds imaged)."""
     from typing import get_args
 
     from localizer import EXTENT_RULES
     from service.routers.collections import CollectionIn
     from service.settings import ServiceSettings
 
-    assert MAP_COVERAGES == EXTENT_RULES
-    assert get_args(ServiceSettings.model_fields["map_coverage"].annotation) == EXTENT_RULES
-    assert get_args(get_args(CollectionIn.model_fields["coverage"].annotation)[0]) == EXTENT_RULES
+    assert MAP_COVERAGES == (*EXTENT_RULES, "imagery")
+    assert get_args(ServiceSettings.model_fields["map_coverage"].annotation) == MAP_COVERAGES
+    assert get_args(get_args(CollectionIn.model_fields["coverage"].annotation)[0]) == MAP_COVERAGES
 
 
 def test_maps_from_before_the_coverage_cover_as_the_server_is_set(db_url):
@@ -357,6 +358,42 @@ def test_replace_detected_keeps_what_people_decided(store):
     store.replace_detected("ka", "t0", [], job_id=None)
     assert _count(store, "ka") == 4  # t0's two unreviewed detections went, t1's stays
     assert store.done_tiles(job) == {"t0", "t1"}
+
+
+def test_the_ground_a_build_imaged_is_kept_per_tile_beyond_its_job(store):
+    """Each tile's ground is recorded with its detections, in the same transaction; a rebuilt tile
+    replaces its own, an empty replacement (a stale tile dropped) keeps it, and the map's footprint
+    is the union of its tiles', whichever job built them."""
+    import shapely
+
+    store.create_map("ka", crs="EPSG:25832")
+    assert store.imaged_footprint("ka") is None
+    rev = store.map_head("ka")[0]
+    west = shapely.box(E0, N0, E0 + 100, N0 + 100)
+    east = shapely.box(E0 + 100, N0, E0 + 200, N0 + 100)
+    job = store.create_job("build", "ka", {"image": "a.tif"})
+    store.replace_detected("ka", "a/t0", [_m(10, 10)], job_id=job, ground=shapely.to_wkb(west))
+    store.replace_detected("ka", "a/t1", [_m(110, 10)], job_id=job, ground=shapely.to_wkb(east))
+    assert store.map_head("ka")[0] > rev  # an index drawn before knows it is stale
+    assert store.imaged_footprint("ka").equals(shapely.box(E0, N0, E0 + 200, N0 + 100))
+    # a rebuild of t1 by another job imaged less of it (nodata): its own ground is replaced
+    again = store.create_job("build", "ka", {"image": "a.tif", "again": True})
+    store.replace_detected("ka", "a/t1", [_m(110, 10)], job_id=again,
+                           ground=shapely.to_wkb(shapely.box(E0 + 100, N0, E0 + 150, N0 + 100)))
+    store.replace_detected("ka", "a/t0", [], job_id=None)  # dropped as stale: the ground was imaged
+    assert store.imaged_footprint("ka").equals(shapely.box(E0, N0, E0 + 150, N0 + 100))
+    store.create_map("other", crs="EPSG:25832")
+    assert store.imaged_footprint("other") is None
+    with pytest.raises(UnknownMapError):
+        store.imaged_footprint("nowhere")
+    # a tile whose ground could not be written (a marking out of range) writes neither
+    with pytest.raises(InvalidMarkingError):
+        store.replace_detected("ka", "a/t2", [Marking(x=E0 + 300, y=N0, weight=-1.0)], job_id=job,
+                               ground=shapely.to_wkb(shapely.box(E0 + 200, N0, E0 + 300, N0 + 100)))
+    assert store.imaged_footprint("ka").equals(shapely.box(E0, N0, E0 + 150, N0 + 100))
+    store.delete_map("ka")
+    store.create_map("ka", crs="EPSG:25832")
+    assert store.imaged_footprint("ka") is None
 
 
 def test_summary_counts_what_the_map_holds_and_its_review(store):
