@@ -7,7 +7,7 @@ import functools
 import numpy as np
 
 from localizer import GeoFrame, MapIndex, Options
-from mapbuilder.store import MarkingArrays
+from mapbuilder.store import MarkingArrays, Store
 
 #: Range of a request's ``min_probability``, the posterior an ``ok`` answer
 #: needs: below 0.5 an ``ok`` answer could be likelier wrong than right.
@@ -23,7 +23,7 @@ def localize_options(min_probability: float | None) -> Options | None:
     return None if min_probability is None else Options(ambiguity_probability=min_probability)
 
 
-def index_from_markings(arrays: MarkingArrays, crs: str, coverage: str = "hull") -> MapIndex:
+def index_from_markings(arrays: MarkingArrays, crs: str, coverage: str = "hull", imaged=None) -> MapIndex:
     """The :class:`localizer.MapIndex` of a map's markings (``Store.marking_arrays``).
 
     The store keeps bearings clockwise from true north; the index wants grid
@@ -34,21 +34,31 @@ def index_from_markings(arrays: MarkingArrays, crs: str, coverage: str = "hull")
     of unknown kind cut short or run long get slack along their axis
     (:func:`localizer.index.length_slack`); imported markings do not.
     ``coverage`` is how far the map speaks for the ground (the map's own, or
-    ``LANEMAP_MAP_COVERAGE``): the index's extent rule
-    (:func:`localizer.index.map_extent`).
+    ``LANEMAP_MAP_COVERAGE``, ``mapbuilder.store.MAP_COVERAGES``): ``hull`` and
+    ``markings`` are the index's extent rules
+    (:func:`localizer.index.map_extent`); ``imagery`` is the ground its builds
+    imaged, ``imaged`` (:meth:`Store.imaged_footprint`), joined to the
+    ``markings`` rule's.
 
     Raises
     ------
     localizer.LocalizationInputError
         On values the index cannot use (a bad CRS, non-positive weights).
     """
+    extent = {"extent": "markings", "extent_area": imaged} if coverage == "imagery" else {"extent": coverage}
     if not len(arrays):
-        return MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, crs, extent=coverage)
+        return MapIndex.from_arrays(arrays.x, arrays.y, arrays.weight, crs, **extent)
     frame = GeoFrame(crs)
     lon, lat = frame.to_lonlat(float(np.mean(arrays.x)), float(np.mean(arrays.y)))
     return MapIndex.from_arrays(
         arrays.x, arrays.y, arrays.weight, crs,
         bearing_deg=np.asarray(arrays.bearing_deg) - frame.convergence_deg(lon, lat),
         length_m=arrays.length_m, kind=arrays.kind,
-        measured=None if arrays.source is None else arrays.source == "detected", extent=coverage,
+        measured=None if arrays.source is None else arrays.source == "detected", **extent,
     )
+
+
+def load_index(store: Store, map_id: str, crs: str, coverage: str) -> MapIndex:
+    """The index of a stored map's markings by ``coverage`` (:func:`index_from_markings`), read from ``store``."""
+    imaged = store.imaged_footprint(map_id) if coverage == "imagery" else None
+    return index_from_markings(store.marking_arrays(map_id), crs, coverage, imaged)

@@ -26,9 +26,9 @@ TOKEN_FILE = "api-token"
 #: prometheus_client's variable for its multiprocess mode: the folder in which
 #: every server process counts its metrics (``service.metrics``).
 PROMETHEUS_MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
-#: How far a map speaks for the ground (``mapbuilder.store.MAP_COVERAGES``, the localizer's
-#: ``EXTENT_RULES``): the server's setting and the API's member.
-MapCoverage = Literal["hull", "markings"]
+#: How far a map speaks for the ground (``mapbuilder.store.MAP_COVERAGES``): the server's
+#: setting and the API's member.
+MapCoverage = Literal["hull", "markings", "imagery"]
 
 
 class ServiceSettings(BaseSettings):
@@ -89,13 +89,15 @@ class ServiceSettings(BaseSettings):
         until ``lanemap maps prune-feed``.
     feed_prune_interval_s : float
         How often the server prunes the feeds when a retention is set, seconds.
-    map_coverage : {"hull", "markings"}
+    map_coverage : {"hull", "markings", "imagery"}
         ``LANEMAP_MAP_COVERAGE``: how far a map that does not say (its
         ``coverage``) speaks for the ground, for the localizer's check at a
         map's edge (:func:`localizer.index.map_extent`): ``hull``, the convex
         hull of its markings (maps of an area surveyed whole), or ``markings``,
         the ground between them (maps of routes or of separate parts of a
-        city, whose streets go on unmapped inside that hull).
+        city, whose streets go on unmapped inside that hull), or ``imagery``,
+        the ground its builds imaged and the ground between its markings
+        beyond it (maps built from imagery).
     log_format : {"text", "json"}
         ``LANEMAP_LOG_FORMAT``: the server's log as uvicorn's text lines, or
         as one JSON object per line for a log collector (:mod:`service.logs`).

@@ -123,6 +123,16 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     items = httpx.get(f"{api.base_url}/collections/{map_id}/items?limit=1000").json()
     assert items["numberMatched"] > 0
     assert {f["properties"]["source"] for f in items["features"]} == {"detected"}
+    # the ground the build imaged, for a map whose coverage is the imagery: the image's bounds
+    import shapely
+
+    from mapbuilder.store import Store
+
+    store = Store(api.db_url)
+    ground = store.imaged_footprint(map_id)
+    store.close()
+    with rasterio.open(USGS) as ds:
+        assert ground.symmetric_difference(shapely.box(*ds.bounds)).area < 0.1
     jobs = httpx.get(f"{api.base_url}/jobs", params={"map": map_id}).json()["jobs"]
     assert [j["jobID"] for j in jobs] == [job_id]
     # the job's quicklook: a PNG of the imagery at its own 15 cm with the detections drawn on

@@ -964,3 +964,51 @@ def test_a_maps_coverage_is_its_own_or_the_servers(tmp_path, karlsruhe_fc):  # n
         assert r.status_code == 201 and (r.json()["coverage"], r.json()["coverageSet"]) == ("markings", True)
     finally:
         server.stop()
+
+
+def test_a_map_covering_its_imagery_speaks_for_the_ground_its_builds_imaged(tmp_path, karlsruhe_fc):  # noqa: F811
+    """``coverage: imagery`` over HTTP: before any build recorded its ground, the map speaks only
+    for the ground between its markings, and a frame seeing past the end of one of its parts is held
+    back there; once a build recorded imagery of the whole district (written by the store, as a
+    build's tile does), the next request reads it and the same frame is sure, and right."""
+    import shapely
+
+    from localizer import localize
+    from mapbuilder.store import Store
+    from tests._api_helpers import start_server
+    from tests._localizer_helpers import KarlsruheMarkings
+    from tests.test_localizer_edge import _edge_scenes, _graded
+
+    marks = KarlsruheMarkings()
+    by_markings = marks.index(extent="markings")
+    by_imagery = marks.index(extent="markings", extent_area=marks.imaged())
+    for pose, obs, prior, _, _ in _edge_scenes(40, 6.5, (8.0, 10.0), seed=3):
+        held = localize(by_markings, obs, prior)
+        sure = localize(by_imagery, obs, prior)
+        if "beyond the map's edge" in (held.reason or "") and _graded(sure, pose)[0] == "ok" \
+                and _graded(sure, pose)[1] < 0.5:
+            break
+    else:
+        pytest.fail("no scene is held back by the markings' extent and sure by the imagery's")
+    db_url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    server = start_server(db_url, tmp_path / "data")
+    try:
+        map_id = server.new_map()
+        url = f"{server.base_url}/collections/{map_id}"
+        assert httpx.post(f"{url}/import", json=karlsruhe_fc, headers=server.auth, timeout=60).status_code == 201
+        r = httpx.patch(url, json={"coverage": "imagery"}, headers=server.auth)
+        assert r.status_code == 200 and (r.json()["coverage"], r.json()["coverageSet"]) == ("imagery", True)
+        body = _request_of(prior, obs)
+        r = httpx.post(f"{url}/localize", json=body, timeout=60)
+        out, before = r.json(), int(r.headers["X-Map-Revision"])
+        assert out["status"] == "ambiguous" and "beyond the map's edge" in out["reason"], out
+        store = Store(db_url)
+        store.replace_detected(map_id, "ortho-0a1b2c3d/1024/0/0", [], ground=shapely.to_wkb(marks.imaged()))
+        store.close()
+        r = httpx.post(f"{url}/localize", json=body, timeout=60)
+        out = r.json()
+        assert int(r.headers["X-Map-Revision"]) > before
+        assert out["status"] == "ok" and out["easting"] == pytest.approx(sure.easting, abs=1e-3), out
+        assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.5
+    finally:
+        server.stop()

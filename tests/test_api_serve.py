@@ -310,7 +310,7 @@ def test_a_bad_setting_is_one_line_naming_its_variable(tmp_path):
         "LANEMAP_READ_TOKENS": ("car=x", "a read token must differ from every write token"),
         "LANEMAP_FEED_RETENTION_DAYS": ("-3", "greater than 0 (got '-3')"),
         "LANEMAP_FEED_PRUNE_INTERVAL_S": ("0", "greater than 0 (got '0')"),
-        "LANEMAP_MAP_COVERAGE": ("convex", "Input should be 'hull' or 'markings' (got 'convex')"),
+        "LANEMAP_MAP_COVERAGE": ("convex", "Input should be 'hull', 'markings' or 'imagery' (got 'convex')"),
     }
     for name, (value, says) in cases.items():
         env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}

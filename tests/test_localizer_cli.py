@@ -323,6 +323,7 @@ def test_a_maps_coverage_is_the_options_the_maps_own_or_the_servers(stored_map, 
         return json.loads(CliRunner().invoke(app, [*args, *extra]).stdout)
 
     assert answer("--coverage", "hull") == sure
+    assert answer("--coverage", "imagery") == held  # no build has recorded the ground it imaged
     monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "markings")
     assert answer() == held and answer("--coverage", "hull") == sure
     monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "hull")
@@ -338,10 +339,22 @@ def test_a_maps_coverage_is_the_options_the_maps_own_or_the_servers(stored_map, 
     assert answer() == sure
     bad = CliRunner().invoke(app, [*args, "--coverage", "convex"])
     assert bad.exit_code == 1 and bad.output.count("\n") == 1, bad.output
-    assert "--coverage must be one of hull, markings" in bad.output
+    assert "--coverage must be one of hull, markings, imagery" in bad.output
     bad = CliRunner().invoke(app, ["maps", "update", "ka", "--coverage", "convex", "--title", "never written"])
-    assert bad.exit_code == 1 and "--coverage must be one of hull, markings or default" in bad.output, bad.output
+    assert bad.exit_code == 1 and "--coverage must be one of hull, markings, imagery or default" in bad.output, \
+        bad.output
     assert json.loads(CliRunner().invoke(app, ["maps", "show", "ka"]).stdout)["title"] != "never written"
     monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "convex")
     bad = CliRunner().invoke(app, args)
     assert bad.exit_code == 1 and "LANEMAP_MAP_COVERAGE must be one of hull, markings" in bad.output
+    # once a build recorded imagery of the whole district, the map speaks for its ground
+    import shapely
+
+    from mapbuilder.store import Store
+    from tests._localizer_helpers import KarlsruheMarkings
+
+    monkeypatch.setenv("LANEMAP_MAP_COVERAGE", "hull")
+    store = Store(stored_map)
+    store.replace_detected("ka", "ortho-0a1b2c3d/1024/0/0", [], ground=shapely.to_wkb(KarlsruheMarkings().imaged()))
+    store.close()
+    assert answer("--coverage", "imagery") == sure

@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from localizer import EXTENT_RULES, METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
+from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
 from localizer.robust import along_across_sigmas
+from mapbuilder.store import MAP_COVERAGES
 from service.cli_errors import fail
 from service.cli_io import is_stdio
-from service.map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
+from service.map_index import MIN_PROBABILITY_RANGE, load_index, localize_options
 
 #: Exit codes of ``lanemap localize`` by the answer's status (the last frame's
 #: with ``--frames``). The JSON is printed whatever the status, so a script can
@@ -174,10 +175,11 @@ def register(app: typer.Typer) -> None:
             "An answer whose camera sees beyond the map's edge stays ambiguous at any threshold.",
         ),
         coverage: str | None = typer.Option(
-            None, "--coverage", metavar="hull|markings",
+            None, "--coverage", metavar="hull|markings|imagery",
             help="How far the map speaks for the ground, for the check at its edge: hull (its markings' convex "
-            "hull: an area mapped whole) or markings (the ground between them: a route, or parts of a city "
-            "whose streets go on unmapped). Default: the map's own coverage, else LANEMAP_MAP_COVERAGE as "
+            "hull: an area mapped whole), markings (the ground between them: a route, or parts of a city "
+            "whose streets go on unmapped) or imagery (the ground its builds imaged, and the ground between "
+            "its markings beyond it). Default: the map's own coverage, else LANEMAP_MAP_COVERAGE as "
             "for the server, else hull.",
         ),
     ) -> None:
@@ -208,8 +210,8 @@ def register(app: typer.Typer) -> None:
         obs = load_observations(observations) if observations is not None else None
         if method not in METHODS:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
-        if coverage is not None and coverage not in EXTENT_RULES:
-            fail(f"--coverage must be one of {', '.join(EXTENT_RULES)}, got {coverage!r}")
+        if coverage is not None and coverage not in MAP_COVERAGES:
+            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
         if seq is not None and method != "default":
             fail("--frames works with the default method only")
         if min_probability is not None:
@@ -228,11 +230,10 @@ def register(app: typer.Typer) -> None:
         info = store.get_map(map_id)
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
-        arrays = store.marking_arrays(map_id)
         coverage = coverage or info.coverage or _server_coverage()
         _ready_kernels()
         try:
-            index = index_from_markings(arrays, info.crs, coverage)
+            index = load_index(store, map_id, info.crs, coverage)
             # Without --position-sigma the fix takes the library's default sigma.
             sigma = {} if position_sigma is None else {"position_sigma_m": position_sigma}
             prior = None if lat is None else Prior(
@@ -280,6 +281,6 @@ def _server_coverage() -> str:
     import os
 
     value = os.environ.get("LANEMAP_MAP_COVERAGE", "hull")
-    if value not in EXTENT_RULES:
-        fail(f"LANEMAP_MAP_COVERAGE must be one of {', '.join(EXTENT_RULES)}, got {value!r}")
+    if value not in MAP_COVERAGES:
+        fail(f"LANEMAP_MAP_COVERAGE must be one of {', '.join(MAP_COVERAGES)}, got {value!r}")
     return value

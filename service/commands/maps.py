@@ -9,8 +9,9 @@ import typer
 from mapbuilder.store import MAP_COVERAGES, Store
 
 COVERAGE_HELP = ("How far the map speaks for the ground, for localization at its edge: hull (everything painted "
-                 "within its markings' convex hull is in it: an area mapped whole) or markings (only the ground "
-                 "between them: a route, or parts of a city whose streets go on unmapped).")
+                 "within its markings' convex hull is in it: an area mapped whole), markings (only the ground "
+                 "between them: a route, or parts of a city whose streets go on unmapped) or imagery (the ground "
+                 "its builds imaged, and the ground between its markings beyond it: a map built from imagery).")
 
 
 def register(app: typer.Typer) -> None:
@@ -37,7 +38,7 @@ def register(app: typer.Typer) -> None:
         crs: str = typer.Option(
             None, "--crs", help="Metric storage CRS, e.g. EPSG:25832. Default: the UTM zone of the first import."
         ),
-        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings",
+        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|imagery",
                                      help=COVERAGE_HELP + " Default: as the server is set (LANEMAP_MAP_COVERAGE)."),
     ) -> None:
         """Create an empty map."""
@@ -74,7 +75,7 @@ def register(app: typer.Typer) -> None:
     def update(
         map_id: str = typer.Argument(..., metavar="MAP"),
         title: str = typer.Option(None, "--title", help="The map's new title."),
-        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|default",
+        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|imagery|default",
                                      help=COVERAGE_HELP + " default: as the server is set again "
                                      "(LANEMAP_MAP_COVERAGE)."),
     ) -> None:

@@ -87,7 +87,8 @@ FEATURE_EXAMPLE = {
 COVERAGE_DOC = (
     "How far the map speaks for the ground, for localization at its edge: `hull`, everything painted within "
     "its markings' convex hull is in it (an area mapped whole); `markings`, only the ground between its "
-    "markings (a route, or parts of a city whose streets go on unmapped inside that hull). "
+    "markings (a route, or parts of a city whose streets go on unmapped inside that hull); `imagery`, the "
+    "ground its builds imaged, and beyond it the ground between its markings (a map built from imagery). "
     "Default (null): as the server is set (`LANEMAP_MAP_COVERAGE`)."
 )
 

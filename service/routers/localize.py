@@ -19,7 +19,7 @@ from localizer import Options
 
 from .. import metrics, request_id
 from ..deps import Context, get_ctx, require_read
-from ..map_index import MIN_PROBABILITY_RANGE, index_from_markings, localize_options
+from ..map_index import MIN_PROBABILITY_RANGE, load_index, localize_options
 from ..problems import Problem
 
 log = logging.getLogger(__name__)
@@ -309,7 +309,7 @@ def map_index(ctx: Context, map_id: str):
         info = ctx.store.get_map(map_id)
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
-        index = index_from_markings(ctx.store.marking_arrays(map_id), info.crs, coverage)
+        index = load_index(ctx.store, map_id, info.crs, coverage)
         _ = index.extent  # drawn here once, not by the first requests at once
         ctx.indexes[map_id] = ((revision, coverage), index)
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s)", map_id, len(index), revision,
