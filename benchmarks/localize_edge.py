@@ -15,7 +15,11 @@ inside the hull of what the map holds). Each of these by the default extent
 check (``Options.edge_share=None``, the behaviour before it). Then, with
 the extent drawn by the markings themselves (``extent="markings"``), the
 map with the stretch left out and the whole map (the Karlsruhe map is
-seven separate parts, whose simulated world ends where they do).
+seven separate parts, whose simulated world ends where they do); and with
+the extent of a map built from imagery (the markings' extent joined to the
+ground the imagery shows, as a server draws it for ``coverage: imagery``):
+imagery of the whole map (its markings' bounding box and 100 m around it),
+less the stretch left out where it is.
 
 What the camera sees beyond the cut matches nothing at the true pose, while
 a pose one dash period away matches it to the map's own dashes: without the
@@ -35,8 +39,9 @@ drives onto the map), and against the map less 60 m of road beginning 15-35 m
 ahead of the first frame, by either extent. The same figures, over every
 frame of every drive, and at the last frame.
 
-Run: ``.venv/bin/python benchmarks/localize_edge.py [--runs 200] [--seed 0]``,
-``.venv/bin/python benchmarks/localize_edge.py --drives [--runs 100] [--frames 12] [--seed 0]``
+Run: ``.venv/bin/python benchmarks/localize_edge.py [--runs 200] [--seed 0] [--only TEXT]``,
+``.venv/bin/python benchmarks/localize_edge.py --drives [--runs 100] [--frames 12] [--seed 0] [--only TEXT]``
+(``--only imagery``: only the maps whose name holds the text)
 """
 
 from __future__ import annotations
@@ -79,12 +84,13 @@ PRIORS = [
 ]
 MAPS = ("whole map", "ends 5-25 m ahead", "begins 4-20 m ahead", "began 0-20 m behind",
         "60 m left out 5-25 m ahead", "60 m left out 5-25 m ahead, extent by markings",
-        "whole map, extent by markings")
+        "whole map, extent by markings", "60 m left out 5-25 m ahead, extent by imagery",
+        "whole map, extent by imagery")
 DRIVE_MAPS = ("ends 15-35 m ahead", "begins 4-20 m ahead", "60 m left out 15-35 m ahead",
-              "60 m left out 15-35 m ahead, extent by markings")
-#: Maps whose extent is drawn by the markings (``extent="markings"``): without the check they
-#: answer as their hull's twin above, so only the check runs.
-BY_MARKINGS = {m for m in MAPS + DRIVE_MAPS if m.endswith("extent by markings")}
+              "60 m left out 15-35 m ahead, extent by markings", "60 m left out 15-35 m ahead, extent by imagery")
+#: Maps whose extent is drawn by the markings (``extent="markings"``), or by them and the ground
+#: imaged: without the check they answer as their hull's twin above, so only the check runs.
+BY_MARKINGS = {m for m in MAPS + DRIVE_MAPS if m.endswith(("extent by markings", "extent by imagery"))}
 #: The 95 % quantile of chi-square with 2 degrees of freedom: a position's 95 % ellipse.
 CHI2_95 = 5.991
 VARIANTS = {"default": None, "no edge check": Options(edge_share=None)}
@@ -97,9 +103,10 @@ def run(args) -> dict:
     cam = Camera()
     rng = np.random.default_rng(args.seed)
     poses = sample_poses(smap, args.runs, rng, cam, min_visible=4)
-    results = {p[0]: {m: {v: [] for v in VARIANTS if m not in BY_MARKINGS or VARIANTS[v] is None} for m in MAPS}
-               for p in PRIORS}  # fmt: skip
+    results = {p[0]: {m: {v: [] for v in VARIANTS if m not in BY_MARKINGS or VARIANTS[v] is None}
+                      for m in MAPS if args.only in m} for p in PRIORS}  # fmt: skip
     whole_by_markings = marks.index(extent="markings")
+    whole_by_imagery = marks.index(extent="markings", extent_area=marks.imaged())
     with tqdm(total=len(PRIORS) * len(poses), unit="scene", desc="edge scenes") as bar:
         for name, dist, heading, sigma, sigma_deg in PRIORS:
             srng = np.random.default_rng([args.seed, sum(map(ord, name))])
@@ -112,8 +119,11 @@ def run(args) -> dict:
                         marks.cut(pose, begins_m=-srng.uniform(0.0, 20.0)))  # fmt: skip
                 # its own stream, so that the rows above draw what they drew before
                 gap = np.random.default_rng([args.seed, i, 60]).uniform(5.0, 25.0)
-                maps += (marks.gap(pose, gap), marks.gap(pose, gap, extent="markings"), whole_by_markings)
+                maps += (marks.gap(pose, gap), marks.gap(pose, gap, extent="markings"), whole_by_markings,
+                         marks.gap(pose, gap, extent="imagery"), whole_by_imagery)
                 for map_name, index in zip(MAPS, maps):
+                    if map_name not in results[name]:
+                        continue
                     for variant in results[name][map_name]:
                         options = VARIANTS[variant]
                         p = localize(index, scene.observations, prior, options=options)
@@ -166,7 +176,7 @@ def run_drives(args) -> dict:
     rng = np.random.default_rng(args.seed)
     drives = sample_trajectories(smap, args.runs, args.frames, 1.5, rng, cam, min_visible=4)
     results = {p[0]: {m: {v: [] for v in VARIANTS if m not in BY_MARKINGS or VARIANTS[v] is None}
-                      for m in DRIVE_MAPS} for p in PRIORS}  # fmt: skip
+                      for m in DRIVE_MAPS if args.only in m} for p in PRIORS}  # fmt: skip
     with tqdm(total=len(PRIORS) * len(drives), unit="drive", desc="edge drives") as bar:
         for name, dist, heading, sigma, sigma_deg in PRIORS:
             srng = np.random.default_rng([args.seed, sum(map(ord, name)), 1])
@@ -180,8 +190,11 @@ def run_drives(args) -> dict:
                 maps = (marks.cut(drive[0], ends_m=srng.uniform(15.0, 35.0)),
                         marks.cut(drive[0], begins_m=srng.uniform(4.0, 20.0)))
                 gap = np.random.default_rng([args.seed, i, 60]).uniform(15.0, 35.0)
-                maps += (marks.gap(drive[0], gap), marks.gap(drive[0], gap, extent="markings"))
+                maps += (marks.gap(drive[0], gap), marks.gap(drive[0], gap, extent="markings"),
+                         marks.gap(drive[0], gap, extent="imagery"))
                 for map_name, index in zip(DRIVE_MAPS, maps):
+                    if map_name not in results[name]:
+                        continue
                     for variant in results[name][map_name]:
                         options = VARIANTS[variant]
                         r = localize_sequence(index, frames, prior, options=options)
@@ -230,6 +243,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--drives", action="store_true", help="drives onto and off the map instead of single frames")
     ap.add_argument("--frames", type=int, default=12, help="frames per drive")
+    ap.add_argument("--only", default="", help="only the maps whose name holds this text, e.g. 'imagery'")
     args = ap.parse_args()
     if args.drives:
         args.runs = args.runs or 100
