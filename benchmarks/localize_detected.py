@@ -16,7 +16,11 @@ areas, and localized with the default method against
   long cluster, unknown otherwise; a detection of unknown kind cut short or
   run long gets slack along its axis, ``localizer.index.length_slack``);
 * **detected, no kinds**: the same markings with every kind unknown (the index
-  then infers the pieces of solid lines from their geometry alone).
+  then infers the pieces of solid lines from their geometry alone);
+* **detected, coverage imagery**: the built map with its extent drawn as for a
+  map whose ``coverage`` is ``imagery`` (the ground the build's tiles imaged,
+  joined to the markings' extent) instead of its markings' hull, which spans
+  the unrendered ground between the areas.
 
 The oracle (least squares on the true inliers) is the same for all three.
 Also printed: how the build's kinds agree with the truth (detections on a
@@ -228,14 +232,17 @@ def main() -> None:
             mpx += ds.width * ds.height / 1e6
     markings = list(store.iter_markings(MAP_ID))
     arrays = store.marking_arrays(MAP_ID)
+    imaged = store.imaged_footprint(MAP_ID)
     store.close()
     agree = kind_agreement(markings, lmap, areas)
     print(f"{len(areas)} areas, {mpx:.0f} Mpx at 10 cm, built in {t_build:.0f} s; kinds: {agree}")
     detected = index_from_markings(arrays, CRS)
+    by_imagery = index_from_markings(arrays, CRS, "imagery", imaged)
     solid = np.array([k == "solid" for k in arrays.kind])
     arrays.kind[:] = None
     unknown = index_from_markings(arrays, CRS)
-    indexes = {"Lanelet2": restricted_truth(areas), "detected": detected, "detected, no kinds": unknown}
+    indexes = {"Lanelet2": restricted_truth(areas), "detected": detected, "detected, no kinds": unknown,
+               "detected, coverage imagery": by_imagery}
     segs = {k: int((v.half_length > 0).sum()) for k, v in indexes.items()}
     print("markings indexed (line pieces matched as segments): "
           + ", ".join(f"{k} {len(v)} ({segs[k]})" for k, v in indexes.items()))
