@@ -671,8 +671,9 @@ def _ensure_map(store, map_id: str, first_image: str, title: str) -> str:
         info = store.get_map(map_id)
     except UnknownMapError:
         crs = default_storage_crs(first_image)
-        info = store.create_map(map_id, title=title, crs=crs)
-        log.info("created map %s in %s", map_id, crs)
+        # A map made by a build speaks for the ground its imagery shows (store.MAP_COVERAGES).
+        info = store.create_map(map_id, title=title, crs=crs, coverage="imagery")
+        log.info("created map %s in %s, covering its imagery", map_id, crs)
     if not info.crs:  # created without one: the first build chooses it, as a first import does
         return store.adopt_crs(map_id, default_storage_crs(first_image))
     return info.crs

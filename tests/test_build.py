@@ -223,7 +223,7 @@ def test_build_summary_and_job(border_scene, sqlite_url):
     assert job.status == "successful" and job.progress == 100.0
     assert len(store.done_tiles(result.job_id)) == result.tiles_total
     info = store.get_map("m")
-    assert info.crs == CRS
+    assert info.crs == CRS and info.coverage == "imagery"  # made by the build: it covers its imagery
     assert [i.path for i in store.list_imagery("m")] == [str(Path(border_scene.path).resolve())]
     # Bearings are stored from TRUE north: grid bearing + meridian convergence (-0.4° here).
     truth = border_scene.markings
@@ -498,6 +498,7 @@ def test_a_map_created_without_a_crs_takes_its_first_builds(tmp_path, monkeypatc
     info = store.get_map("usgs", with_count=True)
     assert info.crs == default_storage_crs(USGS_BASE) == "EPSG:26913"
     assert info.count and info.count > 0
+    assert info.coverage is None  # a map someone made keeps the coverage they gave it (or not)
     # Later data keeps it; a CRS that is not metric is refused.
     assert store.adopt_crs("usgs", "EPSG:25832") == "EPSG:26913"
     store.create_map("empty")
