@@ -1709,6 +1709,13 @@ class Store:
         """
         now = _now()
         c = markings.c
+        if ground is not None:
+            import shapely
+
+            try:
+                shapely.from_wkb(bytes(ground))
+            except (shapely.errors.GEOSException, TypeError, ValueError) as exc:
+                raise StoreError(f"tile {tile_key}: its ground is not WKB: {exc}") from None
         with self._write() as conn:
             crs = self._crs_for_write(conn, map_id)
             rev = self._next_revision(conn, map_id)
@@ -1759,7 +1766,7 @@ class Store:
             self._touch_map(conn, map_id, [r["x"] for r in rows], [r["y"] for r in rows])
         return len(rows)
 
-    def imaged_footprint(self, map_id: str):
+    def imaged_footprint(self, map_id: str) -> "shapely.Geometry | None":  # noqa: F821 (imported on use)
         """The ground the map's builds imaged: the union of its tiles' recorded ground.
 
         Returns

@@ -391,6 +391,9 @@ def test_the_ground_a_build_imaged_is_kept_per_tile_beyond_its_job(store):
         store.replace_detected("ka", "a/t2", [Marking(x=E0 + 300, y=N0, weight=-1.0)], job_id=job,
                                ground=shapely.to_wkb(shapely.box(E0 + 200, N0, E0 + 300, N0 + 100)))
     assert store.imaged_footprint("ka").equals(shapely.box(E0, N0, E0 + 150, N0 + 100))
+    with pytest.raises(StoreError, match="not WKB"):
+        store.replace_detected("ka", "a/t0", [_m(10, 10)], job_id=job, ground=b"not a polygon")
+    assert store.imaged_footprint("ka").equals(shapely.box(E0, N0, E0 + 150, N0 + 100))
     store.delete_map("ka")
     store.create_map("ka", crs="EPSG:25832")
     assert store.imaged_footprint("ka") is None
