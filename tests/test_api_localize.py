@@ -1012,3 +1012,55 @@ def test_a_map_covering_its_imagery_speaks_for_the_ground_its_builds_imaged(tmp_
         assert math.hypot(out["easting"] - pose[0], out["northing"] - pose[1]) < 0.5
     finally:
         server.stop()
+
+
+def test_a_maps_coverage_is_served_as_the_ground_localization_speaks_for(tmp_path, karlsruhe_fc):  # noqa: F811
+    """``GET /collections/{id}/coverage``: the extent the localizer's edge check uses, as a GeoJSON
+    Feature in WGS84, redrawn when the map's coverage or its imaged ground changes: the hull holds
+    every marking; the markings' extent is the map's seven parts, smaller; the imagery's ground
+    (recorded as a build's tile records it) is that ground."""
+    import shapely
+    from shapely.geometry import shape
+
+    from mapbuilder.store import Store
+    from tests._api_helpers import start_server
+    from tests._localizer_helpers import KarlsruheMarkings
+
+    db_url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    server = start_server(db_url, tmp_path / "data")
+    try:
+        map_id = server.new_map()
+        url = f"{server.base_url}/collections/{map_id}"
+        empty = httpx.get(f"{url}/coverage").json()  # a map without markings has no area
+        assert empty["geometry"] is None and empty["properties"]["area_m2"] == 0.0
+        assert httpx.post(f"{url}/import", json=karlsruhe_fc, headers=server.auth, timeout=60).status_code == 201
+        lonlat = np.array([f["geometry"]["coordinates"] for f in karlsruhe_fc["features"]])
+
+        def coverage():
+            r = httpx.get(f"{url}/coverage", timeout=60)
+            assert r.status_code == 200 and r.headers["content-type"] == "application/geo+json", r.text
+            return r.json(), int(r.headers["X-Map-Revision"])
+
+        hull, rev = coverage()
+        assert hull["properties"]["coverage"] == "hull" and hull["properties"]["revision"] == rev
+        assert hull["geometry"]["type"] == "Polygon"
+        assert shapely.contains_xy(shape(hull["geometry"]), lonlat[:, 0], lonlat[:, 1]).all()
+        assert httpx.patch(url, json={"coverage": "markings"}, headers=server.auth).status_code == 200
+        parts, _ = coverage()
+        assert parts["properties"]["coverage"] == "markings" and parts["geometry"]["type"] == "MultiPolygon"
+        assert len(parts["geometry"]["coordinates"]) >= 7  # the Karlsruhe map's parts, and lone markings
+        assert shapely.contains_xy(shape(parts["geometry"]), lonlat[:, 0], lonlat[:, 1]).all()
+        assert parts["properties"]["area_m2"] < 0.5 * hull["properties"]["area_m2"]
+        assert httpx.patch(url, json={"coverage": "imagery"}, headers=server.auth).status_code == 200
+        before, _ = coverage()  # no ground recorded yet: the markings' extent
+        assert before["properties"]["area_m2"] == parts["properties"]["area_m2"]
+        imaged = KarlsruheMarkings().imaged()
+        store = Store(db_url)
+        store.replace_detected(map_id, "ortho-0a1b2c3d/1024/0/0", [], ground=shapely.to_wkb(imaged))
+        store.close()
+        ground, rev2 = coverage()
+        assert rev2 > rev and ground["properties"]["coverage"] == "imagery"
+        assert ground["properties"]["area_m2"] == pytest.approx(imaged.area, rel=1e-6)
+        assert_problem(httpx.get(f"{server.base_url}/collections/nowhere/coverage"), 404)
+    finally:
+        server.stop()

@@ -300,12 +300,18 @@ REVISION_HEADER = "X-Map-Revision"
 
 def map_index(ctx: Context, map_id: str):
     """The map's spatial index, rebuilt when the map's revision or coverage moved on, and that revision."""
+    index, revision, _ = indexed_head(ctx, map_id)
+    return index, revision
+
+
+def indexed_head(ctx: Context, map_id: str):
+    """``(index, revision, coverage)``: :func:`map_index` and the coverage its extent was drawn by."""
     revision, coverage = ctx.store.map_head(map_id)
     coverage = coverage or ctx.settings.map_coverage
     with ctx.index_lock:
         cached = ctx.indexes.get(map_id)
         if cached is not None and cached[0] == (revision, coverage):
-            return cached[1], revision
+            return cached[1], revision, coverage
         info = ctx.store.get_map(map_id)
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
@@ -314,7 +320,40 @@ def map_index(ctx: Context, map_id: str):
         ctx.indexes[map_id] = ((revision, coverage), index)
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s)", map_id, len(index), revision,
                  coverage)
-        return index, revision
+        return index, revision, coverage
+
+
+#: Decimal places of the coverage's WGS84 coordinates: about a centimetre.
+COVERAGE_DECIMALS = 7
+
+
+@router.get("/collections/{mapId}/coverage", summary="The ground the map speaks for, as localization draws it",
+            responses={200: {"content": {"application/geo+json": {}},
+                             "description": "A GeoJSON Feature in WGS84: where the map holds every marking painted, "
+                                            "by its coverage; past it an answer whose camera sees there is held "
+                                            "back (its geometry null for a map without area)"}})
+async def map_coverage(mapId: str = PathParam(..., max_length=64), ctx: Context = Depends(get_ctx)):
+    return await anyio.to_thread.run_sync(_coverage, ctx, mapId)
+
+
+def _coverage(ctx: Context, map_id: str) -> JSONResponse:
+    """The extent of the map's index (drawn once per revision and coverage) as a GeoJSON Feature."""
+    import json
+
+    import shapely
+
+    index, revision, coverage = indexed_head(ctx, map_id)
+    extent = index.extent
+    geometry, area = None, 0.0
+    if extent is not None:
+        frame = index.frame
+        lonlat = shapely.transform(extent.area, lambda xy: np.column_stack(frame.to_lonlat(xy[:, 0], xy[:, 1])))
+        geometry = json.loads(shapely.to_geojson(shapely.set_precision(lonlat, 10.0 ** -COVERAGE_DECIMALS)))
+        area = float(extent.area.area)
+    body = {"type": "Feature", "id": map_id, "geometry": geometry,
+            "properties": {"coverage": coverage, "revision": revision, "area_m2": round(area, 1),
+                           "margin_m": extent.margin_m if extent is not None else None}}
+    return JSONResponse(body, media_type="application/geo+json", headers={REVISION_HEADER: str(revision)})
 
 
 @router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map",
