@@ -247,6 +247,13 @@ def _atomic_target(path: Path, suffix: str) -> Iterator[Path]:
         raise
 
 
+def write_geojson_object(path: str | Path, obj: dict) -> None:
+    """Write one GeoJSON object (a Feature, a geometry) to ``path``, atomically (temp file + rename)."""
+    path = Path(path)
+    with _atomic_target(path, ".part") as tmp:
+        tmp.write_text(json.dumps(obj), encoding="utf-8")
+
+
 def write_geojson(path: str | Path, items: Iterable[Marking]) -> int:
     """Write markings as a GeoJSON FeatureCollection, atomically (temp file + rename)."""
     path = Path(path)

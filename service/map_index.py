@@ -58,6 +58,33 @@ def index_from_markings(arrays: MarkingArrays, crs: str, coverage: str = "hull",
     )
 
 
+#: Decimal places of a coverage's WGS84 coordinates: about a centimetre.
+COVERAGE_DECIMALS = 7
+
+
+def coverage_feature(index: MapIndex, map_id: str, coverage: str, revision: int) -> dict:
+    """The ground a map speaks for (its index's extent, drawn by ``coverage``) as a GeoJSON Feature in WGS84.
+
+    Its geometry is null for a map without area (fewer than three markings and no imaged ground);
+    the properties give the coverage, the map's revision, the area in square metres (in the map's
+    CRS) and the margin the markings' ground was grown by, metres.
+    """
+    import json
+
+    import shapely
+
+    extent = index.extent
+    geometry, area = None, 0.0
+    if extent is not None:
+        frame = index.frame
+        lonlat = shapely.transform(extent.area, lambda xy: np.column_stack(frame.to_lonlat(xy[:, 0], xy[:, 1])))
+        geometry = json.loads(shapely.to_geojson(shapely.set_precision(lonlat, 10.0 ** -COVERAGE_DECIMALS)))
+        area = float(extent.area.area)
+    return {"type": "Feature", "id": map_id, "geometry": geometry,
+            "properties": {"coverage": coverage, "revision": revision, "area_m2": round(area, 1),
+                           "margin_m": extent.margin_m if extent is not None else None}}
+
+
 def load_index(store: Store, map_id: str, crs: str, coverage: str) -> MapIndex:
     """The index of a stored map's markings by ``coverage`` (:func:`index_from_markings`), read from ``store``."""
     imaged = store.imaged_footprint(map_id) if coverage == "imagery" else None

@@ -358,3 +358,38 @@ def test_a_maps_coverage_is_the_options_the_maps_own_or_the_servers(stored_map, 
     store.replace_detected("ka", "ortho-0a1b2c3d/1024/0/0", [], ground=shapely.to_wkb(KarlsruheMarkings().imaged()))
     store.close()
     assert answer("--coverage", "imagery") == sure
+
+
+def test_maps_coverage_writes_the_ground_a_map_speaks_for(tmp_path, monkeypatch, capsys):
+    """``lanemap maps coverage MAP [OUT]``: the extent localization draws, as a GeoJSON Feature in
+    WGS84, by the map's own coverage or ``--coverage``; errors are one line and write nothing."""
+    import shapely
+    from shapely.geometry import shape
+
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", karlsruhe_store(tmp_path))
+    monkeypatch.delenv("LANEMAP_MAP_COVERAGE", raising=False)
+    from mapbuilder.store import Store
+
+    lon, lat = np.array([(m.lon, m.lat) for m in Store().iter_markings("ka")]).T
+    out = tmp_path / "coverage.geojson"
+    res = CliRunner().invoke(app, ["maps", "coverage", "ka", str(out)])
+    assert res.exit_code == 0 and "coverage hull" in res.stdout and "written to" in res.stdout, res.output
+    hull = json.loads(out.read_text())
+    assert hull["type"] == "Feature" and hull["geometry"]["type"] == "Polygon"
+    assert shapely.contains_xy(shape(hull["geometry"]), lon, lat).all()
+    res = CliRunner().invoke(app, ["maps", "coverage", "ka", "--coverage", "markings"])
+    parts = json.loads(res.stdout)
+    assert parts["properties"]["coverage"] == "markings" and parts["geometry"]["type"] == "MultiPolygon"
+    assert shapely.contains_xy(shape(parts["geometry"]), lon, lat).all()
+    assert parts["properties"]["area_m2"] < 0.5 * hull["properties"]["area_m2"]
+    for args, says in ((["maps", "coverage", "ka", "--coverage", "convex"], "--coverage must be one of"),
+                       (["maps", "coverage", "nowhere"], "nowhere"),
+                       (["maps", "coverage", "ka", str(tmp_path / "no" / "such" / "c.geojson")], "does not exist")):
+        from service.cli import main
+
+        monkeypatch.setattr("sys.argv", ["lanemap", *args])
+        with pytest.raises(SystemExit) as exc:
+            main()
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 1 and len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
+    assert not (tmp_path / "no").exists()

@@ -230,7 +230,7 @@ def register(app: typer.Typer) -> None:
         info = store.get_map(map_id)
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
-        coverage = coverage or info.coverage or _server_coverage()
+        coverage = coverage or info.coverage or server_coverage()
         _ready_kernels()
         try:
             index = load_index(store, map_id, info.crs, coverage)
@@ -276,7 +276,7 @@ def _spread(pose) -> str:
     return f"; with them, the position is known to ±{along:.2f} m along the heading and ±{across:.2f} m across it"
 
 
-def _server_coverage() -> str:
+def server_coverage() -> str:
     """``LANEMAP_MAP_COVERAGE`` as the server reads it (unset: ``hull``)."""
     import os
 

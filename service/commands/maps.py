@@ -93,6 +93,40 @@ def register(app: typer.Typer) -> None:
         if title is not None:
             typer.echo(f"map {info.id} is now titled {info.title!r}")
 
+    @maps.command("coverage")
+    def coverage_of(
+        map_id: str = typer.Argument(..., metavar="MAP"),
+        out: str = typer.Argument("-", metavar="OUT",
+                                  help="GeoJSON file to write (- or none: standard output)."),
+        coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|imagery",
+                                     help="Draw it by this coverage instead of the map's own (else "
+                                     "LANEMAP_MAP_COVERAGE, else hull)."),
+    ) -> None:
+        """Write the ground a map speaks for, as localization draws it, as a GeoJSON Feature (WGS84)."""
+        from mapbuilder.geojson import write_geojson_object
+
+        from ..cli_errors import fail
+        from ..cli_io import is_stdio
+        from ..map_index import coverage_feature, load_index
+        from .localize import server_coverage
+
+        if coverage is not None and coverage not in MAP_COVERAGES:
+            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
+        store = Store()
+        info = store.get_map(map_id)
+        if info.crs is None:
+            fail(f"map {map_id!r} has no markings yet")
+        revision, own = store.map_head(map_id)
+        coverage = coverage or own or server_coverage()
+        feature = coverage_feature(load_index(store, map_id, info.crs, coverage), map_id, coverage, revision)
+        if is_stdio(out):
+            typer.echo(json.dumps(feature))
+            return
+        write_geojson_object(out, feature)
+        props = feature["properties"]
+        typer.echo(f"map {map_id} at revision {revision}: coverage {coverage}, {props['area_m2'] / 1e6:,.3f} km² "
+                   f"written to {out}")
+
     @maps.command("delete")
     def delete(
         map_id: str = typer.Argument(..., metavar="MAP"),

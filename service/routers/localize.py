@@ -19,7 +19,7 @@ from localizer import Options
 
 from .. import metrics, request_id
 from ..deps import Context, get_ctx, require_read
-from ..map_index import MIN_PROBABILITY_RANGE, load_index, localize_options
+from ..map_index import MIN_PROBABILITY_RANGE, coverage_feature, load_index, localize_options
 from ..problems import Problem
 
 log = logging.getLogger(__name__)
@@ -323,10 +323,6 @@ def indexed_head(ctx: Context, map_id: str):
         return index, revision, coverage
 
 
-#: Decimal places of the coverage's WGS84 coordinates: about a centimetre.
-COVERAGE_DECIMALS = 7
-
-
 @router.get("/collections/{mapId}/coverage", summary="The ground the map speaks for, as localization draws it",
             responses={200: {"content": {"application/geo+json": {}},
                              "description": "A GeoJSON Feature in WGS84: where the map holds every marking painted, "
@@ -337,23 +333,9 @@ async def map_coverage(mapId: str = PathParam(..., max_length=64), ctx: Context 
 
 
 def _coverage(ctx: Context, map_id: str) -> JSONResponse:
-    """The extent of the map's index (drawn once per revision and coverage) as a GeoJSON Feature."""
-    import json
-
-    import shapely
-
     index, revision, coverage = indexed_head(ctx, map_id)
-    extent = index.extent
-    geometry, area = None, 0.0
-    if extent is not None:
-        frame = index.frame
-        lonlat = shapely.transform(extent.area, lambda xy: np.column_stack(frame.to_lonlat(xy[:, 0], xy[:, 1])))
-        geometry = json.loads(shapely.to_geojson(shapely.set_precision(lonlat, 10.0 ** -COVERAGE_DECIMALS)))
-        area = float(extent.area.area)
-    body = {"type": "Feature", "id": map_id, "geometry": geometry,
-            "properties": {"coverage": coverage, "revision": revision, "area_m2": round(area, 1),
-                           "margin_m": extent.margin_m if extent is not None else None}}
-    return JSONResponse(body, media_type="application/geo+json", headers={REVISION_HEADER: str(revision)})
+    return JSONResponse(coverage_feature(index, map_id, coverage, revision), media_type="application/geo+json",
+                        headers={REVISION_HEADER: str(revision)})
 
 
 @router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map",
