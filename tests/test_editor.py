@@ -841,6 +841,36 @@ def test_maps_are_picked_from_the_list(editor, fx, server):
     assert page.input_value("#map-select") == other
 
 
+def test_the_ground_the_map_speaks_for_is_outlined(editor, fx, server):
+    """Ticking "the ground the map speaks for" outlines the map's coverage as localization draws it:
+    by the hull every marking lies inside; a map that says ``markings`` shows a smaller outline, and
+    the outline goes with the box unticked."""
+    editor.open()
+    page = editor.page
+    assert page.text_content("#coverage-name") == "hull" and page.evaluate("lanemapEditor.coverage()") is None
+    page.check("#coverage-show")
+    page.wait_for_function("document.getElementById('coverage-status').textContent.startsWith('hull:')")
+    inside = page.evaluate("""(pts) => { const b = lanemapEditor.coverage().getBounds();
+        return pts.every(([lon, lat]) => b.contains([lat, lon])); }""", [fx.lonlat(f) for f in fx.features])
+    assert inside
+    hull_area = api_get(server, f"/collections/{fx.map_id}/coverage")["properties"]["area_m2"]
+    assert f"revision {api_get(server, f'/collections/{fx.map_id}')['revision']}" in page.text_content(
+        "#coverage-status")
+    r = httpx.patch(f"{server.base_url}/collections/{fx.map_id}", json={"coverage": "markings"}, headers=server.auth)
+    assert r.status_code == 200, r.text
+    page.reload()
+    editor.wait_loaded()
+    assert page.text_content("#coverage-name") == "markings"
+    page.check("#coverage-show")
+    page.wait_for_function("document.getElementById('coverage-status').textContent.startsWith('markings:')")
+    parts = api_get(server, f"/collections/{fx.map_id}/coverage")["properties"]["area_m2"]
+    assert parts < hull_area
+    page.uncheck("#coverage-show")
+    page.wait_for_function("lanemapEditor.coverage() === null")
+    assert page.text_content("#coverage-status") == ""
+    assert not editor.errors, editor.errors
+
+
 def test_a_server_that_wants_a_token_for_reads(browser, window, tmp_path):
     srv = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
                        env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_READ_TOKENS": "fleet-secret"})  # fmt: skip

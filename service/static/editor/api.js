@@ -58,6 +58,11 @@ export class Api {
     return this.request('GET', `collections/${encodeURIComponent(mapId)}`);
   }
 
+  /** The ground the map speaks for, as localization draws it: a GeoJSON Feature (WGS84). */
+  coverage(mapId) {
+    return this.request('GET', `collections/${encodeURIComponent(mapId)}/coverage`);
+  }
+
   /** The map's markings counted by status, source and kind, and how far its review has come. */
   summary(mapId, bbox = null) {
     const q = bbox ? `?bbox=${bbox.map((v) => v.toFixed(7)).join(',')}` : '';

@@ -402,6 +402,7 @@ async function openMap(mapId, fromHash = false) {
     }).addTo(map);
   }
   $('no-imagery').hidden = images?.length !== 0;
+  showCoverage();
 
   const h = new URLSearchParams(location.hash.slice(1));
   const bbox = state.collection.extent?.spatial?.bbox?.[0];
@@ -415,6 +416,37 @@ async function openMap(mapId, fromHash = false) {
   loadProgress();
   applyTokenState();
 }
+
+/** The map's coverage, outlined when "the ground the map speaks for" is ticked: where the
+ * localizer's check at a map's edge draws it (an imagery gap or the end of a mapped part shows
+ * as a hole or an edge of the outline). */
+let coverage = null;
+async function showCoverage() {
+  const mapId = state.mapId;
+  $('coverage-name').textContent = state.collection?.coverage ?? '';
+  if (coverage) coverage.remove();
+  coverage = null;
+  if (!$('coverage-show').checked || !mapId) {
+    $('coverage-status').textContent = '';
+    return;
+  }
+  try {
+    const f = await api.coverage(mapId);
+    if (mapId !== state.mapId || !$('coverage-show').checked) return;
+    if (coverage) coverage.remove();
+    coverage = null;
+    if (!f.geometry) {
+      $('coverage-status').textContent = 'The map has no area yet.';
+      return;
+    }
+    coverage = L.geoJSON(f, { interactive: false, style: { color: '#f72585', weight: 2, dashArray: '6 4', fillOpacity: 0.05 } }).addTo(map);
+    const km2 = f.properties.area_m2 / 1e6;
+    $('coverage-status').textContent = `${f.properties.coverage}: ${km2 < 1 ? `${Math.round(f.properties.area_m2).toLocaleString()} m²` : `${km2.toFixed(2)} km²`} at revision ${f.properties.revision}.`;
+  } catch (err) {
+    $('coverage-status').textContent = `The coverage could not be drawn: ${err.message}`;
+  }
+}
+$('coverage-show').addEventListener('change', () => showCoverage());
 
 async function loadView() {
   if (!state.mapId) return;
@@ -991,6 +1023,7 @@ $('review-stop').addEventListener('click', () => stopReview());
 async function afterOwnWrite() {
   state.collection = await api.collection(state.mapId);
   state.revision = state.collection.revision;
+  showCoverage();
   await loadView();
   loadHistory(true);
   loadProgress();
@@ -1233,4 +1266,4 @@ function start() {
 start();
 
 // For scripting and end-to-end tests: the map and the editor's state, read-only by convention.
-globalThis.lanemapEditor = { map, state, layer, api };
+globalThis.lanemapEditor = { map, state, layer, api, coverage: () => coverage };
