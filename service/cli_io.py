@@ -33,6 +33,36 @@ def bbox_option(text: str | None) -> tuple[float, float, float, float] | None:
         fail(f"--{exc}")
 
 
+def coverage_option(text: str | None, *extra: str) -> str | None:
+    """A command's ``--coverage`` (None when not given): one of ``mapbuilder.store.MAP_COVERAGES``
+    or of ``extra`` (``default``), or its one ``error:`` line."""
+    from mapbuilder.store import MAP_COVERAGES
+
+    from .cli_errors import fail
+
+    if text is not None and text not in (*MAP_COVERAGES, *extra):
+        fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}" + "".join(f" or {e}" for e in extra)
+             + f", got {text!r}")
+    return text
+
+
+def map_coverage(option: str | None, own: str | None) -> str:
+    """The coverage a command draws a map's extent by: ``--coverage``, else the map's own, else
+    ``LANEMAP_MAP_COVERAGE`` as the server reads it, else ``hull``."""
+    import os
+
+    from mapbuilder.store import MAP_COVERAGES
+
+    from .cli_errors import fail
+
+    if option or own:
+        return option or own
+    value = os.environ.get("LANEMAP_MAP_COVERAGE", "hull")
+    if value not in MAP_COVERAGES:
+        fail(f"LANEMAP_MAP_COVERAGE must be one of {', '.join(MAP_COVERAGES)}, got {value!r}")
+    return value
+
+
 def source_name(path: Path | str) -> str:
     """How messages name the file: its name, or ``standard input``."""
     return "standard input" if is_stdio(path) else Path(path).name

@@ -11,9 +11,8 @@ import typer
 
 from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
 from localizer.robust import along_across_sigmas
-from mapbuilder.store import MAP_COVERAGES
 from service.cli_errors import fail
-from service.cli_io import is_stdio
+from service.cli_io import coverage_option, is_stdio, map_coverage
 from service.map_index import MIN_PROBABILITY_RANGE, load_index, localize_options
 
 #: Exit codes of ``lanemap localize`` by the answer's status (the last frame's
@@ -210,8 +209,7 @@ def register(app: typer.Typer) -> None:
         obs = load_observations(observations) if observations is not None else None
         if method not in METHODS:
             fail(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
-        if coverage is not None and coverage not in MAP_COVERAGES:
-            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
+        coverage_option(coverage)
         if seq is not None and method != "default":
             fail("--frames works with the default method only")
         if min_probability is not None:
@@ -230,7 +228,7 @@ def register(app: typer.Typer) -> None:
         info = store.get_map(map_id)
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
-        coverage = coverage or info.coverage or server_coverage()
+        coverage = map_coverage(coverage, info.coverage)
         _ready_kernels()
         try:
             index = load_index(store, map_id, info.crs, coverage)
@@ -274,13 +272,3 @@ def _spread(pose) -> str:
         return ""
     along, across = along_across_sigmas(pose.mixture_covariance, pose.yaw_grid_rad)
     return f"; with them, the position is known to ±{along:.2f} m along the heading and ±{across:.2f} m across it"
-
-
-def server_coverage() -> str:
-    """``LANEMAP_MAP_COVERAGE`` as the server reads it (unset: ``hull``)."""
-    import os
-
-    value = os.environ.get("LANEMAP_MAP_COVERAGE", "hull")
-    if value not in MAP_COVERAGES:
-        fail(f"LANEMAP_MAP_COVERAGE must be one of {', '.join(MAP_COVERAGES)}, got {value!r}")
-    return value

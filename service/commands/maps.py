@@ -6,7 +6,7 @@ import json
 
 import typer
 
-from mapbuilder.store import MAP_COVERAGES, Store
+from mapbuilder.store import Store
 
 COVERAGE_HELP = ("How far the map speaks for the ground, for localization at its edge: hull (everything painted "
                  "within its markings' convex hull is in it: an area mapped whole), markings (only the ground "
@@ -42,10 +42,9 @@ def register(app: typer.Typer) -> None:
                                      help=COVERAGE_HELP + " Default: as the server is set (LANEMAP_MAP_COVERAGE)."),
     ) -> None:
         """Create an empty map."""
-        if coverage is not None and coverage not in MAP_COVERAGES:
-            from ..cli_errors import fail
+        from ..cli_io import coverage_option
 
-            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
+        coverage_option(coverage)
         info = Store().create_map(map_id, title, crs, coverage)
         typer.echo(f"created map {info.id} ({info.crs or 'CRS chosen at the first import or build'})")
 
@@ -81,11 +80,11 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Change a map's title or coverage (its id, CRS and markings stay)."""
         from ..cli_errors import fail
+        from ..cli_io import coverage_option
 
         if title is None and coverage is None:
             fail("give --title, --coverage or both")
-        if coverage is not None and coverage not in (*MAP_COVERAGES, "default"):
-            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)} or default, got {coverage!r}")
+        coverage_option(coverage, "default")
         info = Store().update_map(map_id, title=title, coverage=None if coverage == "default" else coverage,
                                   set_coverage=coverage is not None)  # fmt: skip
         if coverage is not None:
@@ -106,18 +105,15 @@ def register(app: typer.Typer) -> None:
         from mapbuilder.geojson import write_geojson_object
 
         from ..cli_errors import fail
-        from ..cli_io import is_stdio
+        from ..cli_io import coverage_option, is_stdio, map_coverage
         from ..map_index import coverage_feature, load_index
-        from .localize import server_coverage
 
-        if coverage is not None and coverage not in MAP_COVERAGES:
-            fail(f"--coverage must be one of {', '.join(MAP_COVERAGES)}, got {coverage!r}")
+        coverage_option(coverage)
         store = Store()
         info = store.get_map(map_id)
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
-        revision, own = store.map_head(map_id)
-        coverage = coverage or own or server_coverage()
+        coverage, revision = map_coverage(coverage, info.coverage), info.revision
         feature = coverage_feature(load_index(store, map_id, info.crs, coverage), map_id, coverage, revision)
         if is_stdio(out):
             typer.echo(json.dumps(feature))
