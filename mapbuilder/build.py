@@ -674,6 +674,9 @@ def _ensure_map(store, map_id: str, first_image: str, title: str) -> str:
         # A map made by a build speaks for the ground its imagery shows (store.MAP_COVERAGES).
         info = store.create_map(map_id, title=title, crs=crs, coverage="imagery")
         log.info("created map %s in %s, covering its imagery", map_id, crs)
+    if info.coverage is None:
+        # A map made empty (POST /collections, `maps create`) and first built into: as if the build had made it.
+        store.adopt_coverage(map_id, "imagery")
     if not info.crs:  # created without one: the first build chooses it, as a first import does
         return store.adopt_crs(map_id, default_storage_crs(first_image))
     return info.crs

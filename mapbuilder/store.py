@@ -778,6 +778,29 @@ class Store:
         with self._write() as conn:
             return self._crs_for_write(conn, map_id, crs=crs)
 
+    def adopt_coverage(self, map_id: str, coverage: str) -> str | None:
+        """Give a map that holds nothing yet and has no coverage set ``coverage``; the map's coverage.
+
+        A map made empty and then first built from imagery speaks for the ground
+        its imagery shows, as a map a build creates does (``mapbuilder.build``),
+        in the way such a map takes its first build's CRS. A map that holds
+        markings (of any status) or recorded ground, or whose coverage was set,
+        keeps what it has: ``None`` there means as the server is set.
+        """
+        check_coverage(coverage)
+        with self._write() as conn:
+            row = self._map_row(conn, map_id, lock=True)
+            if row.coverage is not None:
+                return row.coverage
+            holds = conn.execute(select(markings.c.id).where(markings.c.map_id == map_id).limit(1)).first()
+            imaged = conn.execute(select(imaged_ground.c.tile_key).where(imaged_ground.c.map_id == map_id)
+                                  .limit(1)).first()  # fmt: skip
+            if holds is not None or imaged is not None:
+                return None
+            conn.execute(update(maps).where(maps.c.id == map_id).values(coverage=coverage, updated_at=_now()))
+        log.info("map %s: coverage %s, taken at its first build", map_id, coverage)
+        return coverage
+
     def _map_row(self, conn: Connection, map_id: str, *, lock: bool = False):
         q = select(maps).where(maps.c.id == map_id)
         if lock and self.dialect == "postgresql":

@@ -123,6 +123,9 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     items = httpx.get(f"{api.base_url}/collections/{map_id}/items?limit=1000").json()
     assert items["numberMatched"] > 0
     assert {f["properties"]["source"] for f in items["features"]} == {"detected"}
+    # Created empty and first built into, the map covers its imagery, as one the build had made.
+    info = httpx.get(f"{api.base_url}/collections/{map_id}").json()
+    assert (info["coverage"], info["coverageSet"]) == ("imagery", True)
     # the ground the build imaged, for a map whose coverage is the imagery: the image's bounds
     import shapely
 
@@ -162,6 +165,8 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     raw_map = api.new_map(crs=None)
     raw_img = upload(api, raw_map, USGS).json()
     assert httpx.get(f"{api.base_url}/collections/{raw_map}").json()["storageCrs"] is None
+    r = httpx.patch(f"{api.base_url}/collections/{raw_map}", json={"coverage": "hull"}, headers=api.auth)
+    assert r.status_code == 200 and r.json()["coverageSet"], r.text  # said before the build: kept
     r = httpx.post(f"{api.base_url}/collections/{raw_map}/builds",
                    json={"imagery": raw_img["id"], "verify": False}, headers=api.auth)
     assert r.status_code == 202, r.text
@@ -169,6 +174,7 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     assert storage == "http://www.opengis.net/def/crs/EPSG/0/26913"
     assert wait_job(api, r.headers["location"].rsplit("/", 1)[1])["status"] == "successful"
     raw = httpx.get(f"{api.base_url}/collections/{raw_map}/items?limit=1000").json()["numberMatched"]
+    assert httpx.get(f"{api.base_url}/collections/{raw_map}").json()["coverage"] == "hull"
     assert raw > items["numberMatched"] + 3
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": "999999"},
                               headers=api.auth), 422, "imagery")  # fmt: skip

@@ -498,7 +498,8 @@ def test_a_map_created_without_a_crs_takes_its_first_builds(tmp_path, monkeypatc
     info = store.get_map("usgs", with_count=True)
     assert info.crs == default_storage_crs(USGS_BASE) == "EPSG:26913"
     assert info.count and info.count > 0
-    assert info.coverage is None  # a map someone made keeps the coverage they gave it (or not)
+    # Made empty without a coverage, it covers its imagery from its first build on, as if the build had made it.
+    assert info.coverage == "imagery"
     # Later data keeps it; a CRS that is not metric is refused.
     assert store.adopt_crs("usgs", "EPSG:25832") == "EPSG:26913"
     store.create_map("empty")

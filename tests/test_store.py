@@ -114,6 +114,33 @@ def test_a_maps_coverage_is_kept_and_checked(store):
     assert store.update_map("route", title="Route 2").coverage == "markings"
 
 
+def test_a_map_made_empty_takes_a_coverage_only_while_it_holds_nothing(store):
+    """``adopt_coverage``: a first build's ``imagery`` goes to a map that holds no markings, no
+    recorded ground and no coverage of its own; any of those, and the map keeps what it has.
+    A map whose markings were all deleted holds nothing again."""
+    import shapely
+
+    store.create_map("empty", crs="EPSG:25832")
+    assert store.adopt_coverage("empty", "imagery") == "imagery"
+    assert store.map_head("empty") == (0, "imagery")  # no revision: nothing in it moved
+    assert store.adopt_coverage("empty", "hull") == "imagery"  # set now: kept
+    store.create_map("said", crs="EPSG:25832", coverage="markings")
+    assert store.adopt_coverage("said", "imagery") == "markings"
+    store.create_map("held", crs="EPSG:25832")
+    (held,) = store.add_markings("held", [_m(0, 0)])
+    assert store.adopt_coverage("held", "imagery") is None  # imported markings: the server's say
+    assert store.get_map("held").coverage is None
+    store.apply_changeset("held", [Change("delete", id=held, version=1)], who="bob")
+    assert store.adopt_coverage("held", "imagery") == "imagery"
+    store.create_map("ground", crs="EPSG:25832")
+    store.replace_detected("ground", "t0", [], ground=shapely.to_wkb(shapely.box(0, 0, 10, 10)))
+    assert store.adopt_coverage("ground", "imagery") is None
+    with pytest.raises(StoreError, match="coverage: must be one of"):
+        store.adopt_coverage("ground", "convex")
+    with pytest.raises(UnknownMapError):
+        store.adopt_coverage("nowhere", "imagery")
+
+
 def test_the_coverages_a_map_may_say_are_the_extents_the_localizer_draws():
     """The store (which imports nothing of the localizer's), the server's setting and the API
     name the same values: the localizer's extent rules, and ``imagery`` (the markings' rule

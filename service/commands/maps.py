@@ -39,7 +39,8 @@ def register(app: typer.Typer) -> None:
             None, "--crs", help="Metric storage CRS, e.g. EPSG:25832. Default: the UTM zone of the first import."
         ),
         coverage: str = typer.Option(None, "--coverage", metavar="hull|markings|imagery",
-                                     help=COVERAGE_HELP + " Default: as the server is set (LANEMAP_MAP_COVERAGE)."),
+                                     help=COVERAGE_HELP + " Default: as the server is set (LANEMAP_MAP_COVERAGE); "
+                                          "imagery from the map's first build on."),
     ) -> None:
         """Create an empty map."""
         from ..cli_io import coverage_option

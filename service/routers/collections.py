@@ -89,7 +89,8 @@ COVERAGE_DOC = (
     "its markings' convex hull is in it (an area mapped whole); `markings`, only the ground between its "
     "markings (a route, or parts of a city whose streets go on unmapped inside that hull); `imagery`, the "
     "ground its builds imaged, and beyond it the ground between its markings (a map built from imagery). "
-    "Default (null): as the server is set (`LANEMAP_MAP_COVERAGE`)."
+    "Default (null): as the server is set (`LANEMAP_MAP_COVERAGE`); a map created empty with null takes "
+    "`imagery` at its first build, as a map a build creates has it."
 )
 
 
