@@ -485,11 +485,14 @@ def _edge_reach(pose, pos_cov: np.ndarray, options: Options) -> float | None:
 
 
 def _beyond_edge(map_index: MapIndex, origin, obs_xy: np.ndarray, w: np.ndarray, pose,
-                 pos_cov: np.ndarray, options: Options) -> str | None:  # fmt: skip
+                 pos_cov: np.ndarray, options: Options, centre=(0.0, 0.0)) -> str | None:  # fmt: skip
     """Why an answer cannot be trusted: the camera sees beyond the map's edge from it or from a
     pose within the prior's reach along its heading (``Options.edge_share``); None if not.
 
-    ``pose`` is in coordinates about ``origin`` (map CRS, metres)."""
+    ``pose`` and the prior's position ``centre`` are in coordinates about ``origin`` (map CRS,
+    metres). The reach is measured from the prior's position, not from the answer: a rival
+    the prior admits may lie farther from an answer at the side of the prior's region than
+    the reach itself (a drive's track that settled three dash periods behind the truth)."""
     reach = _edge_reach(pose, pos_cov, options)
     if reach is None or not w.sum() > 0:
         return None
@@ -498,12 +501,15 @@ def _beyond_edge(map_index: MapIndex, origin, obs_xy: np.ndarray, w: np.ndarray,
         return None
     ox, oy = float(origin[0]) + pose[0], float(origin[1]) + pose[1]
     c, s = math.cos(pose[2]), math.sin(pose[2])
-    shifts = np.array([0.0, reach, -reach])
-    fwd = obs_xy[None, :, 0] + shifts[:, None]  # (3, N): the pose, then moved ahead and behind
+    d = c * (float(centre[0]) - pose[0]) + s * (float(centre[1]) - pose[1])  # the prior, along the heading
+    # The pose, then the far ends of the prior's reach ahead and behind, and the prior's own
+    # position between them: no stretch of the reach is out of every camera's view.
+    shifts = np.array([0.0, d + reach, d - reach, d])
+    fwd = obs_xy[None, :, 0] + shifts[:, None]  # (4, N)
     x = ox + c * fwd - s * obs_xy[None, :, 1]
     y = oy + s * fwd + c * obs_xy[None, :, 1]
-    shares = extent.beyond(x, y) @ w / w.sum()  # one query of the extent for all three
-    for shift, share in zip(shifts, shares.tolist()):
+    shares = extent.beyond(x, y) @ w / w.sum()  # one query of the extent for all four
+    for shift, share in zip(shifts.tolist(), shares.tolist()):
         if share > options.edge_share:
             where = ("from this pose" if shift == 0 else
                      f"from {abs(shift):.0f} m {'ahead of' if shift > 0 else 'behind'} it, within the prior's reach")
@@ -512,7 +518,8 @@ def _beyond_edge(map_index: MapIndex, origin, obs_xy: np.ndarray, w: np.ndarray,
     return None
 
 
-def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray, options: Options) -> str | None:
+def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray, options: Options,
+                centre=None) -> str | None:  # fmt: skip
     """:func:`localize`'s check at the map's edge (``Options.edge_share``) for a pose found otherwise.
 
     Parameters
@@ -530,6 +537,10 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
     options : Options
         ``edge_share``, ``edge_rival_m``, ``edge_reach_m`` and the weights'
         ``crowd_radius_m``.
+    centre : tuple of float, optional
+        ``(easting, northing)`` that rivals were searched around, such as a
+        GPS fix (map CRS, metres): the reach is measured from it. None:
+        from ``pose``.
 
     Returns
     -------
@@ -542,7 +553,7 @@ def edge_reason(map_index: MapIndex, obs: np.ndarray, pose, pos_cov: np.ndarray,
     if len(obs) == 0 or _edge_reach(pose, pos_cov, options) is None:
         return None
     return _beyond_edge(map_index, (0.0, 0.0), obs[:, :2], _observation_weights(obs, options), pose, pos_cov,
-                        options)
+                        options, pose[:2] if centre is None else centre)
 
 
 def warm_up() -> float:

@@ -975,7 +975,8 @@ def _edge_hold(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs: np.n
     """Why the drive cannot trust its tracks at the map's edge (None: it can), establishing the best.
 
     While no track is established, the camera seeing beyond the map from the
-    best one or from a pose within the GPS fix's reach along its heading
+    best one or from a pose within the GPS fix's reach along its heading (from
+    the fix, carried by the odometry)
     (:func:`localizer.core.edge_reason` with the fix's position covariance:
     rivals were searched for around it) gives the reason, sure or not. Else
     a best track the drive is sure of becomes established (with ``establish``).
@@ -987,7 +988,7 @@ def _edge_hold(map_index: MapIndex, tracks: list[_Track], gps: _Track, obs: np.n
         return None
     best = tracks[0]
     cov = gps.cov[:2, :2] if gps.cov is not None else np.eye(2) * gps.sigma_m**2
-    reason = edge_reason(map_index, obs, best.pose, cov, options)
+    reason = edge_reason(map_index, obs, best.pose, cov, options, centre=gps.pose[:2])
     if establish and reason is None and _posterior(tracks, null)[0] >= options.ambiguity_probability:
         best.established = True
     return reason

@@ -347,8 +347,10 @@ class Options:
         An answer is at most ``ambiguous`` when more than this share of the
         observations' weight lies beyond the map's extent (the ground between
         its markings, :attr:`MapIndex.extent`, by more than 1 m) at its pose,
-        or at its pose moved along its heading, either way, by three of the
-        prior's position sigmas along that heading. At a map's edge the
+        or at its pose moved along its heading to where the prior's position
+        lies along it and from there, either way, by three of the prior's
+        position sigmas along that heading (the poses the prior admits, which
+        an answer at the side of its region may be farther from). At a map's edge the
         camera sees markings the map does not hold; a pose one dash period
         away matches them to the map's own dashes and wins, surely and
         wrongly (from 8-10 m with the map ending 5-25 m ahead: 15-22 % of
@@ -362,7 +364,8 @@ class Options:
         this far (metres): half the 9 m dash period, below which no rival a
         period away is within the prior's reach.
     edge_reach_m : float
-        The farthest the pose is moved for ``edge_share``, metres: rivals lie
+        The farthest the pose is moved from the prior's position for
+        ``edge_share``, metres: rivals lie
         one or two dash periods away (of the answers more than 1 m off at a
         map's edge, 8-10 m prior, nearly all lay within 20 m of the truth).
     outlier_density : float

@@ -175,6 +175,36 @@ def test_the_check_leaves_a_tight_prior_and_the_inside_of_a_map_alone():
     assert same >= 14
 
 
+def test_the_reach_of_the_check_is_measured_from_the_prior_not_from_the_answer():
+    """An answer at the side of the prior's region: a rival the prior admits may lie beyond the
+    reach counted from the answer. Dashes every 9 m on three lanes up to x = 72 m (the extent
+    ends at 73 m); a pose at x = 20 m sees the dashes at 27, 36 and 45 m; the fix's sigma of
+    6.5 m reaches 19.5 m. Counted from the answer, the farthest view puts them at 65.5 m at
+    most, inside the map; counted from a fix 15.2 m ahead, a third of them lie at 79.7 m."""
+    from localizer.core import edge_reason
+
+    x0, y0 = 500_000.0, 5_400_000.0
+    xs = np.arange(0.0, 73.0, 9.0)
+    rows = np.array([-3.5, 0.0, 3.5])
+    x = np.tile(xs, rows.size) + x0
+    y = np.repeat(rows, xs.size) + y0
+    index = MapIndex.from_arrays(x, y, crs="EPSG:25832")
+    pose = (x0 + 20.0, y0 + 1.75, 0.0)
+    seen = (x - pose[0] >= 4.0) & (x - pose[0] <= 25.0)
+    obs = np.column_stack([x[seen] - pose[0], y[seen] - pose[1], np.full(seen.sum(), 50.0)])
+    assert len(obs) == 9
+    cov = np.eye(2) * 6.5**2
+    assert edge_reason(index, obs, pose, cov, Options()) is None
+    assert edge_reason(index, obs, pose, cov, Options(), centre=(pose[0] + 1.0, pose[1])) is None
+    why = edge_reason(index, obs, pose, cov, Options(), centre=(pose[0] + 15.2, pose[1] - 2.0))
+    assert why is not None and why.startswith("33% of what the camera sees lies beyond the map's edge "
+                                              "from 35 m ahead of it, within the prior's reach"), why
+    # a fix as far behind reaches past the map's start (at -1 m) instead
+    why = edge_reason(index, obs, pose, cov, Options(), centre=(pose[0] - 15.2, pose[1]))
+    assert why is not None and "from 35 m behind it" in why
+    assert edge_reason(index, obs, pose, cov, Options(), centre=(pose[0] - 5.0, pose[1])) is None
+
+
 def test_bad_edge_options_are_refused():
     from localizer import LocalizationInputError
 
