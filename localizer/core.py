@@ -511,7 +511,7 @@ def _beyond_edge(map_index: MapIndex, origin, obs_xy: np.ndarray, w: np.ndarray,
     shares = extent.beyond(x, y) @ w / w.sum()  # one query of the extent for all four
     for shift, share in zip(shifts.tolist(), shares.tolist()):
         if share > options.edge_share:
-            where = ("from this pose" if shift == 0 else
+            where = ("from this pose" if abs(shift) < 0.5 else
                      f"from {abs(shift):.0f} m {'ahead of' if shift > 0 else 'behind'} it, within the prior's reach")
             return (f"{share:.0%} of what the camera sees lies beyond the map's edge {where}: "
                     "there a pose a dash period away may explain as much")
