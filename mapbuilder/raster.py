@@ -374,10 +374,11 @@ def imaged_ground(valid: np.ndarray, transform: Affine, cell_m: float = GROUND_C
     from shapely.geometry import shape
 
     h, w = valid.shape
+    x0, y0 = transform * (0, 0)
+    x1, y1 = transform * (w, h)
+    window = shapely.box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
     if valid.all():
-        x0, y0 = transform * (0, 0)
-        x1, y1 = transform * (w, h)
-        return shapely.to_wkb(shapely.box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)))
+        return shapely.to_wkb(window)
     res = math.hypot(transform.a, transform.d)
     c = max(1, int(round(cell_m / res)))
     rows, cols = -(-h // c), -(-w // c)
@@ -387,8 +388,5 @@ def imaged_ground(valid: np.ndarray, transform: Affine, cell_m: float = GROUND_C
     cells = padded.reshape(rows, c, cols, c).all(axis=(1, 3))
     polys = [shape(g) for g, _ in
              shapes(cells.view(np.uint8), mask=cells, connectivity=4, transform=transform * Affine.scale(c))]
-    x0, y0 = transform * (0, 0)
-    x1, y1 = transform * (w, h)
-    window = shapely.box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
     ground = shapely.intersection(shapely.union_all(polys), window) if polys else shapely.Polygon()
     return shapely.to_wkb(ground)

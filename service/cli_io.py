@@ -48,16 +48,17 @@ def coverage_option(text: str | None, *extra: str) -> str | None:
 
 def map_coverage(option: str | None, own: str | None) -> str:
     """The coverage a command draws a map's extent by: ``--coverage``, else the map's own, else
-    ``LANEMAP_MAP_COVERAGE`` as the server reads it, else ``hull``."""
+    ``LANEMAP_MAP_COVERAGE`` as the server reads it, else the server's default (``hull``)."""
     import os
 
     from mapbuilder.store import MAP_COVERAGES
 
     from .cli_errors import fail
+    from .settings import ServiceSettings
 
     if option or own:
         return option or own
-    value = os.environ.get("LANEMAP_MAP_COVERAGE", "hull")
+    value = os.environ.get("LANEMAP_MAP_COVERAGE", ServiceSettings.model_fields["map_coverage"].default)
     if value not in MAP_COVERAGES:
         fail(f"LANEMAP_MAP_COVERAGE must be one of {', '.join(MAP_COVERAGES)}, got {value!r}")
     return value
