@@ -117,6 +117,9 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     job_url = r.headers["location"]
     job_id = job_url.rsplit("/", 1)[1]
     assert r.json()["status"] in ("accepted", "running") and r.json()["imagery"] == [img["id"]]
+    # The map reads as the job will build it as soon as the build is accepted.
+    info = httpx.get(f"{api.base_url}/collections/{map_id}").json()
+    assert (info["coverage"], info["coverageSet"]) == ("imagery", True)
     job = wait_job(api, job_id)
     assert job["status"] == "successful", job["message"]
     assert job["progress"] == 100 and job["finished"]
@@ -165,6 +168,11 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     raw_map = api.new_map(crs=None)
     raw_img = upload(api, raw_map, USGS).json()
     assert httpx.get(f"{api.base_url}/collections/{raw_map}").json()["storageCrs"] is None
+    # a build refused leaves the map as it was
+    assert_problem(httpx.post(f"{api.base_url}/collections/{raw_map}/builds",
+                              json={"imagery": raw_img["id"], "tile_px": 8}, headers=api.auth), 422, "tile_px")
+    refused = httpx.get(f"{api.base_url}/collections/{raw_map}").json()
+    assert (refused["storageCrs"], refused["coverageSet"]) == (None, False)
     r = httpx.patch(f"{api.base_url}/collections/{raw_map}", json={"coverage": "hull"}, headers=api.auth)
     assert r.status_code == 200 and r.json()["coverageSet"], r.text  # said before the build: kept
     r = httpx.post(f"{api.base_url}/collections/{raw_map}/builds",
@@ -172,7 +180,11 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     assert r.status_code == 202, r.text
     storage = httpx.get(f"{api.base_url}/collections/{raw_map}").json()["storageCrs"]
     assert storage == "http://www.opengis.net/def/crs/EPSG/0/26913"
-    assert wait_job(api, r.headers["location"].rsplit("/", 1)[1])["status"] == "successful"
+    raw_job = wait_job(api, r.headers["location"].rsplit("/", 1)[1])
+    assert raw_job["status"] == "successful"
+    store = Store(api.db_url)
+    assert store.get_job(int(raw_job["jobID"])).params["crs"] == "EPSG:26913"  # the CRS it was built in
+    store.close()
     raw = httpx.get(f"{api.base_url}/collections/{raw_map}/items?limit=1000").json()["numberMatched"]
     assert httpx.get(f"{api.base_url}/collections/{raw_map}").json()["coverage"] == "hull"
     assert raw > items["numberMatched"] + 3

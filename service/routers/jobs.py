@@ -102,12 +102,6 @@ def post_build(
         raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery") from None
     if img.map_id != mapId:
         raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery")
-    if info.crs is None:
-        # A map created without a CRS takes its first build's image's, as it
-        # would take its first import's.
-        from mapbuilder.raster import default_storage_crs
-
-        ctx.store.adopt_crs(mapId, default_storage_crs(img.path))
     try:
         threshold = body.threshold if body.threshold is not None else default_threshold(body.verify)
         threshold_low = body.threshold_low
@@ -123,14 +117,27 @@ def post_build(
                                                    verify_continuation_min=body.verify_continuation_min))
     except ValueError as exc:
         raise Problem(422, f"body: {exc}", "invalid-build") from None
-    try:
-        job_params = build_job_params([img.path], params, info.crs)
-    except OSError:
-        raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing") from None
+    if not os.path.isfile(img.path):
+        raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing")
     active = ctx.store.find_jobs(kind="build", map_id=mapId, status=("accepted", "running"))
     if active:
         raise Problem(409, f"map {mapId!r} already has a build running (job {active[0].id}); "
                       "wait for it or DELETE it first", "build-running", jobID=str(active[0].id))  # fmt: skip
+    # Only an accepted build shapes the map, and at once, so the collection
+    # reads as the job will build it: a map created without a CRS takes its
+    # image's (as it would its first import's), and one created empty covers
+    # its imagery (mapbuilder.build._ensure_map does the same for the CLI).
+    crs = info.crs
+    if crs is None:
+        from mapbuilder.raster import default_storage_crs
+
+        crs = ctx.store.adopt_crs(mapId, default_storage_crs(img.path))
+    if info.coverage is None:
+        ctx.store.adopt_coverage(mapId, "imagery")
+    try:
+        job_params = build_job_params([img.path], params, crs)
+    except OSError:
+        raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing") from None
     job_id = ctx.store.create_job("build", mapId, job_params)
     if ctx.jobs is not None:
         ctx.jobs.submit(job_id)
