@@ -13,7 +13,11 @@ lowest log-loss whose confidently-wrong rate stays well under 1 % (the
 miss probabilities 0.3 were chosen so on seeds 3, 5, 7 and 11, all poses and
 intersections, on 2026-12-03, with a temperature of 1.35; the temperature
 was re-fitted to 1.0 on 2026-12-05 on the same seeds after observations that
-crowd together came to share their weight).
+crowd together came to share their weight). A second table scales the
+"none of these" score with the prior's volume (an Occam factor: a chance
+match is likelier inside a wider prior), at several reference priors; on
+2026-12-07 that made the log-loss worse on seeds 3, 5, 7 and 11 and at
+their intersections, so the score stays the same for every prior.
 
 Run: ``.venv/bin/python benchmarks/localize_calibrate.py [--runs 120] [--seed 7] [--intersections] [--save F]``;
 ``--load F1 F2 ...`` evaluates several saved seeds together.
@@ -55,6 +59,7 @@ def collect(args, opts: Options) -> list[dict]:
                 maha = float(dx @ np.linalg.solve(p.covariance[:2, :2], dx))
             runs.append(dict(
                 scn=sc.name, failed=p.status == "failed", maha=maha,
+                log_volume=prior_log_volume(sc.sigma_m, sc.sigma_deg),
                 err=np.array([math.hypot(c["pose"][0] - pose[0], c["pose"][1] - pose[1]) for c in cands]),
                 herr=np.array([heading_err_deg(c["pose"][2], pose[2]) for c in cands]),
                 pos=np.array([c["positive"] for c in cands]),
@@ -65,7 +70,13 @@ def collect(args, opts: Options) -> list[dict]:
     return runs
 
 
-def evaluate(runs, mp: float, ms: float, T: float, thr: float, null: float = 0.0) -> dict:
+def prior_log_volume(sigma_m: float, sigma_deg: float) -> float:
+    """Log of the prior's 1-sigma volume, m² rad (an isotropic position)."""
+    return math.log(sigma_m**2 * math.radians(sigma_deg))
+
+
+def evaluate(runs, mp: float, ms: float, T: float, thr: float, null: float = 0.0,
+             null_reference: float | None = None) -> dict:
     """Confidently wrong, near / far success and ambiguity, and the log-loss of the answers' probability.
 
     The log-loss (mean ``-log p`` of the answer being right within 1 m / 2°,
@@ -79,9 +90,10 @@ def evaluate(runs, mp: float, ms: float, T: float, thr: float, null: float = 0.0
         data = r["pos"] - r["npt"] * math.log(1 / mp) - r["nsol"] * math.log(1 / ms)
         s = data / T + r["prior"]
         b = int(np.argmax(s))
-        top = max(s.max(), null)
+        nl = null if null_reference is None else null + r["log_volume"] - null_reference
+        top = max(s.max(), nl)
         pr = np.exp(s - top)
-        pr /= pr.sum() + math.exp(null - top)
+        pr /= pr.sum() + math.exp(nl - top)
         ok = pr[b] >= thr
         if ok and r["err"][b] > 1.0:
             out["cw"] += 1
@@ -134,6 +146,18 @@ def main() -> None:
               f"{nr[0] / max(nr[2], 1):6.1%} / {nr[1] / max(nr[2], 1):5.1%}  "
               f"{fr[0] / max(fr[2], 1):6.1%} / {fr[1] / max(fr[2], 1):5.1%}  "
               f"{e['logloss'] / max(e['scored'], 1):8.4f}{mark}")
+    print("\nthe none-of-these score scaled with the prior's volume (sigma_m, sigma_deg of the reference prior"
+          " at which it is `null`), current miss probabilities and temperature:")
+    print("reference       null   conf.wrong  near ok / amb   far ok / amb   log-loss")
+    for ref, null in itertools.product((None, (1.0, 9.0), (5.0, 10.0), (6.5, 9.0), (14.0, 17.0)),
+                                       (0.0, -1.0, -2.0, -3.0)):
+        e = evaluate(runs, opts.miss_probability, opts.solid_miss_probability, opts.temperature,
+                     opts.ambiguity_probability, null, None if ref is None else prior_log_volume(*ref))
+        nr, fr = e["near"], e["far"]
+        print(f"{'off' if ref is None else f'{ref[0]:g} m, {ref[1]:g}°':12s}  {null:5.1f}  {e['cw'] / n:9.2%}  "
+              f"{nr[0] / max(nr[2], 1):6.1%} / {nr[1] / max(nr[2], 1):5.1%}  "
+              f"{fr[0] / max(fr[2], 1):6.1%} / {fr[1] / max(fr[2], 1):5.1%}  "
+              f"{e['logloss'] / max(e['scored'], 1):8.4f}")
     print("\nok threshold (min_probability) at the current scoring: confidently wrong, near / far success")
     cur = (opts.miss_probability, opts.solid_miss_probability, opts.temperature, opts.null_score)
     for thr in (0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 0.98):
