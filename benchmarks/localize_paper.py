@@ -415,8 +415,11 @@ def main() -> None:
           "its mixture_covariance (all hypotheses)")
     print(mixc)
     OUT.mkdir(parents=True, exist_ok=True)
-    suffix = ("_intersections" if args.intersections else "") + ("_nokinds" if args.no_kinds else "")
-    tag = args.tag or ("intersections" if args.intersections else "all") + ("_nokinds" if args.no_kinds else "")
+    # Seed 0's untagged plots are the ones kept in the repository; other runs write beside them.
+    seed = f"_seed{args.seed}" if args.seed != 0 else ""
+    suffix = (("_intersections" if args.intersections else "") + ("_nokinds" if args.no_kinds else "") + seed
+              + (f"_{args.tag}" if args.tag else ""))
+    tag = args.tag or ("intersections" if args.intersections else "all") + ("_nokinds" if args.no_kinds else "") + seed
     (OUT / f"localize_paper_{tag}.md").write_text(tab + "\n\n" + rel + "\n\n" + thr + "\n\n" + mixc + "\n")
     reliability_plot(bins, OUT / f"localize_reliability_{tag}.png")
     (OUT / f"localize_paper_{tag}.json").write_text(json.dumps(out["results"], default=float))
