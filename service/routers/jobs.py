@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapbuilder.cluster import ClusterParams
-from mapbuilder.store import JobInfo
+from mapbuilder.store import JobInfo, UnknownImageryError
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..jobs import build_job_params
@@ -98,7 +98,7 @@ def post_build(
     imagery_id = parse_id(body.imagery, "imagery")
     try:
         img = ctx.store.get_imagery(imagery_id)
-    except Exception:
+    except UnknownImageryError:
         raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery") from None
     if img.map_id != mapId:
         raise Problem(422, f"imagery: map {mapId!r} has no imagery {imagery_id}", "unknown-imagery")
@@ -123,21 +123,23 @@ def post_build(
     if active:
         raise Problem(409, f"map {mapId!r} already has a build running (job {active[0].id}); "
                       "wait for it or DELETE it first", "build-running", jobID=str(active[0].id))  # fmt: skip
-    # Only an accepted build shapes the map, and at once, so the collection
-    # reads as the job will build it: a map created without a CRS takes its
-    # image's (as it would its first import's), and one created empty covers
-    # its imagery (mapbuilder.build._ensure_map does the same for the CLI).
     crs = info.crs
     if crs is None:
         from mapbuilder.raster import default_storage_crs
 
-        crs = ctx.store.adopt_crs(mapId, default_storage_crs(img.path))
-    if info.coverage is None:
-        ctx.store.adopt_coverage(mapId, "imagery")
+        crs = default_storage_crs(img.path)
     try:
         job_params = build_job_params([img.path], params, crs)
     except OSError:
         raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing") from None
+    # Only an accepted build shapes the map, and at once, so the collection
+    # reads as the job will build it: a map created without a CRS takes its
+    # image's (as it would its first import's), and one created empty covers
+    # its imagery (mapbuilder.build._ensure_map does the same for the CLI).
+    if info.crs is None:
+        job_params["crs"] = ctx.store.adopt_crs(mapId, crs)  # another request's, had it come first
+    if info.coverage is None:
+        ctx.store.adopt_coverage(mapId, "imagery")
     job_id = ctx.store.create_job("build", mapId, job_params)
     if ctx.jobs is not None:
         ctx.jobs.submit(job_id)
