@@ -80,8 +80,29 @@ class Hypothesis:
     log_score: float | None = None
     covariance: np.ndarray | None = field(default=None, compare=False)
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
+    def offset_from(self, pose: "Pose") -> tuple[float, float, float] | None:
+        """Where this candidate lies as seen from ``pose`` (the answer it belongs to).
+
+        Returns
+        -------
+        (x, y, heading) or None
+            ``x`` forward and ``y`` left in ``pose``'s vehicle frame (ISO 8855),
+            metres of the map CRS; ``heading`` this candidate's heading minus
+            ``pose``'s, degrees clockwise, in [-180, 180). None when ``pose``
+            has no position. Rivals only along ``x`` are repeating markings
+            along the road (the lateral position and heading are sure); a
+            ``y`` of a lane's width is a parallel lane.
+        """
+        if pose.easting is None or pose.northing is None or pose.yaw_grid_rad is None or pose.heading_deg is None:
+            return None
+        dx, dy = self.easting - pose.easting, self.northing - pose.northing
+        c, s = math.cos(pose.yaw_grid_rad), math.sin(pose.yaw_grid_rad)
+        turn = (self.heading_deg - pose.heading_deg + 180.0) % 360.0 - 180.0
+        return (c * dx + s * dy, -s * dx + c * dy, turn)
+
+    def to_dict(self, relative_to: "Pose | None" = None) -> dict[str, Any]:
+        """JSON-safe dictionary; with ``relative_to``, its ``offset`` from that answer (:meth:`offset_from`)."""
+        out = {
             "lat": float(self.lat),
             "lon": float(self.lon),
             "heading_deg": float(self.heading_deg),
@@ -90,6 +111,11 @@ class Hypothesis:
             "score": float(self.score),
             "covariance": _matrix(self.covariance),
         }
+        if relative_to is not None:
+            off = self.offset_from(relative_to)
+            out["offset"] = None if off is None else {
+                "x_m": float(off[0]), "y_m": float(off[1]), "heading_deg": float(off[2])}
+        return out
 
 
 def _matrix(m) -> list[list[float | None]] | None:
@@ -153,7 +179,9 @@ class Pose:
         probability were right). None for ``pink2008`` (the paper's ICP has no
         posterior) and when ``failed``.
     hypotheses : list of Hypothesis
-        Best first; filled when ``status == "ambiguous"``.
+        Best first; filled when ``status == "ambiguous"``. Where each lies
+        from the answer, in its vehicle frame: :meth:`Hypothesis.offset_from`
+        (``to_dict`` writes it as ``offset``).
     reason : str or None
         Why the localization failed, or why a pose the posterior would call
         sure is ``ambiguous`` (the camera sees beyond the map's edge,
@@ -222,7 +250,7 @@ class Pose:
             "inliers": int(self.inliers),
             "rms_m": num(self.rms_m),
             "probability": num(self.probability),
-            "hypotheses": [h.to_dict() for h in self.hypotheses],
+            "hypotheses": [h.to_dict(self) for h in self.hypotheses],
             "reason": self.reason,
         }
 

@@ -750,6 +750,14 @@ def test_answers_follow_the_documented_schema(api, kmap):
     assert all(len(h["covariance"]) == 3 for h in amb["hypotheses"])
     assert amb["hypotheses"][0]["covariance"] == amb["covariance"]
     assert np.trace(amb["mixture_covariance"]) > np.trace(amb["covariance"]) + 1.0  # rivals metres apart
+    # Each hypothesis says where it lies from the answer, in the answer's vehicle frame.
+    assert amb["hypotheses"][0]["offset"] == pytest.approx({"x_m": 0.0, "y_m": 0.0, "heading_deg": 0.0}, abs=1e-6)
+    for h in amb["hypotheses"][1:]:
+        off = h["offset"]
+        assert math.hypot(off["x_m"], off["y_m"]) == pytest.approx(
+            math.hypot(h["easting"] - amb["easting"], h["northing"] - amb["northing"]), abs=1e-6)
+        turn = (h["heading_deg"] - amb["heading_deg"] + 180.0) % 360.0 - 180.0
+        assert off["heading_deg"] == pytest.approx(turn, abs=1e-9) and -180.0 <= turn < 180.0
     assert answers[0]["mixture_covariance"] is None and answers[1]["mixture_covariance"] is None
     for a in answers:
         errors = [e.message for e in single.iter_errors(a)]

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localizer import ErrorEllipse, LocalizationInputError, MapIndex, Options, Prior, localize
+from localizer import ErrorEllipse, Hypothesis, LocalizationInputError, MapIndex, Options, Pose, Prior, localize
 from localizer.geometry import LocalMap, apply, weighted_rigid_fit
 from localizer.pink2008 import pink2008_icp
 from localizer.robust import crowd_weights
@@ -798,6 +798,14 @@ def test_periodic_dash_rows_are_ambiguous_with_hypotheses_a_period_apart():
     assert min(abs(e) for e in east) < 0.3  # the truth is one of them
     gaps = np.diff(east)
     assert np.all(np.abs(gaps / 9.0 - np.round(gaps / 9.0)) < 0.05)
+    # Seen from the answer (driving east: x east, y north) the rivals lie a
+    # whole number of periods ahead or behind, in the same lane, at the same heading.
+    offsets = [h.offset_from(r) for h in r.hypotheses]
+    assert offsets[0] == pytest.approx((0.0, 0.0, 0.0), abs=1e-6)
+    for (x, y, turn), h in zip(offsets[1:], r.hypotheses[1:]):
+        assert x == pytest.approx(h.easting - r.easting, abs=0.05) and abs(x) > 8.0
+        assert abs(x / 9.0 - round(x / 9.0)) < 0.05 and abs(y) < 0.3 and abs(turn) < 1.0
+    assert [h["offset"]["x_m"] for h in r.to_dict()["hypotheses"]] == pytest.approx([o[0] for o in offsets])
     # The paper's method just answers, wrong by a period or right by luck.
     p = localize(index, scene.observations, prior, method="pink2008")
     assert p.status in ("ok", "failed") and p.hypotheses == [] and p.probability is None
@@ -888,6 +896,24 @@ def test_parallel_lanes_are_ambiguous():
     north = [h.northing - pose[1] for h in r.hypotheses]
     assert any(abs(n) < 0.3 for n in north)
     assert any(abs(abs(n) - 3.5) < 0.3 for n in north)
+    # a lane's width to the answer's left or right (driving east: y is north)
+    assert any(abs(abs(h.offset_from(r)[1]) - 3.5) < 0.3 for h in r.hypotheses)
+
+
+def test_a_hypothesis_offset_is_in_the_answers_vehicle_frame():
+    """x forward, y left (ISO 8855) of the answer, and the heading difference clockwise, wrapped."""
+    north = Pose(status="ambiguous", crs=CRS, lat=49.0, lon=8.4, easting=100.0, northing=200.0,
+                 yaw_grid_rad=math.pi / 2, heading_deg=359.5)  # facing grid north
+    ahead = Hypothesis(49.0, 8.4, 0.7, 100.0, 209.0, 0.4)  # 9 m north, turned 1.2° clockwise across north
+    left = Hypothesis(49.0, 8.4, 358.0, 96.5, 200.0, 0.2)  # 3.5 m west, turned 1.5° anticlockwise
+    assert ahead.offset_from(north) == pytest.approx((9.0, 0.0, 1.2), abs=1e-9)
+    assert left.offset_from(north) == pytest.approx((0.0, 3.5, -1.5), abs=1e-9)
+    east = replace(north, yaw_grid_rad=0.0, heading_deg=90.0)
+    assert ahead.offset_from(east)[:2] == pytest.approx((0.0, 9.0))  # north is left of a car facing east
+    assert ahead.offset_from(Pose(status="failed", crs=CRS)) is None
+    d = Hypothesis(49.0, 8.4, 180.0, 100.0, 200.0, 1.0).to_dict(north)["offset"]
+    assert d == {"x_m": 0.0, "y_m": 0.0, "heading_deg": pytest.approx(-179.5)}
+    assert "offset" not in ahead.to_dict()
 
 
 def test_an_error_ellipse_tight_across_the_road_picks_the_lane():

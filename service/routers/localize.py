@@ -221,6 +221,14 @@ class SequenceIn(BaseModel):
     min_probability: float | None = _MIN_PROBABILITY
 
 
+class HypothesisOffset(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    x_m: float = Field(..., description="Metres ahead of the answer (its vehicle frame, ISO 8855: x forward)")
+    y_m: float = Field(..., description="Metres to the answer's left (y left)")
+    heading_deg: float = Field(..., ge=-180, lt=180,
+                               description="This hypothesis's heading minus the answer's, degrees clockwise")
+
+
 class HypothesisOut(BaseModel):
     model_config = ConfigDict(extra="forbid")
     lat: float = Field(..., description="WGS84 latitude, degrees")
@@ -231,6 +239,10 @@ class HypothesisOut(BaseModel):
     score: float = Field(..., ge=0, le=1, description="Posterior probability of this hypothesis")
     covariance: list[list[float | None]] | None = Field(
         None, description="3x3 covariance of (easting m, northing m, yaw rad) of this hypothesis, were it right")
+    offset: HypothesisOffset | None = Field(
+        None, description="Where this hypothesis lies seen from the answer (the first hypothesis: at zero). "
+                          "Rivals only ahead and behind are repeating markings along the road, the lateral "
+                          "position and heading sure; a y of a lane's width is a parallel lane")
 
 
 class PoseOut(BaseModel):
