@@ -97,8 +97,8 @@ class Hypothesis:
             return None
         dx, dy = self.easting - pose.easting, self.northing - pose.northing
         c, s = math.cos(pose.yaw_grid_rad), math.sin(pose.yaw_grid_rad)
-        turn = (self.heading_deg - pose.heading_deg + 180.0) % 360.0 - 180.0
-        return (c * dx + s * dy, -s * dx + c * dy, turn)
+        turn = math.remainder(self.heading_deg - pose.heading_deg, 360.0)  # [-180, 180]; % can round to 360
+        return (c * dx + s * dy, -s * dx + c * dy, -180.0 if turn >= 180.0 else turn)
 
     def to_dict(self, relative_to: "Pose | None" = None) -> dict[str, Any]:
         """JSON-safe dictionary; with ``relative_to``, its ``offset`` from that answer (:meth:`offset_from`)."""

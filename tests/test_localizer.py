@@ -914,6 +914,12 @@ def test_a_hypothesis_offset_is_in_the_answers_vehicle_frame():
     d = Hypothesis(49.0, 8.4, 180.0, 100.0, 200.0, 1.0).to_dict(north)["offset"]
     assert d == {"x_m": 0.0, "y_m": 0.0, "heading_deg": pytest.approx(-179.5)}
     assert "offset" not in ahead.to_dict()
+    # About half a turn stays inside [-180, 180), even where rounding the difference would give +180.
+    for heading in (179.5 + 1e-13, 179.5, 179.5 - 1e-13, -1e-15):
+        turn = Hypothesis(49.0, 8.4, heading, 100.0, 200.0, 1.0).offset_from(replace(north, heading_deg=heading + 180.0))[2]
+        assert -180.0 <= turn < 180.0 and abs(turn) == pytest.approx(180.0)
+    just_past = replace(north, heading_deg=math.nextafter(180.0, 360.0))  # (d + 180) % 360 rounds to 360 here
+    assert -180.0 <= Hypothesis(49.0, 8.4, 0.0, 100.0, 200.0, 1.0).offset_from(just_past)[2] < 180.0
 
 
 def test_an_error_ellipse_tight_across_the_road_picks_the_lane():
