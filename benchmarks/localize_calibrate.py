@@ -111,6 +111,14 @@ def evaluate(runs, mp: float, ms: float, T: float, thr: float, null: float = 0.0
     return out
 
 
+def outcome(e: dict, n: int) -> str:
+    """A table row's results: confidently wrong, near and far ok / ambiguous, log-loss."""
+    nr, fr = e["near"], e["far"]
+    return (f"{e['cw'] / n:9.2%}  {nr[0] / max(nr[2], 1):6.1%} / {nr[1] / max(nr[2], 1):5.1%}  "
+            f"{fr[0] / max(fr[2], 1):6.1%} / {fr[1] / max(fr[2], 1):5.1%}  "
+            f"{e['logloss'] / max(e['scored'], 1):8.4f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--runs", type=int, default=120)
@@ -139,13 +147,9 @@ def main() -> None:
         e = evaluate(runs, mp, ms, T, opts.ambiguity_probability, null)
         rows.append((mp, ms, T, null, e))
     for mp, ms, T, null, e in rows:
-        nr, fr = e["near"], e["far"]
         mark = " <- current" if (mp, ms, T, null) == (opts.miss_probability, opts.solid_miss_probability,
                                                      opts.temperature, opts.null_score) else ""
-        print(f"{mp:6.2f}  {ms:12.2f}  {T:4.2f}  {null:5.1f}  {e['cw'] / n:9.2%}  "
-              f"{nr[0] / max(nr[2], 1):6.1%} / {nr[1] / max(nr[2], 1):5.1%}  "
-              f"{fr[0] / max(fr[2], 1):6.1%} / {fr[1] / max(fr[2], 1):5.1%}  "
-              f"{e['logloss'] / max(e['scored'], 1):8.4f}{mark}")
+        print(f"{mp:6.2f}  {ms:12.2f}  {T:4.2f}  {null:5.1f}  {outcome(e, n)}{mark}")
     print("\nthe none-of-these score scaled with the prior's volume (sigma_m, sigma_deg of the reference prior"
           " at which it is `null`), current miss probabilities and temperature:")
     print("reference       null   conf.wrong  near ok / amb   far ok / amb   log-loss")
@@ -153,11 +157,7 @@ def main() -> None:
                                        (0.0, -1.0, -2.0, -3.0)):
         e = evaluate(runs, opts.miss_probability, opts.solid_miss_probability, opts.temperature,
                      opts.ambiguity_probability, null, None if ref is None else prior_log_volume(*ref))
-        nr, fr = e["near"], e["far"]
-        print(f"{'off' if ref is None else f'{ref[0]:g} m, {ref[1]:g}°':12s}  {null:5.1f}  {e['cw'] / n:9.2%}  "
-              f"{nr[0] / max(nr[2], 1):6.1%} / {nr[1] / max(nr[2], 1):5.1%}  "
-              f"{fr[0] / max(fr[2], 1):6.1%} / {fr[1] / max(fr[2], 1):5.1%}  "
-              f"{e['logloss'] / max(e['scored'], 1):8.4f}")
+        print(f"{'off' if ref is None else f'{ref[0]:g} m, {ref[1]:g}°':12s}  {null:5.1f}  {outcome(e, n)}")
     print("\nok threshold (min_probability) at the current scoring: confidently wrong, near / far success")
     cur = (opts.miss_probability, opts.solid_miss_probability, opts.temperature, opts.null_score)
     for thr in (0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 0.98):

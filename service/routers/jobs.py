@@ -117,8 +117,9 @@ def post_build(
                                                    verify_continuation_min=body.verify_continuation_min))
     except ValueError as exc:
         raise Problem(422, f"body: {exc}", "invalid-build") from None
+    missing = f"imagery {imagery_id}: its file is missing on the server"
     if not os.path.isfile(img.path):
-        raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing")
+        raise Problem(409, missing, "imagery-missing")
     active = ctx.store.find_jobs(kind="build", map_id=mapId, status=("accepted", "running"))
     if active:
         raise Problem(409, f"map {mapId!r} already has a build running (job {active[0].id}); "
@@ -130,8 +131,8 @@ def post_build(
         crs = default_storage_crs(img.path)
     try:
         job_params = build_job_params([img.path], params, crs)
-    except OSError:
-        raise Problem(409, f"imagery {imagery_id}: its file is missing on the server", "imagery-missing") from None
+    except OSError:  # removed since the check above
+        raise Problem(409, missing, "imagery-missing") from None
     # Only an accepted build shapes the map, and at once, so the collection
     # reads as the job will build it: a map created without a CRS takes its
     # image's (as it would its first import's), and one created empty covers
