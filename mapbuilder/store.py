@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from sqlalchemy import (
@@ -48,6 +48,8 @@ PG_CONNECT_TIMEOUT_S = 10
 GROUND_GRID_M = 0.001
 #: Distance within which a person's decision suppresses a rebuilt detection, metres.
 SUPPRESS_RADIUS_M = 0.5
+#: Rows :meth:`Store.marking_arrays` reads and converts at a time.
+_ARRAYS_PART = 10_000
 
 _MARKING_FIELDS = (
     "x", "y", "length_m", "width_m", "bearing_deg", "weight", "score", "kind",
@@ -153,6 +155,17 @@ class MapInfo:
 
 #: Bins of :attr:`MapSummary.unreviewed_scores`: the detections' scores, 0-1.
 SCORE_BINS = 10
+
+
+class MapHead(NamedTuple):
+    """What a cache of a map's content checks on every use (:meth:`Store.map_head`)."""
+
+    #: The map's revision: it moves on with every write to its markings.
+    revision: int
+    #: How far the map speaks for the ground; None: as the server is set.
+    coverage: str | None
+    #: When the map was made: tells a map made anew under a deleted one's id from it.
+    created: str
 
 
 @dataclass
@@ -866,11 +879,12 @@ class Store:
         """The map's revision (it grows with every change of its markings)."""
         return self.map_head(map_id)[0]
 
-    def map_head(self, map_id: str) -> tuple[int, str | None]:
-        """The map's revision and coverage (None: as the server is set).
+    def map_head(self, map_id: str) -> MapHead:
+        """The map's revision, coverage (None: as the server is set) and when it was made.
 
         Every localization asks for them (the service rebuilds its cached index
-        when either moved on), so it is one statement on a pooled driver connection,
+        when either moved on, and tells a map made anew under a deleted one's id
+        by ``created``), so it is one statement on a pooled driver connection,
         without SQLAlchemy's transaction round trips: a single SELECT reads one
         committed snapshot by itself. Any driver failure takes the regular path,
         which reports it as every other read does.
@@ -888,14 +902,15 @@ class Store:
         except Exception:  # noqa: BLE001 - the regular path raises the store's own errors
             with self._read() as c:
                 r = self._map_row(c, map_id)
-                return int(r.revision), r.coverage
+                return MapHead(int(r.revision), r.coverage, str(r.created_at))
         if row is None:
             raise UnknownMapError(map_id)
-        return int(row[0]), row[1]
+        return MapHead(int(row[0]), row[1], str(row[2]))
 
     @property
     def _head_sql(self) -> str:
-        return "SELECT revision, coverage FROM maps WHERE id = " + ("?" if self.dialect == "sqlite" else "%s")
+        mark = "?" if self.dialect == "sqlite" else "%s"
+        return f"SELECT revision, coverage, created_at FROM maps WHERE id = {mark}"
 
     def _next_revision(self, conn: Connection, map_id: str) -> int:
         """Move the map on to its next revision and return it: the first write of a
@@ -1424,14 +1439,21 @@ class Store:
         q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg, c.kind, c.source).where(
             c.map_id == map_id, c.status.in_(list(statuses))
         )
+        # In parts: a city's markings read and converted at once held the GIL for
+        # a tenth of a second at a time, and a server's localizations with it.
+        parts, kinds, sources = [], [], []
         with self._read() as conn:
             self._map_row(conn, map_id)
-            rows = conn.execute(q.order_by(c.id)).all()
-        a = np.array([r[:6] for r in rows], dtype=float).reshape(-1, 6)
-        kind = np.empty(len(rows), object)
-        kind[:] = [r[6] for r in rows]
-        source = np.empty(len(rows), object)
-        source[:] = [r[7] for r in rows]
+            result = conn.execute(q.order_by(c.id).execution_options(yield_per=_ARRAYS_PART))
+            for rows in result.partitions():
+                parts.append(np.array([r[:6] for r in rows], dtype=float).reshape(-1, 6))
+                kinds.extend(r[6] for r in rows)
+                sources.extend(r[7] for r in rows)
+        a = np.concatenate(parts) if parts else np.zeros((0, 6))
+        kind = np.empty(len(a), object)
+        kind[:] = kinds
+        source = np.empty(len(a), object)
+        source[:] = sources
         return MarkingArrays(
             id=a[:, 0].astype(np.int64), x=a[:, 1], y=a[:, 2], weight=a[:, 3],
             length_m=a[:, 4], bearing_deg=a[:, 5], kind=kind, source=source,

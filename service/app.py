@@ -74,8 +74,10 @@ def create_app(
         log.warning("no write token configured: every write will be refused")
 
     from .jobs import JobRunner
+    from .map_index import IndexCache
 
-    ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens)
+    ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens,
+                  indexes=IndexCache(store, settings.map_coverage, settings.index_background_from))
     if run_jobs:
         ctx.jobs = JobRunner(store, data_dir, workers=settings.build_workers,
                              dask_address=settings.dask_scheduler or None,
@@ -110,6 +112,7 @@ def create_app(
                 pruner.stop()
             if ctx.jobs is not None:
                 ctx.jobs.stop()
+            ctx.indexes.close()
 
     app = FastAPI(
         title="lanemap",

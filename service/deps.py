@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import hmac
-import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +34,7 @@ class Context:
     data_dir: Path
     tokens: list[Token]
     jobs: Any = None  # service.jobs.JobRunner
-    indexes: dict[str, tuple[tuple[int, str], Any]] = field(default_factory=dict)  # (revision, coverage), index
-    index_lock: threading.Lock = field(default_factory=threading.Lock)
+    indexes: Any = None  # service.map_index.IndexCache
     #: localizations admitted and not yet answered (changed on the event loop only)
     localize_pending: int = 0
     localize_limiter: Any = None  # anyio.CapacityLimiter, made on the event loop at first use

@@ -61,6 +61,14 @@ localizer_seconds = Histogram(
     "lanemap_localizer_duration_seconds", "Time the localizer took per request, without HTTP and queueing, "
     "seconds", ["endpoint"], buckets=_SECONDS,
 )
+index_build_seconds = Histogram(
+    "lanemap_index_build_duration_seconds", "Time a map's localization index took to build from its markings, "
+    "seconds", buckets=_SECONDS,
+)
+stale_localizations = Counter(
+    "lanemap_localizations_stale", "Localization answers from a map's previous index while the index of its "
+    "newest revision was built, by map", ["map"],
+)
 shed = Counter("lanemap_localizations_shed", "Localization requests refused with 503 while too many were pending")
 drive_handovers = Counter(
     "lanemap_drive_handovers", "Drives streamed through POST /localize/sequence handed from their map to another, "

@@ -98,6 +98,12 @@ class ServiceSettings(BaseSettings):
         city, whose streets go on unmapped inside that hull), or ``imagery``,
         the ground its builds imaged and the ground between its markings
         beyond it (maps built from imagery).
+    index_background_from : int
+        ``LANEMAP_INDEX_BACKGROUND_FROM``: a map of at least this many
+        markings goes on answering localizations from its previous index while
+        the index of its newest revision is built (the answer's
+        ``X-Map-Revision`` names the one used); a smaller map's requests wait
+        for the build, milliseconds. 0: every map.
     log_format : {"text", "json"}
         ``LANEMAP_LOG_FORMAT``: the server's log as uvicorn's text lines, or
         as one JSON object per line for a log collector (:mod:`service.logs`).
@@ -122,6 +128,7 @@ class ServiceSettings(BaseSettings):
     health_timeout_s: float = Field(2.0, gt=0, allow_inf_nan=False)
     feed_retention_days: float | None = Field(None, gt=0, allow_inf_nan=False)
     feed_prune_interval_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
+    index_background_from: int = Field(10_000, ge=0)
     log_format: Literal["text", "json"] = "text"
     map_coverage: MapCoverage = "hull"
 

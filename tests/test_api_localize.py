@@ -230,6 +230,47 @@ def test_server_timing_splits_the_localizer_from_the_request(api, kmap):
     assert float(parts["index"]) >= 0 and float(parts["queue"]) >= 0
 
 
+def test_a_large_map_answers_from_its_previous_index_until_the_new_one_is_built(tmp_path, karlsruhe_fc):  # noqa: F811
+    """With ``LANEMAP_INDEX_BACKGROUND_FROM`` at or below a map's size, an edit never makes its
+    fleet wait for the map's new index: the next answer comes from the previous one, says so in
+    ``X-Map-Revision`` and is counted; the answers then catch up with the edit."""
+    server, map_id, feats = _own_server_with_karlsruhe(tmp_path, karlsruhe_fc,
+                                                       {"LANEMAP_INDEX_BACKGROUND_FROM": "800"})
+    try:
+        p, lon, lat, heading, obs = scene(feats, 10)
+        url = f"{server.base_url}/collections/{map_id}/localize"
+        body = {"gps": gps_near(p, heading), "observations": obs}
+        first = httpx.post(url, json=body, timeout=60)
+        revision = int(first.headers["x-map-revision"])
+        assert first.json()["status"] == "ok"
+        lon0, lat0 = to_wgs84(CRS).transform(p[0] - 60, p[1] - 60)
+        lon1, lat1 = to_wgs84(CRS).transform(p[0] + 60, p[1] + 60)
+        near = httpx.get(f"{server.base_url}/collections/{map_id}/items",
+                         params={"bbox": f"{lon0},{lat0},{lon1},{lat1}", "limit": 10000}).json()["features"]
+        cs = httpx.post(f"{server.base_url}/collections/{map_id}/changesets", headers=server.auth, timeout=60,
+                        json={"changes": [{"op": "delete", "id": f["id"]} for f in near]})
+        assert cs.status_code == 201
+        edited = httpx.get(f"{server.base_url}/collections/{map_id}").json()["revision"]
+        assert edited > revision
+        stale = httpx.post(url, json=body, timeout=60)
+        assert stale.status_code == 200 and int(stale.headers["x-map-revision"]) == revision
+        assert stale.json()["status"] == "ok"  # the markings are still there in the index it used
+        deadline = time.monotonic() + 30
+        while True:
+            r = httpx.post(url, json=body, timeout=60)
+            if int(r.headers["x-map-revision"]) == edited or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        assert int(r.headers["x-map-revision"]) == edited and r.json()["status"] == "failed"
+        metrics = httpx.get(f"{server.base_url}/metrics").text
+        counted = re.search(rf'lanemap_localizations_stale_total{{map="{map_id}"}} (\S+)', metrics)
+        assert counted and float(counted.group(1)) >= 1
+        builds = re.search(r"lanemap_index_build_duration_seconds_count (\S+)", metrics)
+        assert builds and float(builds.group(1)) >= 2  # the first index, and the edited map's
+    finally:
+        server.stop()
+
+
 def _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, env: dict):  # noqa: F811
     """A server of its own (SQLite, settings ``env``) holding the Karlsruhe map: ``(server, map id, features)``."""
     from tests._api_helpers import start_server

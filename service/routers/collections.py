@@ -237,8 +237,7 @@ def delete_collection(mapId: str = MapId, ctx: Context = Depends(get_ctx), who: 
         for job in ctx.store.find_jobs(map_id=mapId, status=("accepted", "running")):
             ctx.jobs.cancel(job.id)
     ctx.store.delete_map(mapId)
-    with ctx.index_lock:
-        ctx.indexes.pop(mapId, None)
+    ctx.indexes.drop(mapId)
     imagery_root = (ctx.data_dir / "imagery").resolve()
     for f in files:
         # Only files the server wrote itself are removed.

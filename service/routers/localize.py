@@ -19,7 +19,7 @@ from localizer import Options
 
 from .. import metrics, request_id
 from ..deps import Context, get_ctx, require_read
-from ..map_index import MIN_PROBABILITY_RANGE, coverage_feature, load_index, localize_options
+from ..map_index import MIN_PROBABILITY_RANGE, IndexedMap, IndexPending, coverage_feature, localize_options
 from ..problems import Problem
 
 log = logging.getLogger(__name__)
@@ -310,29 +310,38 @@ class SequenceOut(BaseModel):
 REVISION_HEADER = "X-Map-Revision"
 
 
-def map_index(ctx: Context, map_id: str):
-    """The map's spatial index, rebuilt when the map's revision or coverage moved on, and that revision."""
-    index, revision, _ = indexed_head(ctx, map_id)
-    return index, revision
+#: How often a request waits for its map's index to be built before it is refused: more
+#: than once only while the map is deleted and made anew meanwhile.
+_INDEX_TRIES = 3
 
 
-def indexed_head(ctx: Context, map_id: str):
-    """``(index, revision, coverage)``: :func:`map_index` and the coverage its extent was drawn by."""
-    revision, coverage = ctx.store.map_head(map_id)
-    coverage = coverage or ctx.settings.map_coverage
-    with ctx.index_lock:
-        cached = ctx.indexes.get(map_id)
-        if cached is not None and cached[0] == (revision, coverage):
-            return cached[1], revision, coverage
-        info = ctx.store.get_map(map_id)
-        if info.crs is None:
-            raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
-        index = load_index(ctx.store, map_id, info.crs, coverage)
-        _ = index.extent  # drawn here once, not by the first requests at once
-        ctx.indexes[map_id] = ((revision, coverage), index)
-        log.info("map %s: spatial index of %d markings at revision %d (coverage: %s)", map_id, len(index), revision,
-                 coverage)
-        return index, revision, coverage
+async def _on_index(ctx: Context, fn, map_id: str, *args):
+    """``fn(indexed, t0, t1, *args)`` on the localization thread, with the map's index to answer
+    from (:class:`~service.map_index.IndexedMap`) and when looking it up began and ended.
+
+    Where the map has no index yet (or its coverage changed) the build is awaited
+    here, off the localization thread, so that other maps' requests go on meanwhile;
+    the wait counts as looking up the index.
+    """
+    waited, accept_stale = 0.0, False
+    for _ in range(_INDEX_TRIES):
+        try:
+            return await _turn(ctx, _with_index, ctx, fn, map_id, accept_stale, waited, *args)
+        except IndexPending as pending:
+            t = time.perf_counter()
+            await pending.wait()
+            waited += time.perf_counter() - t
+            accept_stale = True
+    raise Problem(503, f"map {map_id!r} changed while its index was built; retry shortly", "busy",
+                  headers={"Retry-After": "1"})  # fmt: skip
+
+
+def _with_index(ctx: Context, fn, map_id: str, accept_stale: bool, waited: float, *args):
+    t0 = time.perf_counter()
+    indexed, stale = ctx.indexes.lookup(map_id, accept_stale)
+    if stale:
+        metrics.stale_localizations.labels(map_id).inc()
+    return fn(indexed, t0 - waited, time.perf_counter(), *args)
 
 
 @router.get("/collections/{mapId}/coverage", summary="The ground the map speaks for, as localization draws it",
@@ -345,9 +354,9 @@ async def map_coverage(mapId: str = PathParam(..., max_length=64), ctx: Context 
 
 
 def _coverage(ctx: Context, map_id: str) -> JSONResponse:
-    index, revision, coverage = indexed_head(ctx, map_id)
-    return JSONResponse(coverage_feature(index, map_id, coverage, revision), media_type="application/geo+json",
-                        headers={REVISION_HEADER: str(revision)})
+    have, _ = ctx.indexes.get(map_id)
+    return JSONResponse(coverage_feature(have.index, map_id, have.coverage, have.revision),
+                        media_type="application/geo+json", headers={REVISION_HEADER: str(have.revision)})
 
 
 @router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map",
@@ -567,16 +576,15 @@ def _turn(ctx: Context, fn, *args):
 
 async def _run_frame(ctx: Context, map_id: str, body: LocalizeIn, admitted: float,
                      name_map: bool = False) -> JSONResponse:  # fmt: skip
-    return await _turn(ctx, _localize, ctx, map_id, body, admitted, name_map)
+    return await _on_index(ctx, _localize, map_id, map_id, body, admitted, name_map)
 
 
-def _localize(ctx: Context, map_id: str, body: LocalizeIn, admitted: float, name_map: bool = False) -> JSONResponse:
+def _localize(indexed: IndexedMap, t0: float, t1: float, map_id: str, body: LocalizeIn, admitted: float,
+              name_map: bool = False) -> JSONResponse:  # fmt: skip
     """The CPU-bound part of a localization, run in a worker thread."""
     from localizer import localize
 
-    t0 = time.perf_counter()
-    index, revision = map_index(ctx, map_id)
-    t1 = time.perf_counter()
+    index, revision = indexed.index, indexed.revision
     obs = _observations(body.observations)
     pose, failure = None, None
     try:
@@ -604,7 +612,7 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
     them. The poses are those of one call (the filter goes on from where the
     last turn left it).
     """
-    (index, revision, steps), t0, t1 = await _turn(ctx, _timed, _drive_steps, ctx, map_id, body)
+    (index, revision, steps), t0, t1 = await _on_index(ctx, _drive_steps, map_id, body)
     frames = body.frames
     busy = 0.0
     try:
@@ -626,26 +634,21 @@ async def _run_drive(ctx: Context, map_id: str, body: SequenceIn, admitted: floa
     return answer
 
 
-def _drive_steps(ctx: Context, map_id: str, body: SequenceIn):
+def _drive_steps(indexed: IndexedMap, t0: float, t1: float, body: SequenceIn):
     """The map's index and revision, and the drive's frames as a generator of their poses
-    (:func:`localizer.iter_sequence`)."""
+    (:func:`localizer.iter_sequence`); ``t0`` and ``t1``."""
     from localizer import Frame, TrackState, iter_sequence
 
-    index, revision = map_index(ctx, map_id)
+    index, revision = indexed.index, indexed.revision
     frames = [
         Frame(_observations(f.observations),
               (0.0, 0.0, 0.0) if f.motion is None else (f.motion.dx, f.motion.dy, math.radians(f.motion.dyaw_deg)))
         for f in body.frames
     ]  # fmt: skip
     state = TrackState.from_dict(body.state.model_dump(exclude={"map"})) if body.state is not None else None
-    return index, revision, iter_sequence(index, frames, _prior(body.gps) if body.gps is not None else None,
-                                options=localize_options(body.min_probability), state=state)  # fmt: skip
-
-
-def _timed(fn, *args) -> tuple[object, float, float]:
-    """``fn(*args)``, and when it started and ended (``time.perf_counter``)."""
-    t = time.perf_counter()
-    return fn(*args), t, time.perf_counter()
+    steps = iter_sequence(index, frames, _prior(body.gps) if body.gps is not None else None,
+                          options=localize_options(body.min_probability), state=state)
+    return (index, revision, steps), t0, t1
 
 
 def _advance(steps, map_id: str | None = None) -> tuple[tuple[list[str], JSONResponse] | None, float]:

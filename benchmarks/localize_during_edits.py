@@ -1,0 +1,204 @@
+"""Localization latency on a large map while people edit it.
+
+Every edit moves a map's revision on, and a localization answers from the
+map's index at a revision. This script measures what a fleet sees while a map
+of a city's size is corrected in the editor: the Karlsruhe Lanelet2 example
+(819 markings, where the vehicle is) plus ``--markings`` filler markings of a
+synthetic street grid 13 km east of it (two solid edge lines and a dashed
+centre line per street, as a build leaves them, jittered by 5 cm), in a fresh
+SQLite store, served by ``lanemap serve`` (one worker, the map's coverage
+``--coverage``).
+
+Phases, each ``--duration`` seconds of one closed-loop vehicle (the next
+frame as soon as the answer comes; the frames of ``load_localize.py``, a
+GPS-like prior):
+
+* *cold*: the first request after the server starts (it builds the index);
+* *quiet*: nobody edits;
+* *editing*: an editor changes one filler marking's weight every
+  ``--edit-every`` seconds (a PATCH, as the web editor sends).
+
+Per phase it prints the answers' p50 / p99 / max latency, how many took over
+250 ms, and how far behind the map's revision the answers were
+(``X-Map-Revision`` against the revision of the last edit made before the
+request was sent).
+
+Usage::
+
+    .venv/bin/python benchmarks/localize_during_edits.py [--markings 200000] [--coverage hull markings]
+        [--duration 20] [--edit-every 1.0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import shutil
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from load_localize import MAP_ID, load_map, make_bodies  # noqa: E402
+from mapbuilder.model import Marking  # noqa: E402
+from mapbuilder.store import Store  # noqa: E402
+from tests._api_helpers import TOKEN, start_server  # noqa: E402
+
+#: Where the filler city starts (EPSG:25832), 13 km east of the Karlsruhe example.
+FILLER_E0, FILLER_N0 = 470_000.0, 5_425_000.0
+STREET_SPACING_M = 80.0
+SLOW_MS = 250.0
+
+
+def filler_markings(n: int, seed: int = 0) -> np.ndarray:
+    """``(n, 3)`` x, y, bearing (degrees clockwise from north) of a jittered street grid."""
+    # A street of length L holds 2 L / 3 solid pieces and L / 9 dashes.
+    side = float(np.sqrt(n * STREET_SPACING_M / (2 * (2 / 3 + 1 / 9))))
+    rows = []
+    for c in np.arange(0.0, side, STREET_SPACING_M):
+        for off, step in ((-3.5, 3.0), (3.5, 3.0), (0.0, 9.0)):
+            t = np.arange(0.0, side, step)
+            rows.append(np.c_[t, np.full_like(t, c + off), np.full_like(t, 90.0)])  # east-west
+            rows.append(np.c_[np.full_like(t, c + off), t, np.zeros_like(t)])  # north-south
+    pts = np.vstack(rows)
+    rng = np.random.default_rng(seed)
+    pts = pts[rng.permutation(len(pts))[:n]]
+    pts[:, :2] += rng.normal(0.0, 0.05, (len(pts), 2)) + (FILLER_E0, FILLER_N0)
+    return pts
+
+
+def fill(url: str, n: int) -> list[int]:
+    """Add ``n`` filler markings to the map; the ids of the first 1,000."""
+    store = Store(url)
+    try:
+        pts = filler_markings(n)
+        for s in range(0, n, 50_000):
+            store.bulk_load(MAP_ID, (Marking(x=x, y=y, bearing_deg=b, length_m=3.0, width_m=0.12, weight=36,
+                                             source="detected", score=0.9) for x, y, b in pts[s:s + 50_000]))
+        page = store.query_bbox(MAP_ID, FILLER_E0 - 10, FILLER_N0 - 10, FILLER_E0 + 400, FILLER_N0 + 400)
+        return [m.id for m in page[:1000]]
+    finally:
+        store.close()
+
+
+#: Each edit sets a weight no edit set before: an edit that changes nothing moves no revision on.
+_WEIGHTS = itertools.count(37)
+
+
+class Editor(threading.Thread):
+    """Changes a filler marking's weight every ``every`` seconds; keeps the revision of each edit."""
+
+    def __init__(self, base: str, ids: list[int], every: float):
+        super().__init__(daemon=True)
+        self.base, self.ids, self.every = base, ids, every
+        self.stop = threading.Event()
+        self.revisions: list[tuple[float, int]] = []  # (monotonic time answered, map revision after)
+        self.errors = 0
+
+    def run(self) -> None:
+        headers = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/merge-patch+json"}
+        with httpx.Client(base_url=self.base, timeout=30) as c:
+            k = 0
+            while not self.stop.wait(self.every):
+                fid = self.ids[k % len(self.ids)]
+                r = c.patch(f"/collections/{MAP_ID}/items/{fid}", headers=headers,
+                            content=json.dumps({"properties": {"weight": next(_WEIGHTS)}}))
+                if r.status_code != 200:
+                    self.errors += 1
+                    continue
+                head = c.get(f"/collections/{MAP_ID}")
+                self.revisions.append((time.monotonic(), int(head.json()["revision"])))
+                k += 1
+
+    def revision_before(self, t: float) -> int | None:
+        before = [rev for at, rev in self.revisions if at <= t]
+        return before[-1] if before else None
+
+
+def drive(base: str, bodies: list[bytes], seconds: float, editor: Editor | None = None):
+    """Closed loop for ``seconds``: latencies (ms), lags behind the last edit (revisions), statuses."""
+    lat, lags, statuses = [], [], {}
+    end = time.monotonic() + seconds
+    k = 0
+    with httpx.Client(base_url=base, timeout=120) as c:
+        while time.monotonic() < end:
+            sent = time.monotonic()
+            r = c.post(f"/collections/{MAP_ID}/localize", content=bodies[k % len(bodies)],
+                       headers={"Content-Type": "application/json"})
+            lat.append((time.monotonic() - sent) * 1e3)
+            key = str(r.status_code) if r.status_code != 200 else r.json()["status"]
+            statuses[key] = statuses.get(key, 0) + 1
+            if editor is not None and r.status_code == 200:
+                last = editor.revision_before(sent)
+                if last is not None:
+                    lags.append(max(0, last - int(r.headers["X-Map-Revision"])))
+            k += 1
+    return np.array(lat), np.array(lags), statuses
+
+
+def report(name: str, lat: np.ndarray, lags: np.ndarray, statuses: dict, extra: str = "") -> None:
+    lag = (f"; behind the last edit: {np.mean(lags > 0) * 100:.1f} % of answers, at most {lags.max()} revisions"
+           if len(lags) else "")
+    print(f"  {name:8s} {len(lat):5d} answers ({', '.join(f'{v} {k}' for k, v in sorted(statuses.items()))}): "
+          f"p50 {np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms, max {lat.max():.0f} ms, "
+          f"{int((lat > SLOW_MS).sum())} over {SLOW_MS:.0f} ms{lag}{extra}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--markings", type=int, default=200_000, help="filler markings beside the Karlsruhe ones")
+    ap.add_argument("--coverage", nargs="+", default=["hull", "markings"], choices=("hull", "markings"))
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds per phase")
+    ap.add_argument("--edit-every", type=float, default=1.0, help="seconds between the editor's edits")
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE", help="server settings")
+    args = ap.parse_args()
+
+    print(f"lanemap localization during edits, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+          f"{os.cpu_count()} cores, load average {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
+    bodies = make_bodies(args.frames, 7, 1.5, 2.0)
+    tmp = Path(tempfile.mkdtemp(prefix="lanemap-edits-"))
+    url = f"sqlite:///{tmp / 'lanemap.sqlite'}"
+    try:
+        n = load_map(url)
+        t = time.perf_counter()
+        ids = fill(url, args.markings)
+        print(f"map {MAP_ID}: {n} Karlsruhe markings + {args.markings:,} filler ones "
+              f"(loaded in {time.perf_counter() - t:.0f} s); an edit every {args.edit_every:g} s")
+        for coverage in args.coverage:
+            env = {"LANEMAP_MAP_COVERAGE": coverage, **dict(kv.split("=", 1) for kv in args.env)}
+            server = start_server(url, tmp / "data", env=env, args=("--log-level", "warning"))
+            try:
+                print(f"\ncoverage {coverage} ({' '.join(f'{k}={v}' for k, v in env.items())})")
+                t = time.monotonic()
+                r = httpx.post(f"{server.base_url}/collections/{MAP_ID}/localize", content=bodies[0],
+                               headers={"Content-Type": "application/json"}, timeout=300)
+                print(f"  cold     first answer ({r.json()['status']}) after {(time.monotonic() - t) * 1e3:.0f} ms")
+                report("quiet", *drive(server.base_url, bodies, args.duration))
+                editor = Editor(server.base_url, ids, args.edit_every)
+                editor.start()
+                result = drive(server.base_url, bodies, args.duration, editor)
+                editor.stop.set()
+                editor.join()
+                report("editing", *result, extra=f"; {len(editor.revisions)} edits ({editor.errors} refused)")
+                if "Traceback" in server.log():
+                    print("  server log has a traceback:\n" + server.log()[-3000:])
+            finally:
+                server.stop()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f"\nload average at the end: {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
+
+
+if __name__ == "__main__":
+    main()

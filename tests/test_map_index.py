@@ -1,0 +1,161 @@
+"""The service's cache of map indexes (``service.map_index.IndexCache``) on a real SQLite store.
+
+What a fleet relies on while a map is edited: a large map answers from its
+previous index while the next is built, a build never holds other maps'
+requests, and an index is never taken for a map it was not built from.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from mapbuilder.model import Marking
+from mapbuilder.store import Store, UnknownMapError
+from service.map_index import IndexCache, IndexPending
+from service.problems import Problem
+
+CRS = "EPSG:25832"
+
+
+class GatedStore(Store):
+    """A real store whose reads of all of a map's markings (the index builds') wait for ``gate``,
+    and then fail with ``fail`` when it is set."""
+
+    def __init__(self, url: str):
+        super().__init__(url)
+        self.gate = threading.Event()
+        self.gate.set()
+        self.reading = threading.Event()
+        self.fail: Exception | None = None
+
+    def marking_arrays(self, map_id, *args, **kwargs):
+        self.reading.set()
+        assert self.gate.wait(30), "the test never opened the gate"
+        if self.fail is not None:
+            raise self.fail
+        return super().marking_arrays(map_id, *args, **kwargs)
+
+
+def _markings(n: int, x0: float = 457_000.0, seed: int = 0) -> list[Marking]:
+    rng = np.random.default_rng(seed)
+    return [Marking(x=x0 + 3.0 * k, y=5_428_000.0 + rng.normal(0, 0.05), length_m=3.0, width_m=0.12,
+                    bearing_deg=90.0, weight=40.0, kind="dash") for k in range(n)]  # fmt: skip
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = GatedStore(f"sqlite:///{tmp_path / 'maps.sqlite'}")
+    for map_id in ("a", "b"):
+        s.create_map(map_id, crs=CRS)
+        s.add_markings(map_id, _markings(30))
+    yield s
+    s.gate.set()
+    s.close()
+
+
+def _ready(cache: IndexCache, map_id: str):
+    """The map's index once built, as a request that waited for it gets it."""
+    with pytest.raises(IndexPending) as pending:
+        cache.lookup(map_id)
+    pending.value.future.result(timeout=30)
+    return cache.lookup(map_id, accept_stale=True)
+
+
+def _build_under_way(cache: IndexCache, map_id: str):
+    return cache._building[map_id][1]
+
+
+def test_a_large_map_answers_from_its_previous_index_while_the_next_is_built(store):
+    cache = IndexCache(store, "hull", background_from=0)
+    try:
+        a, stale = _ready(cache, "a")
+        assert not stale and len(a.index) == 30 and a.revision == store.map_head("a").revision
+        b, _ = _ready(cache, "b")
+        store.add_markings("a", _markings(5, x0=457_090.0))
+        store.gate.clear()
+        store.reading.clear()
+        old, stale = cache.lookup("a")  # at once, though the build waits at the gate
+        assert stale and old is a and old.revision < store.map_head("a").revision
+        assert store.reading.wait(10)  # the build is under way...
+        assert cache.lookup("b") == (b, False)  # ...and holds no other map's requests
+        build = _build_under_way(cache, "a")
+        assert cache.lookup("a") == (a, True) and _build_under_way(cache, "a") is build  # no second build
+        store.gate.set()
+        build.result(timeout=30)
+        new, stale = cache.lookup("a")
+        assert not stale and len(new.index) == 35 and new.revision == store.map_head("a").revision
+    finally:
+        cache.close()
+
+
+def test_a_small_map_waits_for_its_new_index(store):
+    cache = IndexCache(store, "hull", background_from=31)
+    try:
+        _ready(cache, "a")
+        store.add_markings("a", _markings(5, x0=457_090.0))
+        new, stale = _ready(cache, "a")
+        assert not stale and len(new.index) == 35
+        # grown past the bound, the map now answers from its previous index while it changes
+        store.add_markings("a", _markings(5, x0=457_200.0))
+        assert cache.lookup("a")[1] is True
+    finally:
+        cache.close()
+
+
+def test_an_index_is_never_taken_for_another_map_or_coverage(store):
+    cache = IndexCache(store, "hull", background_from=0)
+    try:
+        first, _ = _ready(cache, "a")
+        # a map made anew under the id: its revisions go on, but nothing of the old index may answer
+        store.delete_map("a")
+        with pytest.raises(UnknownMapError):
+            cache.lookup("a")
+        store.create_map("a", crs=CRS)
+        store.add_markings("a", _markings(12, x0=458_000.0))
+        with pytest.raises(IndexPending):
+            cache.lookup("a", accept_stale=True)
+        made_anew, _ = _ready(cache, "a")
+        assert len(made_anew.index) == 12 and made_anew.created != first.created
+        # a coverage set on the map is answered only by an index drawn by it
+        store.update_map("a", coverage="markings", set_coverage=True)
+        with pytest.raises(IndexPending):
+            cache.lookup("a")
+        by_markings, _ = _ready(cache, "a")
+        assert by_markings.coverage == "markings" and by_markings.index.extent.rule == "markings"
+    finally:
+        cache.close()
+
+
+def test_a_map_without_markings_is_a_problem_and_a_failed_build_is_tried_again(store):
+    cache = IndexCache(store, "hull", background_from=0)
+    try:
+        store.create_map("empty")
+        with pytest.raises(IndexPending) as pending:
+            cache.lookup("empty")
+        with pytest.raises(Problem) as problem:
+            pending.value.future.result(timeout=30)
+        assert problem.value.status == 409
+        with pytest.raises(UnknownMapError):
+            cache.lookup("nope")
+
+        before, _ = _ready(cache, "a")
+        store.add_markings("a", _markings(5, x0=457_090.0))
+        store.gate.clear()  # each build is held until the test holds its future
+        store.fail = OSError("disk gone")
+        assert cache.lookup("a") == (before, True)
+        failing = _build_under_way(cache, "a")
+        store.gate.set()
+        with pytest.raises(OSError):
+            failing.result(timeout=30)
+        store.fail = None
+        store.gate.clear()
+        assert cache.lookup("a") == (before, True)  # still answering, and building again
+        again = _build_under_way(cache, "a")
+        store.gate.set()
+        again.result(timeout=30)
+        assert len(cache.lookup("a")[0].index) == 35
+    finally:
+        cache.close()
