@@ -74,7 +74,7 @@ def create_app(
         log.warning("no write token configured: every write will be refused")
 
     from .jobs import JobRunner
-    from .map_index import IndexCache
+    from .index_cache import IndexCache
 
     ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens,
                   indexes=IndexCache(store, settings.map_coverage, settings.index_background_from))

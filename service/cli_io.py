@@ -102,6 +102,11 @@ def follow(bar) -> Callable[[int, int], None]:
         if bar.total != total:
             bar.total = total
         bar.update(done - bar.n)
+        # Each call is a step of thousands: drawn even when it comes within tqdm's 0.1 s
+        # of the last frame (a fast machine read 12,000 features in 0.08 s, start to end),
+        # once the bar's delay (a terminal's half second) is past.
+        if not bar.disable and bar.format_dict["elapsed"] >= bar.delay:
+            bar.refresh()
 
     return progress
 

@@ -19,7 +19,8 @@ from localizer import Options
 
 from .. import metrics, request_id
 from ..deps import Context, get_ctx, require_read
-from ..map_index import MIN_PROBABILITY_RANGE, IndexedMap, IndexPending, coverage_feature, localize_options
+from ..index_cache import IndexedMap, IndexPending
+from ..map_index import MIN_PROBABILITY_RANGE, coverage_feature, localize_options
 from ..problems import Problem
 
 log = logging.getLogger(__name__)
@@ -317,7 +318,7 @@ _INDEX_TRIES = 3
 
 async def _on_index(ctx: Context, fn, map_id: str, *args):
     """``fn(indexed, t0, t1, *args)`` on the localization thread, with the map's index to answer
-    from (:class:`~service.map_index.IndexedMap`) and when looking it up began and ended.
+    from (:class:`~service.index_cache.IndexedMap`) and when looking it up began and ended.
 
     Where the map has no index yet (or its coverage changed) the build is awaited
     here, off the localization thread, so that other maps' requests go on meanwhile;

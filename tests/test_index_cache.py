@@ -1,4 +1,4 @@
-"""The service's cache of map indexes (``service.map_index.IndexCache``) on a real SQLite store.
+"""The service's cache of map indexes (``service.index_cache.IndexCache``) on a real SQLite store.
 
 What a fleet relies on while a map is edited: a large map answers from its
 previous index while the next is built, a build never holds other maps'
@@ -14,7 +14,7 @@ import pytest
 
 from mapbuilder.model import Marking
 from mapbuilder.store import Store, UnknownMapError
-from service.map_index import IndexCache, IndexPending
+from service.index_cache import IndexCache, IndexPending
 from service.problems import Problem
 
 CRS = "EPSG:25832"

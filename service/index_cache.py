@@ -1,0 +1,214 @@
+"""The server's localization indexes of its maps, kept current in the background."""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextvars
+import functools
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+from localizer import MapIndex
+from mapbuilder.store import Store, UnknownMapError
+
+from . import metrics
+from .map_index import load_index
+from .problems import Problem
+
+log = logging.getLogger(__name__)
+
+
+class _Builder:
+    """Runs builds in turn on one daemon thread.
+
+    Not a ``ThreadPoolExecutor``: the interpreter waits for those threads at
+    exit, and a server asked to stop would first finish a city's index
+    nobody will use.
+    """
+
+    def __init__(self):
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._start = threading.Lock()
+
+    def submit(self, fn, *args) -> concurrent.futures.Future:
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        with self._start:
+            if self._thread is None:  # started at the first build: an app that never localizes has none
+                self._thread = threading.Thread(target=self._run, name="lanemap-index", daemon=True)
+                self._thread.start()
+        self._queue.put((future, fn, args))
+        return future
+
+    def close(self) -> None:
+        self._queue.put(None)
+
+    def _run(self) -> None:
+        while (job := self._queue.get()) is not None:
+            future, fn, args = job
+            if future.set_running_or_notify_cancel():
+                try:
+                    future.set_result(fn(*args))
+                except BaseException as exc:  # noqa: BLE001 - handed to whoever waits for the build
+                    future.set_exception(exc)
+        while not self._queue.empty():
+            job = self._queue.get_nowait()
+            if job is not None:
+                job[0].cancel()
+
+
+class IndexPending(Exception):
+    """A map's index must be built before a request can be answered from it.
+
+    Raised where waiting would hold a thread others need (the localization
+    thread): the caller awaits :meth:`wait` off that thread, then looks again
+    with ``accept_stale=True``.
+    """
+
+    def __init__(self, map_id: str, future: concurrent.futures.Future):
+        super().__init__(f"the index of map {map_id!r} is being built")
+        self.future = future
+
+    async def wait(self) -> None:
+        """Until the build is done; raises what the build raised (an unknown or empty map)."""
+        await asyncio.wrap_future(self.future)
+
+
+@dataclass(frozen=True)
+class IndexedMap:
+    """A map's index, and the head of the map it was built from."""
+
+    index: MapIndex
+    revision: int
+    coverage: str
+    created: str
+
+
+class IndexCache:
+    """The localization indexes of a server process's maps, kept current in the background.
+
+    A map's index is built from all its markings: seconds for a city's
+    (:func:`load_index`; about 1 s for 200,000 markings drawn by their hull,
+    4 s by ``markings``). Every edit moves the map's revision on, and an index
+    built in the localization thread on the first request after each edit
+    held every localization of the process for that long. Here builds run on
+    a thread of their own, one at a time, and a map of at least
+    ``background_from`` markings goes on answering from its previous index
+    while the next is built (the answer names the revision it used); smaller
+    maps, whose index takes milliseconds, are answered at their newest
+    revision. A request for a map without an index yet, or whose coverage
+    changed, waits for the build (:class:`IndexPending`), but other maps'
+    requests do not wait with it.
+
+    Parameters
+    ----------
+    store : mapbuilder.store.Store
+    default_coverage : str
+        The coverage of maps that do not set their own (``LANEMAP_MAP_COVERAGE``).
+    background_from : int
+        ``LANEMAP_INDEX_BACKGROUND_FROM``; 0: every map.
+    """
+
+    def __init__(self, store: Store, default_coverage: str, background_from: int):
+        self.store = store
+        self.default_coverage = default_coverage
+        self.background_from = background_from
+        # Reentrant: a build that ends before its callback is added runs the callback at once.
+        self._lock = threading.RLock()
+        self._maps: dict[str, IndexedMap] = {}
+        self._building: dict[str, tuple[str, concurrent.futures.Future]] = {}  # map id: coverage, build
+        self._builder = _Builder()
+
+    def lookup(self, map_id: str, accept_stale: bool = False) -> tuple[IndexedMap, bool]:
+        """The map's index to answer from now, and whether it is older than the map.
+
+        Starts a build when the map moved on. Never waits for one: raises
+        :class:`IndexPending` when none can answer meanwhile, unless
+        ``accept_stale`` and the map's previous index (same map, same
+        coverage) is there: after waiting for a build once, a request is
+        answered even if the map moved on again meanwhile.
+
+        Raises
+        ------
+        mapbuilder.store.UnknownMapError
+            The map does not exist (its index, if any, is forgotten).
+        """
+        try:
+            head = self.store.map_head(map_id)
+        except UnknownMapError:
+            self.drop(map_id)
+            raise
+        coverage = head.coverage or self.default_coverage
+        with self._lock:
+            have = self._maps.get(map_id)
+            if have is not None and (have.revision, have.coverage, have.created) == (
+                    head.revision, coverage, head.created):
+                return have, False
+            future = self._build_locked(map_id, coverage)
+            if (have is not None and have.coverage == coverage and have.created == head.created
+                    and (accept_stale or len(have.index) >= self.background_from)):
+                return have, True
+        raise IndexPending(map_id, future)
+
+    def get(self, map_id: str) -> tuple[IndexedMap, bool]:
+        """:meth:`lookup`, waiting for a build where one must be done first (for threads that may wait)."""
+        try:
+            return self.lookup(map_id)
+        except IndexPending as pending:
+            pending.future.result()
+        return self.lookup(map_id, accept_stale=True)
+
+    def drop(self, map_id: str) -> None:
+        """Forget the map's index (a deleted map)."""
+        with self._lock:
+            self._maps.pop(map_id, None)
+
+    def close(self) -> None:
+        """Stop building: builds not begun are cancelled, one under way is left to the process's end."""
+        self._builder.close()
+
+    def _build_locked(self, map_id: str, coverage: str) -> concurrent.futures.Future:
+        """The build of the map's index by ``coverage`` under way, or a new one (under ``_lock``)."""
+        under_way = self._building.get(map_id)
+        if under_way is not None and under_way[0] == coverage:
+            return under_way[1]
+        # In the request's context: the build logs under the ID of the request that asked for it.
+        future = self._builder.submit(contextvars.copy_context().run, self._build, map_id, coverage)
+        self._building[map_id] = (coverage, future)
+        future.add_done_callback(functools.partial(self._built, map_id))
+        return future
+
+    def _build(self, map_id: str, coverage: str) -> IndexedMap:
+        t = time.perf_counter()
+        head = self.store.map_head(map_id)  # before the markings: an index never claims a newer revision
+        info = self.store.get_map(map_id)
+        if info.crs is None:
+            raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
+        index = load_index(self.store, map_id, info.crs, coverage)
+        _ = index.extent  # drawn here, not by the requests
+        built = IndexedMap(index, head.revision, coverage, head.created)
+        with self._lock:
+            have = self._maps.get(map_id)
+            if have is None or have.created != head.created or have.coverage != coverage or \
+                    have.revision <= head.revision:
+                self._maps[map_id] = built
+        seconds = time.perf_counter() - t
+        log.info("map %s: spatial index of %d markings at revision %d (coverage: %s) in %.2f s", map_id, len(index),
+                 head.revision, coverage, seconds)
+        metrics.index_build_seconds.observe(seconds)
+        return built
+
+    def _built(self, map_id: str, future: concurrent.futures.Future) -> None:
+        with self._lock:
+            if self._building.get(map_id, (None, None))[1] is future:
+                del self._building[map_id]
+            error = None if future.cancelled() else future.exception()
+            if isinstance(error, UnknownMapError):
+                self._maps.pop(map_id, None)
+        if error is not None and not isinstance(error, (UnknownMapError, Problem)):
+            log.warning("map %s: building its spatial index failed: %r", map_id, error)
+
