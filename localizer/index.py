@@ -38,10 +38,10 @@ def _continuous_pieces(xy: np.ndarray, u: np.ndarray, length: np.ndarray) -> np.
     ends = np.concatenate([xy + 0.5 * length[:, None] * u, xy - 0.5 * length[:, None] * u])
     owner = np.concatenate([np.arange(n), np.arange(n)])
     touched = np.zeros(2 * n, bool)
-    for a, b in cKDTree(ends).query_pairs(0.6, output_type="ndarray"):
-        i, j = owner[a], owner[b]
-        if i != j and abs(float(u[i] @ u[j])) > math.cos(math.radians(20.0)):
-            touched[a] = touched[b] = True
+    pairs = cKDTree(ends).query_pairs(0.6, output_type="ndarray")
+    i, j = owner[pairs[:, 0]], owner[pairs[:, 1]]
+    meet = (i != j) & (np.abs(np.einsum("kd,kd->k", u[i], u[j])) > math.cos(math.radians(20.0)))
+    touched[pairs[meet].ravel()] = True
     return touched[:n] & touched[n:]
 
 

@@ -100,7 +100,10 @@ class IndexCache:
     ``background_from`` markings goes on answering from its previous index
     while the next is built (the answer names the revision it used); smaller
     maps, whose index takes milliseconds, are answered at their newest
-    revision. A request for a map without an index yet, or whose coverage
+    revision. After a build, a map's next build in the background waits as
+    long as that one took (``build_share``): under a stream of edits (a
+    review, a decision a second) a city's builds take at most half of a
+    core in each server process, not all of it. A request for a map without an index yet, or whose coverage
     changed, waits for the build (:class:`IndexPending`), but other maps'
     requests do not wait with it.
 
@@ -111,16 +114,23 @@ class IndexCache:
         The coverage of maps that do not set their own (``LANEMAP_MAP_COVERAGE``).
     background_from : int
         ``LANEMAP_INDEX_BACKGROUND_FROM``; 0: every map.
+    build_share : float
+        The most of the time a map's builds in the background take: after a
+        build of ``d`` seconds the next waits ``d (1 / build_share - 1)``.
     """
 
-    def __init__(self, store: Store, default_coverage: str, background_from: int):
+    def __init__(self, store: Store, default_coverage: str, background_from: int, build_share: float = 0.5):
+        if not 0.0 < build_share <= 1.0:
+            raise ValueError(f"build_share: {build_share} is not in (0, 1]")
         self.store = store
         self.default_coverage = default_coverage
         self.background_from = background_from
+        self.rest_factor = 1.0 / build_share - 1.0
         # Reentrant: a build that ends before its callback is added runs the callback at once.
         self._lock = threading.RLock()
         self._maps: dict[str, IndexedMap] = {}
         self._building: dict[str, tuple[str, concurrent.futures.Future]] = {}  # map id: coverage, build
+        self._rest_until: dict[str, float] = {}  # map id: no background build before (time.monotonic)
         self._builder = _Builder()
 
     def lookup(self, map_id: str, accept_stale: bool = False) -> tuple[IndexedMap, bool]:
@@ -148,10 +158,12 @@ class IndexCache:
             if have is not None and (have.revision, have.coverage, have.created) == (
                     head.revision, coverage, head.created):
                 return have, False
-            future = self._build_locked(map_id, coverage)
             if (have is not None and have.coverage == coverage and have.created == head.created
                     and (accept_stale or len(have.index) >= self.background_from)):
+                if time.monotonic() >= self._rest_until.get(map_id, 0.0):
+                    self._build_locked(map_id, coverage)
                 return have, True
+            future = self._build_locked(map_id, coverage)
         raise IndexPending(map_id, future)
 
     def get(self, map_id: str) -> tuple[IndexedMap, bool]:
@@ -166,6 +178,7 @@ class IndexCache:
         """Forget the map's index (a deleted map)."""
         with self._lock:
             self._maps.pop(map_id, None)
+            self._rest_until.pop(map_id, None)
 
     def close(self) -> None:
         """Stop building: builds not begun are cancelled, one under way is left to the process's end."""
@@ -191,12 +204,13 @@ class IndexCache:
         index = load_index(self.store, map_id, info.crs, coverage)
         _ = index.extent  # drawn here, not by the requests
         built = IndexedMap(index, head.revision, coverage, head.created)
+        seconds = time.perf_counter() - t
         with self._lock:
             have = self._maps.get(map_id)
             if have is None or have.created != head.created or have.coverage != coverage or \
                     have.revision <= head.revision:
                 self._maps[map_id] = built
-        seconds = time.perf_counter() - t
+            self._rest_until[map_id] = time.monotonic() + self.rest_factor * seconds
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s) in %.2f s", map_id, len(index),
                  head.revision, coverage, seconds)
         metrics.index_build_seconds.observe(seconds)

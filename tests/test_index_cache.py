@@ -8,6 +8,7 @@ requests, and an index is never taken for a map it was not built from.
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -64,16 +65,22 @@ def _ready(cache: IndexCache, map_id: str):
     return cache.lookup(map_id, accept_stale=True)
 
 
+def _rested(cache: IndexCache, map_id: str) -> None:
+    """Until the map may be built in the background again (``build_share``)."""
+    time.sleep(max(0.0, cache._rest_until.get(map_id, 0.0) - time.monotonic()) + 0.01)
+
+
 def _build_under_way(cache: IndexCache, map_id: str):
     return cache._building[map_id][1]
 
 
 def test_a_large_map_answers_from_its_previous_index_while_the_next_is_built(store):
-    cache = IndexCache(store, "hull", background_from=0)
+    cache = IndexCache(store, "hull", background_from=0, build_share=0.5)
     try:
         a, stale = _ready(cache, "a")
         assert not stale and len(a.index) == 30 and a.revision == store.map_head("a").revision
         b, _ = _ready(cache, "b")
+        _rested(cache, "a")
         store.add_markings("a", _markings(5, x0=457_090.0))
         store.gate.clear()
         store.reading.clear()
@@ -83,16 +90,25 @@ def test_a_large_map_answers_from_its_previous_index_while_the_next_is_built(sto
         assert cache.lookup("b") == (b, False)  # ...and holds no other map's requests
         build = _build_under_way(cache, "a")
         assert cache.lookup("a") == (a, True) and _build_under_way(cache, "a") is build  # no second build
+        time.sleep(0.5)  # a build of half a second at least
         store.gate.set()
         build.result(timeout=30)
         new, stale = cache.lookup("a")
         assert not stale and len(new.index) == 35 and new.revision == store.map_head("a").revision
+        # the next edit's build waits as long as the last build took: builds take at most half the time
+        store.add_markings("a", _markings(5, x0=457_200.0))
+        assert cache.lookup("a") == (new, True) and "a" not in cache._building
+        assert cache._rest_until["a"] - time.monotonic() > 0.3  # the last build took 0.5 s or more
+        _rested(cache, "a")
+        assert cache.lookup("a") == (new, True) and "a" in cache._building
+        _build_under_way(cache, "a").result(timeout=30)
+        assert len(cache.lookup("a")[0].index) == 40
     finally:
         cache.close()
 
 
 def test_a_small_map_waits_for_its_new_index(store):
-    cache = IndexCache(store, "hull", background_from=31)
+    cache = IndexCache(store, "hull", background_from=31, build_share=1.0)
     try:
         _ready(cache, "a")
         store.add_markings("a", _markings(5, x0=457_090.0))
@@ -106,7 +122,7 @@ def test_a_small_map_waits_for_its_new_index(store):
 
 
 def test_an_index_is_never_taken_for_another_map_or_coverage(store):
-    cache = IndexCache(store, "hull", background_from=0)
+    cache = IndexCache(store, "hull", background_from=0, build_share=1.0)
     try:
         first, _ = _ready(cache, "a")
         # a map made anew under the id: its revisions go on, but nothing of the old index may answer
@@ -130,7 +146,7 @@ def test_an_index_is_never_taken_for_another_map_or_coverage(store):
 
 
 def test_a_map_without_markings_is_a_problem_and_a_failed_build_is_tried_again(store):
-    cache = IndexCache(store, "hull", background_from=0)
+    cache = IndexCache(store, "hull", background_from=0, build_share=1.0)
     try:
         store.create_map("empty")
         with pytest.raises(IndexPending) as pending:
