@@ -12,6 +12,7 @@ import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
 
+import anyio
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
@@ -73,8 +74,8 @@ def create_app(
     if not tokens:
         log.warning("no write token configured: every write will be refused")
 
-    from .jobs import JobRunner
     from .index_cache import IndexCache
+    from .jobs import JobRunner
 
     ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens,
                   indexes=IndexCache(store, settings.map_coverage, settings.index_background_from))
@@ -97,6 +98,15 @@ def create_app(
         gc.collect()
         gc.freeze()
         log.info("%d objects of the start frozen out of the garbage collector's scans", gc.get_freeze_count())
+        if settings.index_preload:
+            try:
+                preloading = await anyio.to_thread.run_sync(ctx.indexes.preload)
+            except Exception as exc:  # noqa: BLE001 - the server starts without: indexes build on first use
+                log.warning("the maps' localization indexes are built at first use: listing the maps failed: %s",
+                            exc)  # fmt: skip
+            else:
+                if preloading:
+                    log.info("building the localization indexes of %d maps in the background", len(preloading))
         if ctx.jobs is not None:
             ctx.jobs.start()
         pruner = None

@@ -166,6 +166,22 @@ class IndexCache:
             future = self._build_locked(map_id, coverage)
         raise IndexPending(map_id, future)
 
+    def preload(self) -> list[str]:
+        """Start building the index of every map that has markings; their ids.
+
+        A server that starts (a deployment, a worker replaced) would otherwise
+        make each map's first vehicle wait for its build, seconds for a city.
+        Requests for a map whose index is still being built wait for it.
+        """
+        ids = []
+        for info in self.store.list_maps():
+            if info.crs is None or not info.count:
+                continue
+            with self._lock:
+                self._build_locked(info.id, info.coverage or self.default_coverage)
+            ids.append(info.id)
+        return ids
+
     def get(self, map_id: str) -> tuple[IndexedMap, bool]:
         """:meth:`lookup`, waiting for a build where one must be done first (for threads that may wait)."""
         try:

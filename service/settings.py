@@ -104,6 +104,11 @@ class ServiceSettings(BaseSettings):
         the index of its newest revision is built (the answer's
         ``X-Map-Revision`` names the one used); a smaller map's requests wait
         for the build, milliseconds. 0: every map.
+    index_preload : bool
+        ``LANEMAP_INDEX_PRELOAD``: at start, build the localization index of
+        every map with markings in the background, so that no map's first
+        vehicle waits for it (seconds for a city's map). Off: each map's index
+        is built at its first localization.
     log_format : {"text", "json"}
         ``LANEMAP_LOG_FORMAT``: the server's log as uvicorn's text lines, or
         as one JSON object per line for a log collector (:mod:`service.logs`).
@@ -129,6 +134,7 @@ class ServiceSettings(BaseSettings):
     feed_retention_days: float | None = Field(None, gt=0, allow_inf_nan=False)
     feed_prune_interval_s: float = Field(3600.0, gt=0, allow_inf_nan=False)
     index_background_from: int = Field(10_000, ge=0)
+    index_preload: bool = True
     log_format: Literal["text", "json"] = "text"
     map_coverage: MapCoverage = "hull"
 

@@ -271,6 +271,40 @@ def test_a_large_map_answers_from_its_previous_index_until_the_new_one_is_built(
         server.stop()
 
 
+def test_a_server_builds_its_maps_indexes_as_it_starts(tmp_path, karlsruhe_fc):  # noqa: F811
+    """``LANEMAP_INDEX_PRELOAD`` (on by default): the maps' indexes are built as the server starts,
+    before any vehicle asks; off, at a map's first localization."""
+    from mapbuilder.geojson import read_feature_collection
+    from mapbuilder.store import Store
+    from tests._api_helpers import start_server
+
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    store = Store(url)
+    store.create_map("ka", crs=CRS)
+    n = len(store.add_markings("ka", read_feature_collection(karlsruhe_fc), lonlat=True))
+    store.create_map("empty")
+    store.close()
+    built = f"map ka: spatial index of {n} markings"
+    server = start_server(url, tmp_path / "data")
+    try:
+        deadline = time.monotonic() + 30
+        while built not in server.log() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert built in server.log() and "building the localization indexes of 1 maps" in server.log()
+    finally:
+        server.stop()
+    server = start_server(url, tmp_path / "data2", env={"LANEMAP_INDEX_PRELOAD": "0"})
+    try:
+        assert httpx.get(f"{server.base_url}/health").status_code == 200
+        assert built not in server.log()
+        lon, lat = karlsruhe_fc["features"][0]["geometry"]["coordinates"]
+        r = httpx.post(f"{server.base_url}/collections/ka/localize", timeout=60,
+                       json={"gps": {"lat": lat, "lon": lon, "heading_deg": 0.0}, "observations": []})
+        assert r.status_code == 200 and built in server.log()
+    finally:
+        server.stop()
+
+
 def _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, env: dict):  # noqa: F811
     """A server of its own (SQLite, settings ``env``) holding the Karlsruhe map: ``(server, map id, features)``."""
     from tests._api_helpers import start_server
