@@ -31,34 +31,39 @@ class _Builder:
     """
 
     def __init__(self):
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._thread: threading.Thread | None = None
+        self._jobs: queue.SimpleQueue | None = None
+        self._stop = threading.Event()
         self._start = threading.Lock()
 
     def submit(self, fn, *args) -> concurrent.futures.Future:
         future: concurrent.futures.Future = concurrent.futures.Future()
         with self._start:
-            if self._thread is None:  # started at the first build: an app that never localizes has none
-                self._thread = threading.Thread(target=self._run, name="lanemap-index", daemon=True)
-                self._thread.start()
-        self._queue.put((future, fn, args))
+            if self._jobs is None:  # at the first build (again after close): an app that never localizes has none
+                self._jobs, self._stop = queue.SimpleQueue(), threading.Event()
+                threading.Thread(target=self._run, args=(self._jobs, self._stop), name="lanemap-index",
+                                 daemon=True).start()  # fmt: skip
+            self._jobs.put((future, fn, args))
         return future
 
     def close(self) -> None:
-        self._queue.put(None)
+        """Let the thread end after the build under way; builds not begun are cancelled."""
+        with self._start:
+            if self._jobs is not None:
+                self._stop.set()
+                self._jobs.put(None)
+                self._jobs = None
 
-    def _run(self) -> None:
-        while (job := self._queue.get()) is not None:
+    @staticmethod
+    def _run(jobs: queue.SimpleQueue, stop: threading.Event) -> None:
+        while (job := jobs.get()) is not None:
             future, fn, args = job
-            if future.set_running_or_notify_cancel():
+            if stop.is_set():
+                future.cancel()
+            elif future.set_running_or_notify_cancel():
                 try:
                     future.set_result(fn(*args))
                 except BaseException as exc:  # noqa: BLE001 - handed to whoever waits for the build
                     future.set_exception(exc)
-        while not self._queue.empty():
-            job = self._queue.get_nowait()
-            if job is not None:
-                job[0].cancel()
 
 
 class IndexPending(Exception):

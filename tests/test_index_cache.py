@@ -175,3 +175,23 @@ def test_a_map_without_markings_is_a_problem_and_a_failed_build_is_tried_again(s
         assert len(cache.lookup("a")[0].index) == 35
     finally:
         cache.close()
+
+
+def test_closing_cancels_the_builds_not_begun_and_never_holds_the_process():
+    """A server asked to stop does not first build indexes nobody will use."""
+    from service.index_cache import _Builder
+
+    builder, started, release = _Builder(), threading.Event(), threading.Event()
+    before = set(threading.enumerate())
+    running = builder.submit(lambda: (started.set(), release.wait(30), "built")[-1])
+    queued = builder.submit(lambda: "never")
+    assert started.wait(10)
+    (worker,) = [t for t in threading.enumerate() if t not in before and t.name == "lanemap-index"]
+    assert worker.daemon  # the interpreter's exit does not wait for it
+    builder.close()
+    release.set()
+    assert running.result(timeout=10) == "built" and queued.cancelled()
+    worker.join(10)
+    assert not worker.is_alive()
+    assert builder.submit(lambda: "again").result(timeout=10) == "again"  # a new start builds again
+    builder.close()
