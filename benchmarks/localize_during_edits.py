@@ -13,7 +13,9 @@ Phases, each ``--duration`` seconds of one closed-loop vehicle (the next
 frame as soon as the answer comes; the frames of ``load_localize.py``, a
 GPS-like prior):
 
-* *cold*: the first request after the server starts (it builds the index);
+* *cold*: the first request after the server starts, which waits for the
+  map's index to be built (the server is started with
+  ``LANEMAP_INDEX_PRELOAD=0``, so the build is the request's own);
 * *quiet*: nobody edits;
 * *editing*: an editor changes one filler marking's weight every
   ``--edit-every`` seconds (a PATCH, as the web editor sends).
@@ -176,7 +178,8 @@ def main() -> None:
         print(f"map {MAP_ID}: {n} Karlsruhe markings + {args.markings:,} filler ones "
               f"(loaded in {time.perf_counter() - t:.0f} s); an edit every {args.edit_every:g} s")
         for coverage in args.coverage:
-            env = {"LANEMAP_MAP_COVERAGE": coverage, **dict(kv.split("=", 1) for kv in args.env)}
+            env = {"LANEMAP_MAP_COVERAGE": coverage, "LANEMAP_INDEX_PRELOAD": "0",
+                   **dict(kv.split("=", 1) for kv in args.env)}
             server = start_server(url, tmp / "data", env=env, args=("--log-level", "warning"))
             try:
                 print(f"\ncoverage {coverage} ({' '.join(f'{k}={v}' for k, v in env.items())})")

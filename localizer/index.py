@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, reduce
 
 import numpy as np
 import shapely
@@ -406,8 +406,8 @@ class MapExtent:
         return ~shapely.intersects_xy(self.area, np.asarray(x, float), np.asarray(y, float))
 
 
-def _rule_area(xy: np.ndarray, rule: str, link_m: float) -> shapely.Geometry | None:
-    """The area of ``rule`` over the markings at ``xy``, not grown (None: no area)."""
+def _rule_area(xy: np.ndarray, rule: str, link_m: float, margin_m: float) -> shapely.Geometry | None:
+    """The area of ``rule`` over the markings at ``xy``, grown by ``margin_m`` (None: no area)."""
     if len(xy) < 3:
         return None
     centre = xy.mean(axis=0)
@@ -419,16 +419,22 @@ def _rule_area(xy: np.ndarray, rule: str, link_m: float) -> shapely.Geometry | N
     except QhullError:
         return None
     if rule == "hull":
-        return shapely.Polygon(xy[hull.vertices])
+        return shapely.Polygon(xy[hull.vertices]).buffer(margin_m, join_style="mitre", mitre_limit=1e6)
     corners = xy[tri.simplices]  # (T, 3, 2)
     short = (np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2) <= link_m).all(axis=1)
-    parts = [shapely.coverage_union_all(shapely.polygons(corners[short]))] if short.any() else []
-    # Markings in no kept triangle: a lone stop line, the end of a sparse line.
+    parts = []
+    if short.any():
+        parts.append(shapely.coverage_union_all(shapely.polygons(corners[short])).buffer(margin_m, quad_segs=4))
+    # Markings in no kept triangle: a lone stop line, the dashes of a road painted down
+    # its middle only. A disk each, joined where they meet: the buffer of their
+    # MultiPoint joins them one into the next, 15 s for 27,000 of them.
     lone = np.ones(len(xy), bool)
     lone[np.unique(tri.simplices[short])] = False
     if lone.any():
-        parts.append(shapely.multipoints(xy[lone]))
-    return shapely.union_all(parts)
+        disks = shapely.buffer(shapely.points(xy[lone]), margin_m, quad_segs=4)
+        parts.append(shapely.disjoint_subset_union_all(disks))
+    # Of two geometries (union_all of the pair unions their thousands of parts anew: ten times slower)
+    return reduce(shapely.union, parts)
 
 
 def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M,
@@ -472,10 +478,7 @@ def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M
         inner = given.buffer(-link_m)
         if not inner.is_empty:
             xy = xy[~shapely.contains_xy(inner, xy[:, 0], xy[:, 1])]
-    area = _rule_area(xy, rule, link_m)
-    if area is not None:
-        area = (area.buffer(margin_m, join_style="mitre", mitre_limit=1e6) if rule == "hull"
-                else area.buffer(margin_m, quad_segs=4))
+    area = _rule_area(xy, rule, link_m, margin_m)
     if given is not None:
         area = given if area is None else shapely.union(area, given)
     if area is None:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 
 from localizer import LocalizationInputError, MapIndex, Options, Prior, localize
 from localizer.index import map_extent
@@ -44,6 +45,22 @@ def test_the_markings_extent_ends_where_the_markings_do():
     assert not hull.beyond(x[:6], y[:6]).any()
     with pytest.raises(LocalizationInputError, match="extent"):
         MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent="convex")
+
+
+def test_markings_far_from_each_other_are_each_a_metre_around_it():
+    """Markings 40 m apart along a bend (sparse detections, the stop lines of a rural road): no
+    triangle between them is short enough to keep, so each counts alone, a metre around it, and
+    the disks of two that lie closer than two metres are one."""
+    t = np.arange(0.0, 4000.0, 40.0)
+    xy = np.column_stack([t, 0.002 * (t - 2000.0) ** 2 / 100.0])
+    xy = np.concatenate([xy, xy[-1:] + [1.5, 0.0]]) + [457000, 5428000]
+    ext = MapIndex.from_arrays(xy[:, 0], xy[:, 1], extent="markings").extent
+    x0, y0 = xy[50]
+    x1, y1 = xy[-1]
+    x = np.array([x0, x0 + 0.9, x0 + 1.1, x0 + 20.0, x0, x0, x1 - 0.75, x1 + 1.1])
+    y = np.array([y0, y0, y0, y0, y0 + 0.9, y0 + 1.1, y1, y1])
+    assert ext.beyond(x, y).tolist() == [False, False, True, True, False, True, False, True]
+    assert shapely.get_num_geometries(ext.area) == len(t)  # one part each, the last two as one
 
 
 def test_a_stretch_left_out_of_a_map_is_its_edge_with_the_markings_extent():
