@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property, reduce
+from functools import cached_property
 
 import numpy as np
 import shapely
@@ -422,19 +422,18 @@ def _rule_area(xy: np.ndarray, rule: str, link_m: float, margin_m: float) -> sha
         return shapely.Polygon(xy[hull.vertices]).buffer(margin_m, join_style="mitre", mitre_limit=1e6)
     corners = xy[tri.simplices]  # (T, 3, 2)
     short = (np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2) <= link_m).all(axis=1)
-    parts = []
+    # Grown a part at a time and joined where they meet: a MultiPolygon's own buffer
+    # took 31 s for the 30,000 parts of 1,000,000 markings, a MultiPoint's 15 s for
+    # 27,000 markings in no kept triangle (a lone stop line, sparse detections).
+    parts = [np.zeros(0, object)]
     if short.any():
-        parts.append(shapely.coverage_union_all(shapely.polygons(corners[short])).buffer(margin_m, quad_segs=4))
-    # Markings in no kept triangle: a lone stop line, the dashes of a road painted down
-    # its middle only. A disk each, joined where they meet: the buffer of their
-    # MultiPoint joins them one into the next, 15 s for 27,000 of them.
+        kept = shapely.coverage_union_all(shapely.polygons(corners[short]))
+        parts.append(shapely.buffer(shapely.get_parts(kept), margin_m, quad_segs=4))
     lone = np.ones(len(xy), bool)
     lone[np.unique(tri.simplices[short])] = False
     if lone.any():
-        disks = shapely.buffer(shapely.points(xy[lone]), margin_m, quad_segs=4)
-        parts.append(shapely.disjoint_subset_union_all(disks))
-    # Of two geometries (union_all of the pair unions their thousands of parts anew: ten times slower)
-    return reduce(shapely.union, parts)
+        parts.append(shapely.buffer(shapely.points(xy[lone]), margin_m, quad_segs=4))
+    return shapely.disjoint_subset_union_all(np.concatenate(parts))
 
 
 def map_extent(xy: np.ndarray, rule: str = "hull", link_m: float = EXTENT_LINK_M,
