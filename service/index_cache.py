@@ -98,7 +98,7 @@ class IndexCache:
 
     A map's index is built from all its markings: seconds for a city's
     (:func:`load_index`; 0.7 s for 200,000 markings drawn by their hull,
-    3 s by ``markings``). Every edit moves the map's revision on, and an index
+    2.6 s by ``markings``). Every edit moves the map's revision on, and an index
     built in the localization thread on the first request after each edit
     held every localization of the process for that long. Here builds run on
     a thread of their own, one at a time, and a map of at least
