@@ -79,8 +79,12 @@ class IndexPending(Exception):
         self.future = future
 
     async def wait(self) -> None:
-        """Until the build is done; raises what the build raised (an unknown or empty map)."""
-        await asyncio.wrap_future(self.future)
+        """Until the build is done; raises what the build raised (an unknown or empty map).
+
+        A request cancelled meanwhile (its client gone) leaves the build to the others
+        waiting for it: unshielded, the cancellation would reach the build itself.
+        """
+        await asyncio.shield(asyncio.wrap_future(self.future))
 
 
 @dataclass(frozen=True)

@@ -195,3 +195,19 @@ def test_closing_cancels_the_builds_not_begun_and_never_holds_the_process():
     assert not worker.is_alive()
     assert builder.submit(lambda: "again").result(timeout=10) == "again"  # a new start builds again
     builder.close()
+
+
+def test_a_request_that_stops_waiting_leaves_the_build_to_the_others():
+    """A client gone while its request waits for a queued build does not cancel that build."""
+    import asyncio
+    import concurrent.futures
+
+    build: concurrent.futures.Future = concurrent.futures.Future()  # queued: not running yet
+    pending = IndexPending("a", build)
+
+    async def give_up():
+        with pytest.raises(asyncio.TimeoutError):
+            await asyncio.wait_for(pending.wait(), 0.05)
+
+    asyncio.run(give_up())
+    assert not build.cancelled() and build.set_running_or_notify_cancel()
