@@ -805,6 +805,11 @@ def test_answers_follow_the_documented_schema(api, kmap):
 
     single = validator("/collections/{mapId}/localize")
     drive = validator("/collections/{mapId}/localize/sequence")
+    # and the header naming the map's revision each answer was localized against
+    for path in ("/collections/{mapId}/localize", "/localize", "/collections/{mapId}/localize/sequence",
+                 "/localize/sequence"):
+        header = spec["paths"][path]["post"]["responses"]["200"]["headers"]["X-Map-Revision"]
+        assert "previous" in header["description"] and header["schema"]["pattern"] == "^[0-9]+$"
     assert {"probability", "covariance", "mixture_covariance", "hypotheses"} <= set(
         spec["components"]["schemas"]["PoseOut"]["properties"])
     map_id, feats = kmap

@@ -309,6 +309,11 @@ class SequenceOut(BaseModel):
 
 #: The answer's header naming the revision of the map it was localized against.
 REVISION_HEADER = "X-Map-Revision"
+#: How the OpenAPI document describes it on the localization answers.
+_REVISION_DOC = {REVISION_HEADER: {
+    "description": "The revision of the map the answer was localized against: while the index of a large "
+                   "map's newest revision is built, its previous one answers (LANEMAP_INDEX_BACKGROUND_FROM)",
+    "schema": {"type": "string", "pattern": "^[0-9]+$"}}}
 
 
 #: How often a request waits for its map's index to be built before it is refused: more
@@ -361,7 +366,8 @@ def _coverage(ctx: Context, map_id: str) -> JSONResponse:
 
 
 @router.post("/collections/{mapId}/localize", summary="Localize a vehicle against the map",
-             responses={200: {"model": PoseOut, "description": "The pose, or why there is none"}})
+             responses={200: {"model": PoseOut, "description": "The pose, or why there is none",
+                              "headers": _REVISION_DOC}})
 async def localize_vehicle(
     body: LocalizeIn,
     mapId: str = PathParam(..., max_length=64),
@@ -372,7 +378,8 @@ async def localize_vehicle(
 
 
 @router.post("/localize", summary="Localize a vehicle against the map where its GPS fix is",
-             responses={200: {"model": PoseOut, "description": "The pose, and the map it was found on"},
+             responses={200: {"model": PoseOut, "description": "The pose, and the map it was found on",
+                              "headers": _REVISION_DOC},
                         404: {"description": "No map has markings near the GPS fix"}})  # fmt: skip
 async def localize_anywhere(body: LocalizeIn, ctx: Context = Depends(get_ctx)):
     """As `POST /collections/{mapId}/localize`, on the map with the most markings the localizer
@@ -477,7 +484,8 @@ def _drive_map(ctx: Context, state: "DriveState") -> tuple[str, "DriveState"]:
 
 
 @router.post("/collections/{mapId}/localize/sequence", summary="Localize a vehicle over a drive of frames",
-             responses={200: {"model": SequenceOut, "description": "The pose at every frame"}})
+             responses={200: {"model": SequenceOut, "description": "The pose at every frame",
+                              "headers": _REVISION_DOC}})
 async def localize_drive(
     body: SequenceIn,
     mapId: str = PathParam(..., max_length=64),
@@ -500,7 +508,8 @@ async def localize_drive(
 
 
 @router.post("/localize/sequence", summary="Localize a vehicle over a drive, on the map where its GPS fix is",
-             responses={200: {"model": SequenceOut, "description": "The pose at every frame, and the map"},
+             responses={200: {"model": SequenceOut, "description": "The pose at every frame, and the map",
+                              "headers": _REVISION_DOC},
                         404: {"description": "No map has markings near the GPS fix, or the state's map is gone "
                                                "and none has markings where the drive is"}})  # fmt: skip
 async def localize_drive_anywhere(body: SequenceIn, ctx: Context = Depends(get_ctx)):
