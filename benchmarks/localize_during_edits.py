@@ -23,7 +23,8 @@ GPS-like prior):
 Per phase it prints the answers' p50 / p99 / max latency, how many took over
 250 ms, and how far behind the map's revision the answers were
 (``X-Map-Revision`` against the revision of the last edit made before the
-request was sent).
+request was sent), and saves the editing phases' answers over time as a PNG
+(``--png``, by default ``benchmarks/out/localize_during_edits.png``).
 
 Usage::
 
@@ -127,10 +128,14 @@ class Editor(threading.Thread):
         return before[-1] if before else None
 
 
-def drive(base: str, bodies: list[bytes], seconds: float, editor: Editor | None = None):
-    """Closed loop for ``seconds``: latencies (ms), lags behind the last edit (revisions), statuses."""
+def drive(base: str, bodies: list[bytes], seconds: float, editor: Editor | None = None, timeline=None):
+    """Closed loop for ``seconds``: latencies (ms), lags behind the last edit (revisions), statuses.
+
+    ``timeline``, a list, gets ``(seconds since the start, latency ms, lag)`` of every answer.
+    """
     lat, lags, statuses = [], [], {}
-    end = time.monotonic() + seconds
+    start = time.monotonic()
+    end = start + seconds
     k = 0
     with httpx.Client(base_url=base, timeout=120) as c:
         while time.monotonic() < end:
@@ -140,12 +145,42 @@ def drive(base: str, bodies: list[bytes], seconds: float, editor: Editor | None 
             lat.append((time.monotonic() - sent) * 1e3)
             key = str(r.status_code) if r.status_code != 200 else r.json()["status"]
             statuses[key] = statuses.get(key, 0) + 1
+            lag = 0
             if editor is not None and r.status_code == 200:
                 last = editor.revision_before(sent)
                 if last is not None:
-                    lags.append(max(0, last - int(r.headers["X-Map-Revision"])))
+                    lag = max(0, last - int(r.headers["X-Map-Revision"]))
+                    lags.append(lag)
+            if timeline is not None:
+                timeline.append((sent - start, lat[-1], lag))
             k += 1
     return np.array(lat), np.array(lags), statuses
+
+
+def plot(runs: dict, png: Path) -> None:
+    """Each coverage's editing phase: every answer's latency over time, coloured by how many edits it
+    was behind, and the edits as vertical lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(runs), 1, figsize=(10, 3.2 * len(runs)), squeeze=False, sharex=True)
+    for ax, (coverage, (timeline, edits)) in zip(axes[:, 0], runs.items()):
+        t, ms, lag = np.array(timeline).T
+        for at in edits:
+            ax.axvline(at, color="0.85", lw=0.8, zorder=0)
+        sc = ax.scatter(t, ms, c=lag, s=4, cmap="viridis", vmin=0, vmax=max(1, lag.max()))
+        ax.set_yscale("log")
+        ax.set_ylabel("answer latency, ms")
+        ax.set_title(f"coverage {coverage}: an edit every grey line; p99 {np.percentile(ms, 99):.1f} ms, "
+                     f"max {ms.max():.0f} ms", fontsize=10)
+        fig.colorbar(sc, ax=ax, label="edits behind")
+    axes[-1, 0].set_xlabel("seconds into the editing phase")
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
 
 
 def report(name: str, lat: np.ndarray, lags: np.ndarray, statuses: dict, extra: str = "") -> None:
@@ -164,6 +199,8 @@ def main() -> None:
     ap.add_argument("--edit-every", type=float, default=1.0, help="seconds between the editor's edits")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE", help="server settings")
+    ap.add_argument("--png", type=Path, default=REPO / "benchmarks" / "out" / "localize_during_edits.png",
+                    help="where the editing phases' latency timeline is saved")
     args = ap.parse_args()
 
     print(f"lanemap localization during edits, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
@@ -177,6 +214,7 @@ def main() -> None:
         ids = fill(url, args.markings)
         print(f"map {MAP_ID}: {n} Karlsruhe markings + {args.markings:,} filler ones "
               f"(loaded in {time.perf_counter() - t:.0f} s); an edit every {args.edit_every:g} s")
+        runs: dict = {}
         for coverage in args.coverage:
             env = {"LANEMAP_MAP_COVERAGE": coverage, "LANEMAP_INDEX_PRELOAD": "0",
                    **dict(kv.split("=", 1) for kv in args.env)}
@@ -189,15 +227,20 @@ def main() -> None:
                 print(f"  cold     first answer ({r.json()['status']}) after {(time.monotonic() - t) * 1e3:.0f} ms")
                 report("quiet", *drive(server.base_url, bodies, args.duration))
                 editor = Editor(server.base_url, ids, args.edit_every)
+                timeline: list = []
+                began = time.monotonic()
                 editor.start()
-                result = drive(server.base_url, bodies, args.duration, editor)
+                result = drive(server.base_url, bodies, args.duration, editor, timeline)
                 editor.stop.set()
                 editor.join()
+                runs[coverage] = (timeline, [at - began for at, _ in editor.revisions])
                 report("editing", *result, extra=f"; {len(editor.revisions)} edits ({editor.errors} refused)")
                 if "Traceback" in server.log():
                     print("  server log has a traceback:\n" + server.log()[-3000:])
             finally:
                 server.stop()
+        plot(runs, args.png)
+        print(f"\nplot: {args.png}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     print(f"\nload average at the end: {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
