@@ -137,9 +137,9 @@ class IndexCache:
     revision. After a build, a map's next build in the background waits as
     long as that one took (``build_share``): under a stream of edits (a
     review, a decision a second) a city's builds take at most half of a
-    core in each server process, not all of it. A request for a map without an index yet, or whose coverage
-    changed, waits for the build (:class:`IndexPending`), but other maps'
-    requests do not wait with it.
+    core in each server process, not all of it. A request for a map without
+    an index yet, or whose coverage changed, waits for the build
+    (:class:`IndexPending`), but other maps' requests do not wait with it.
 
     Parameters
     ----------
@@ -189,8 +189,9 @@ class IndexCache:
         coverage = head.coverage or self.default_coverage
         with self._lock:
             have = self._maps.get(map_id)
-            if have is not None and (have.revision, have.coverage, have.created) == (
-                    head.revision, coverage, head.created):
+            # At or past the head: a build may have read a revision committed after this read.
+            if have is not None and (have.coverage, have.created) == (coverage, head.created) and \
+                    have.revision >= head.revision:
                 return have, False
             if (have is not None and have.coverage == coverage and have.created == head.created
                     and (accept_stale or len(have.index) >= self.background_from)):
