@@ -217,6 +217,11 @@ class IndexCache:
             ids.append(info.id)
         return ids
 
+    def status(self) -> dict:
+        """This process's indexes: how many maps have one, and which are being built (``/health``)."""
+        with self._lock:
+            return {"ready": len(self._maps), "building": sorted(self._building)}
+
     def get(self, map_id: str) -> tuple[IndexedMap, bool]:
         """:meth:`lookup`, waiting for a build where one must be done first (for threads that may wait)."""
         try:

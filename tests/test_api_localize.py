@@ -291,11 +291,13 @@ def test_a_server_builds_its_maps_indexes_as_it_starts(tmp_path, karlsruhe_fc): 
         while built not in server.log() and time.monotonic() < deadline:
             time.sleep(0.1)
         assert built in server.log() and "building the localization indexes of 1 maps" in server.log()
+        assert httpx.get(f"{server.base_url}/health").json()["indexes"] == {"ready": 1, "building": []}
     finally:
         server.stop()
     server = start_server(url, tmp_path / "data2", env={"LANEMAP_INDEX_PRELOAD": "0"})
     try:
-        assert httpx.get(f"{server.base_url}/health").status_code == 200
+        health = httpx.get(f"{server.base_url}/health")
+        assert health.status_code == 200 and health.json()["indexes"] == {"ready": 0, "building": []}
         assert built not in server.log()
         lon, lat = karlsruhe_fc["features"][0]["geometry"]["coordinates"]
         r = httpx.post(f"{server.base_url}/collections/ka/localize", timeout=60,
