@@ -34,7 +34,7 @@ class Context:
     data_dir: Path
     tokens: list[Token]
     jobs: Any = None  # service.jobs.JobRunner
-    indexes: Any = None  # service.index_cache.IndexCache
+    indexes: Any = None  # service.index_cache.IndexCache, made by create_app with the context
     #: localizations admitted and not yet answered (changed on the event loop only)
     localize_pending: int = 0
     localize_limiter: Any = None  # anyio.CapacityLimiter, made on the event loop at first use

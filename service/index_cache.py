@@ -170,7 +170,8 @@ class IndexCache:
     def lookup(self, map_id: str, accept_stale: bool = False) -> tuple[IndexedMap, bool]:
         """The map's index to answer from now, and whether it is older than the map.
 
-        Starts a build when the map moved on. Never waits for one: raises
+        Starts a build when the map moved on (one in the background only once
+        the last build's rest is over, ``build_share``). Never waits for one: raises
         :class:`IndexPending` when none can answer meanwhile, unless
         ``accept_stale`` and the map's previous index (same map, same
         coverage) is there: after waiting for a build once, a request is

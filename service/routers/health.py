@@ -109,9 +109,8 @@ async def health(request: Request, ctx: Context = Depends(get_ctx)):
     except asyncio.TimeoutError:
         db = DatabaseHealth(False, ctx.store.dialect, error=f"no answer within {timeout:g} s")
     body = {"version": package_version(), "database": asdict(db)}
-    if ctx.indexes is not None:
-        # This process's: reported, not judged (a map's requests wait for its build).
-        body["indexes"] = ctx.indexes.status()
+    # This process's: reported, not judged (a map's requests wait for its build).
+    body["indexes"] = ctx.indexes.status()
     scheduler = ctx.settings.dask_scheduler
     if scheduler:
         # Reported, not judged: builds wait for the cluster, reads and edits do not need it.
