@@ -85,6 +85,10 @@ class GeoFrame:
         self._parsed = parsed
         self._local = threading.local()
 
+    def __reduce__(self):
+        # The per-thread transformers are not picklable; a copy makes its own.
+        return (GeoFrame, (self.crs,))
+
     def _tools(self):
         tools = getattr(self._local, "tools", None)
         if tools is None:

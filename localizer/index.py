@@ -186,6 +186,14 @@ class MapIndex:
     extent_rule: str = "hull"
     extent_area: shapely.Geometry | None = None
 
+    def __setstate__(self, state: dict) -> None:
+        # A copy (pickle: an index kept in a file) is as read-only as the index it copies.
+        self.__dict__.update(state)
+        for name in ("xy", "weight", "axis", "half_length", "expect_xy", "expect_owner", "expect_solid"):
+            arr = state.get(name)
+            if isinstance(arr, np.ndarray):
+                arr.setflags(write=False)
+
     @property
     def crs(self) -> str:
         return self.frame.crs
@@ -400,6 +408,11 @@ class MapExtent:
     rule: str
     link_m: float
     margin_m: float
+
+    def __setstate__(self, state: dict) -> None:
+        # A pickled geometry comes back unprepared.
+        self.__dict__.update(state)
+        shapely.prepare(self.area)
 
     def beyond(self, x, y) -> np.ndarray:
         """Whether the points ``(x, y)`` (map CRS, metres) lie more than ``margin_m`` outside."""

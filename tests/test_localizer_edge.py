@@ -333,3 +333,25 @@ def test_a_drive_up_to_a_map_that_ends_is_not_sure_of_a_pose_a_period_back():
                    for p, t in zip(held, drive))
     assert all(held[k].status == "ambiguous" for k in before)
     assert sum("map's edge" in (held[k].reason or "") for k in before) >= len(before) // 2
+
+
+def test_an_index_kept_in_a_file_answers_as_the_index_it_copies():
+    """A pickled index (the service keeps a city's in a file between processes) is read-only, its
+    extent prepared for point queries, its coordinate conversions working, and it localizes the
+    same frames to the same poses, the check at a map's edge included."""
+    import pickle
+
+    reasons = set()
+    for _pose, obs, prior, cut, _whole in _edge_scenes(4, 6.5, (8.0, 10.0)):
+        _ = cut.extent
+        copy = pickle.loads(pickle.dumps(cut, protocol=5))
+        assert copy is not cut and len(copy) == len(cut)
+        for name in ("xy", "weight", "axis", "half_length", "expect_xy", "expect_owner", "expect_solid"):
+            assert not getattr(copy, name).flags.writeable, name
+        assert shapely.is_prepared(copy.extent.area) and copy.extent.area.equals(cut.extent.area)
+        assert copy.frame.to_xy(8.4152842, 49.0051049) == cut.frame.to_xy(8.4152842, 49.0051049)
+        a, b = localize(cut, obs, prior), localize(copy, obs, prior)
+        assert (a.status, a.reason, a.probability) == (b.status, b.reason, b.probability)
+        assert (a.easting, a.northing, a.heading_deg) == (b.easting, b.northing, b.heading_deg)
+        reasons.add(a.reason is not None)
+    assert True in reasons  # the edge check spoke in at least one
