@@ -166,6 +166,9 @@ class MapHead(NamedTuple):
     coverage: str | None
     #: When the map was made: tells a map made anew under a deleted one's id from it.
     created: str
+    #: When the map last changed: with the revision, it tells the same revision of a map
+    #: written twice (a database restored from a backup, then edited) from itself.
+    updated: str
 
 
 @dataclass
@@ -880,7 +883,7 @@ class Store:
         return self.map_head(map_id)[0]
 
     def map_head(self, map_id: str) -> MapHead:
-        """The map's revision, coverage (None: as the server is set) and when it was made.
+        """The map's revision, coverage (None: as the server is set), and when it was made and last changed.
 
         Every localization asks for them (the service rebuilds its cached index
         when either moved on, and tells a map made anew under a deleted one's id
@@ -902,15 +905,15 @@ class Store:
         except Exception:  # noqa: BLE001 - the regular path raises the store's own errors
             with self._read() as c:
                 r = self._map_row(c, map_id)
-                return MapHead(int(r.revision), r.coverage, str(r.created_at))
+                return MapHead(int(r.revision), r.coverage, str(r.created_at), str(r.updated_at))
         if row is None:
             raise UnknownMapError(map_id)
-        return MapHead(int(row[0]), row[1], str(row[2]))
+        return MapHead(int(row[0]), row[1], str(row[2]), str(row[3]))
 
     @property
     def _head_sql(self) -> str:
         mark = "?" if self.dialect == "sqlite" else "%s"
-        return f"SELECT revision, coverage, created_at FROM maps WHERE id = {mark}"
+        return f"SELECT revision, coverage, created_at, updated_at FROM maps WHERE id = {mark}"
 
     def _next_revision(self, conn: Connection, map_id: str) -> int:
         """Move the map on to its next revision and return it: the first write of a

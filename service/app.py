@@ -75,10 +75,12 @@ def create_app(
         log.warning("no write token configured: every write will be refused")
 
     from .index_cache import IndexCache
+    from .index_files import index_files
     from .jobs import JobRunner
 
     ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens,
-                  indexes=IndexCache(store, settings.map_coverage, settings.index_background_from))
+                  indexes=IndexCache(store, settings.map_coverage, settings.index_background_from,
+                                     files=index_files(settings, data_dir, store.engine.url)))
     if run_jobs:
         ctx.jobs = JobRunner(store, data_dir, workers=settings.build_workers,
                              dask_address=settings.dask_scheduler or None,

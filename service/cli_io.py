@@ -46,6 +46,17 @@ def coverage_option(text: str | None, *extra: str) -> str | None:
     return text
 
 
+def kept_indexes(store):
+    """Where this command keeps and finds built indexes (``LANEMAP_INDEX_DIR``,
+    :mod:`service.index_files`); None: nowhere."""
+    from mapbuilder.settings import Settings
+
+    from .index_files import index_files
+    from .settings import IndexDirSettings
+
+    return index_files(IndexDirSettings(), Settings().data_dir, store.engine.url)
+
+
 def map_coverage(option: str | None, own: str | None) -> str:
     """The coverage a command draws a map's extent by: ``--coverage``, else the map's own, else
     ``LANEMAP_MAP_COVERAGE`` as the server reads it, else the server's default (``hull``)."""

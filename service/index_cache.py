@@ -18,6 +18,7 @@ from localizer import MapIndex
 from mapbuilder.store import Store, UnknownMapError
 
 from . import metrics
+from .index_files import IndexFiles
 from .map_index import load_index
 from .problems import Problem
 
@@ -151,20 +152,32 @@ class IndexCache:
     build_share : float
         The most of the time a map's builds in the background take: after a
         build of ``d`` seconds the next waits ``d (1 / build_share - 1)``.
+    files : IndexFiles, optional
+        Where built indexes are kept (``LANEMAP_INDEX_DIR``): a build first
+        looks there, for the index at the map's revision that another process
+        built (or, for a map of at least ``background_from`` markings that
+        has none here yet, an older one to answer from meanwhile), and keeps
+        what it builds there. A process that starts then reads a city's index
+        in a tenth of a second, and the workers of one server build each
+        revision once between them.
     """
 
-    def __init__(self, store: Store, default_coverage: str, background_from: int, build_share: float = 0.5):
+    def __init__(self, store: Store, default_coverage: str, background_from: int, build_share: float = 0.5,
+                 files: IndexFiles | None = None):
         if not 0.0 < build_share <= 1.0:
             raise ValueError(f"build_share: {build_share} is not in (0, 1]")
         self.store = store
         self.default_coverage = default_coverage
         self.background_from = background_from
         self.rest_factor = 1.0 / build_share - 1.0
+        self.files = files
         # Reentrant: a build that ends before its callback is added runs the callback at once.
         self._lock = threading.RLock()
         self._maps: dict[str, IndexedMap] = {}
         self._building: dict[str, tuple[str, concurrent.futures.Future]] = {}  # map id: coverage, build
         self._rest_until: dict[str, float] = {}  # map id: no background build before (time.monotonic)
+        self._catch_up: set[str] = set()  # maps answering from an older kept index: build the newest next
+        self._closed = False
         self._builder = _Builder()
 
     def lookup(self, map_id: str, accept_stale: bool = False) -> tuple[IndexedMap, bool]:
@@ -239,6 +252,8 @@ class IndexCache:
 
     def close(self) -> None:
         """Stop building: builds not begun are cancelled, one under way is left to the process's end."""
+        with self._lock:
+            self._closed = True
         self._builder.close()
 
     def _build_locked(self, map_id: str, coverage: str) -> concurrent.futures.Future:
@@ -255,23 +270,63 @@ class IndexCache:
     def _build(self, map_id: str, coverage: str) -> IndexedMap:
         t = time.perf_counter()
         head = self.store.map_head(map_id)  # before the markings: an index never claims a newer revision
-        info = self.store.get_map(map_id)
+        files = self.files
+        info = self.store.get_map(map_id, with_count=files is not None)  # counted once per revision
         if info.crs is None:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
-        index = load_index(self.store, map_id, info.crs, coverage)
+        if files is None or info.count < files.min_markings:
+            return self._built_here(map_id, coverage, head, info.crs, t)
+        kept = files.load(map_id, head, coverage)
+        if kept is not None and (kept.revision == head.revision or self._answers_meanwhile(map_id, head, coverage,
+                                                                                           kept)):
+            return self._install_kept(map_id, coverage, head, kept, t)
+        with files.building(map_id, head, coverage):
+            kept = files.load(map_id, head, coverage)  # another process built it while this one waited
+            if kept is not None and kept.revision == head.revision:
+                return self._install_kept(map_id, coverage, head, kept, t)
+            built = self._built_here(map_id, coverage, head, info.crs, t)
+            files.save(map_id, head, coverage, built.index)
+        return built
+
+    def _built_here(self, map_id: str, coverage: str, head, crs: str, t: float) -> IndexedMap:
+        index = load_index(self.store, map_id, crs, coverage)
         _ = index.extent  # drawn here, not by the requests
         built = IndexedMap(index, head.revision, coverage, head.created)
         seconds = time.perf_counter() - t
-        with self._lock:
-            have = self._maps.get(map_id)
-            if have is None or have.created != head.created or have.coverage != coverage or \
-                    have.revision <= head.revision:
-                self._maps[map_id] = built
-            self._rest_until[map_id] = time.monotonic() + self.rest_factor * seconds
+        self._install(map_id, built, rest_s=self.rest_factor * seconds)
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s) in %.2f s", map_id, len(index),
                  head.revision, coverage, seconds)
         metrics.index_build_seconds.observe(seconds)
         return built
+
+    def _answers_meanwhile(self, map_id: str, head, coverage: str, kept) -> bool:
+        """Whether an older kept index may answer while the newest is built: a map large enough
+        to answer from its previous index, and none here newer than the kept one."""
+        with self._lock:
+            have = self._maps.get(map_id)
+        same = have is not None and (have.coverage, have.created) == (coverage, head.created)
+        return len(kept.index) >= self.background_from and (not same or have.revision < kept.revision)
+
+    def _install_kept(self, map_id: str, coverage: str, head, kept, t: float) -> IndexedMap:
+        built = IndexedMap(kept.index, kept.revision, coverage, head.created)
+        self._install(map_id, built, rest_s=0.0)
+        current = kept.revision == head.revision
+        if not current:
+            with self._lock:
+                self._catch_up.add(map_id)  # the newest is built as soon as this is done (_built)
+        log.info("map %s: spatial index of %d markings at revision %d%s (coverage: %s) read from %s in %.2f s",
+                 map_id, len(kept.index), kept.revision, "" if current else f" of {head.revision}", coverage,
+                 self.files.directory, time.perf_counter() - t)
+        metrics.index_file_loads.labels("current" if current else "stale").inc()
+        return built
+
+    def _install(self, map_id: str, built: IndexedMap, rest_s: float) -> None:
+        with self._lock:
+            have = self._maps.get(map_id)
+            if have is None or have.created != built.created or have.coverage != built.coverage or \
+                    have.revision <= built.revision:
+                self._maps[map_id] = built
+            self._rest_until[map_id] = time.monotonic() + rest_s
 
     def _built(self, map_id: str, future: concurrent.futures.Future) -> None:
         with self._lock:
@@ -280,6 +335,10 @@ class IndexCache:
             error = None if future.cancelled() else future.exception()
             if isinstance(error, UnknownMapError):
                 self._maps.pop(map_id, None)
+            if map_id in self._catch_up:
+                self._catch_up.discard(map_id)
+                if error is None and not future.cancelled() and not self._closed:
+                    self._build_locked(map_id, future.result().coverage)
         if error is not None and not isinstance(error, (UnknownMapError, Problem)):
             log.warning("map %s: building its spatial index failed: %r", map_id, error)
 

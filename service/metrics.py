@@ -65,6 +65,11 @@ index_build_seconds = Histogram(
     "lanemap_index_build_duration_seconds", "Time a map's localization index took to build from its markings, "
     "seconds", buckets=_SECONDS,
 )
+index_file_loads = Counter(
+    "lanemap_index_file_loads", "Localization indexes read from a file (LANEMAP_INDEX_DIR) instead of built, by "
+    "whether they were at the map's revision (current) or older (stale, answering while the newest is built)",
+    ["revision"],
+)
 stale_localizations = Counter(
     "lanemap_localizations_stale", "Localization answers from a map's previous index while the index of its "
     "newest revision was built, by map", ["map"],

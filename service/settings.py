@@ -31,7 +31,41 @@ PROMETHEUS_MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 MapCoverage = Literal["hull", "markings", "imagery"]
 
 
-class ServiceSettings(BaseSettings):
+class IndexDirSettings(BaseSettings):
+    """Where built localization indexes are kept (:mod:`service.index_files`): the server's and
+    ``lanemap localize``'s, which reads only these.
+
+    Attributes
+    ----------
+    index_dir : str
+        ``LANEMAP_INDEX_DIR``: where built localization indexes of large maps
+        are kept for the next process that needs them (``lanemap localize``,
+        a server worker that starts; :mod:`service.index_files`). Empty:
+        ``<data_dir>/indexes``; ``off``: none are kept.
+    index_dir_from : int
+        ``LANEMAP_INDEX_DIR_FROM``: the fewest markings of an index that is
+        kept (a smaller map's builds in milliseconds).
+    index_dir_max_mb : int
+        ``LANEMAP_INDEX_DIR_MAX_MB``: beyond this, the least recently used
+        kept indexes are deleted (an index of 1,000,000 markings takes about
+        110 MB).
+    """
+
+    model_config = SettingsConfigDict(env_prefix="LANEMAP_", extra="ignore")
+
+    index_dir: str = ""
+    index_dir_from: int = Field(10_000, ge=1)
+    index_dir_max_mb: int = Field(2048, ge=1)
+
+    def index_directory(self, data_dir: Path) -> Path | None:
+        """Where built indexes are kept (``index_dir``); None: nowhere."""
+        value = self.index_dir.strip()
+        if value.lower() == "off":
+            return None
+        return Path(value) if value else Path(data_dir) / "indexes"
+
+
+class ServiceSettings(IndexDirSettings):
     """Service options.
 
     Attributes

@@ -307,6 +307,68 @@ def test_a_server_builds_its_maps_indexes_as_it_starts(tmp_path, karlsruhe_fc): 
         server.stop()
 
 
+def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc):  # noqa: F811
+    """``LANEMAP_INDEX_DIR``: a large map's index, built once, is read back by the next server
+    start instead of being built; a map edited while no server ran answers from the kept index
+    until the newest is built, and that one is kept in its place."""
+    from mapbuilder.geojson import read_feature_collection
+    from mapbuilder.model import Marking
+    from mapbuilder.store import Store
+    from tests._api_helpers import start_server
+
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    store = Store(url)
+    store.create_map("ka", crs=CRS)
+    n = len(store.add_markings("ka", read_feature_collection(karlsruhe_fc), lonlat=True))
+    first_revision = store.map_head("ka").revision
+    store.close()
+    env = {"LANEMAP_INDEX_DIR_FROM": "500", "LANEMAP_INDEX_BACKGROUND_FROM": "500"}
+    kept = tmp_path / "data" / "indexes"
+
+    def started(wanted: str):
+        server = start_server(url, tmp_path / "data", env=env)
+        deadline = time.monotonic() + 30
+        while wanted not in server.log() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        return server
+
+    built = f"map ka: spatial index of {n} markings at revision {first_revision} (coverage: hull) in"
+    server = started(built)
+    try:
+        assert built in server.log()
+        deadline = time.monotonic() + 10
+        while not list(kept.glob("*.index")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        (file,) = kept.glob("*.index")
+    finally:
+        server.stop()
+    read = f"map ka: spatial index of {n} markings at revision {first_revision} (coverage: hull) read from"
+    server = started(read)
+    try:
+        assert read in server.log() and built not in server.log()
+        metrics = httpx.get(f"{server.base_url}/metrics").text
+        assert re.search(r'lanemap_index_file_loads_total{revision="current"} 1\.0', metrics)
+    finally:
+        server.stop()
+    store = Store(url)
+    store.add_markings("ka", [Marking(x=457_000.0, y=5_428_000.0, length_m=3.0, width_m=0.12, weight=30.0)])
+    edited = store.map_head("ka").revision
+    store.close()
+    caught_up = f"map ka: spatial index of {n + 1} markings at revision {edited} (coverage: hull) in"
+    server = started(caught_up)
+    try:
+        log = server.log()
+        assert f"at revision {first_revision} of {edited} (coverage: hull) read from" in log and caught_up in log
+        assert log.index("read from") < log.index(caught_up)  # the kept one first, then the newest, unasked
+        deadline = time.monotonic() + 10
+        while file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        (newest,) = kept.glob("*.index")
+        assert newest != file and f"-r{edited:010d}-" in newest.name
+    finally:
+        server.stop()
+
+
 def _own_server_with_karlsruhe(tmp_path, karlsruhe_fc, env: dict):  # noqa: F811
     """A server of its own (SQLite, settings ``env``) holding the Karlsruhe map: ``(server, map id, features)``."""
     from tests._api_helpers import start_server

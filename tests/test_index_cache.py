@@ -222,3 +222,74 @@ def test_the_memory_a_build_frees_goes_back_to_the_system_where_glibc_runs():
 
     assert (index_cache._malloc_trim is not None) == (platform.libc_ver()[0] == "glibc")
     index_cache._trim_heap()
+
+
+def _files(tmp_path, store):
+    from service.index_files import IndexFiles, database_identity
+
+    return IndexFiles(tmp_path / "indexes", database_identity(store.engine.url), min_markings=1)
+
+
+def test_a_process_that_starts_reads_the_index_another_kept(store, tmp_path):
+    """The next worker (or the server started again) reads the map's index from the file the first
+    kept, without reading the map's markings, and answers at the map's revision."""
+    first = IndexCache(store, "markings", background_from=0, files=_files(tmp_path, store))
+    try:
+        built, _ = _ready(first, "a")
+    finally:
+        first.close()
+    store.gate.clear()  # a build would wait here
+    store.reading.clear()
+    second = IndexCache(store, "markings", background_from=0, files=_files(tmp_path, store))
+    try:
+        read, stale = _ready(second, "a")
+        assert not stale and not store.reading.is_set()
+        assert read.revision == built.revision and len(read.index) == len(built.index) == 30
+        assert read.index.extent.area.equals(built.index.extent.area)
+        assert "a" not in second._building  # current: nothing more to build
+    finally:
+        store.gate.set()
+        second.close()
+
+
+def test_a_large_map_edited_meanwhile_answers_from_the_kept_index_until_the_newest_is_built(store, tmp_path):
+    first = IndexCache(store, "hull", background_from=0, files=_files(tmp_path, store))
+    try:
+        built, _ = _ready(first, "a")
+    finally:
+        first.close()
+    store.add_markings("a", _markings(5, x0=457_090.0))  # while no server ran
+    store.delete_map("b")
+    store.gate.clear()
+    store.reading.clear()
+    files = _files(tmp_path, store)
+    second = IndexCache(store, "hull", background_from=30, files=files)
+    try:
+        assert second.preload() == ["a"]  # as a server starts
+        assert store.reading.wait(10)  # the newest is being built, no request having asked...
+        old, stale = second.lookup("a")  # ...and meanwhile the kept one answers
+        assert stale and old.revision == built.revision and len(old.index) == 30
+        store.gate.set()
+        _build_under_way(second, "a").result(timeout=30)
+        new, stale = second.lookup("a")
+        assert not stale and len(new.index) == 35 and new.revision == store.map_head("a").revision
+        kept = files.load("a", store.map_head("a"), "hull")
+        assert kept.revision == new.revision and len(list(files.directory.glob("*.index"))) == 1  # the older went
+    finally:
+        store.gate.set()
+        second.close()
+
+
+def test_a_small_map_never_answers_from_an_older_kept_index(store, tmp_path):
+    first = IndexCache(store, "hull", background_from=0, files=_files(tmp_path, store))
+    try:
+        _ready(first, "a")
+    finally:
+        first.close()
+    store.add_markings("a", _markings(5, x0=457_090.0))
+    second = IndexCache(store, "hull", background_from=1000, files=_files(tmp_path, store))
+    try:
+        new, stale = _ready(second, "a")
+        assert not stale and len(new.index) == 35
+    finally:
+        second.close()

@@ -393,3 +393,54 @@ def test_maps_coverage_writes_the_ground_a_map_speaks_for(tmp_path, monkeypatch,
         err = capsys.readouterr().err.strip().splitlines()
         assert exc.value.code == 1 and len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
     assert not (tmp_path / "no").exists()
+
+
+def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monkeypatch):
+    """A map of at least ``LANEMAP_INDEX_DIR_FROM`` markings has its index built once and kept in
+    ``LANEMAP_INDEX_DIR``: the next call reads it (and says nothing about building), a call after an
+    edit builds the edited map's, and ``off`` keeps none."""
+    import shutil
+
+    from mapbuilder.model import Marking
+    from mapbuilder.store import Store
+
+    url = f"sqlite:///{tmp_path / 'copy.sqlite'}"
+    shutil.copy(stored_map.removeprefix("sqlite:///"), tmp_path / "copy.sqlite")
+    kept = tmp_path / "kept"
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", url)
+    monkeypatch.setenv("LANEMAP_INDEX_DIR", str(kept))
+    monkeypatch.setenv("LANEMAP_INDEX_DIR_FROM", "500")
+    pose, scene, lat, lon, heading = frame_and_prior(6)
+    path = tmp_path / "obs.json"
+    path.write_text(json.dumps({"observations": [{"x": x, "y": y, "weight": w} for x, y, w in scene.observations]}))
+    args = ["localize", "ka", "--lat", str(lat), "--lon", str(lon), "--heading", str(heading),
+            "--observations", str(path), "--position-sigma", "2", "--heading-sigma", "8"]
+
+    def run():
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code in (0, 4), res.output  # 4: failed
+        return json.loads(res.stdout), res.stderr
+
+    first, said = run()
+    assert re.search(r"note: building the localization index of map ka \([\d,]+ markings\); it is kept in", said)
+    (file,) = kept.glob("*.index")
+    again, said = run()
+    assert again == first and "building" not in said and list(kept.glob("*.index")) == [file]
+    # What the file holds answers, not the database: a file made to hold no markings near the
+    # vehicle answers failed, and is taken as long as the map has not moved on.
+    import pickle
+
+    held = pickle.loads(file.read_bytes())
+    far = held["index"].__class__.from_arrays(held["index"].xy[:, 0] + 5000.0, held["index"].xy[:, 1], crs="EPSG:25832")
+    file.write_bytes(pickle.dumps({**held, "index": far}))
+    assert run()[0]["status"] == "failed"
+    store = Store(url)
+    store.add_markings("ka", [Marking(x=pose[0] + 500.0, y=pose[1], length_m=3.0, width_m=0.12, weight=30.0)])
+    store.close()
+    edited, said = run()
+    assert "building" in said and edited["status"] == "ok"
+    assert abs(edited["easting"] - first["easting"]) < 1e-6
+    assert len(list(kept.glob("*.index"))) == 1 and not file.exists()  # the edited map's replaced it
+    monkeypatch.setenv("LANEMAP_INDEX_DIR", "off")
+    shutil.rmtree(kept)
+    assert run()[0] == edited and not kept.exists()

@@ -88,6 +88,20 @@ def test_map_lifecycle(store):
         assert conn.execute(text("SELECT count(*) FROM edits")).scalar() == 0
 
 
+def test_a_maps_head_says_when_it_last_changed(store):
+    """The head's ``updated`` moves with every write, its revision only with writes to markings:
+    together they tell the same revision of a map written twice apart."""
+    store.create_map("ka", crs="EPSG:25832")
+    first = store.map_head("ka")
+    store.add_markings("ka", [_m(0, 0)])
+    second = store.map_head("ka")
+    assert second.revision == first.revision + 1 and second.updated != first.updated
+    assert second.created == first.created
+    store.update_map("ka", title="Karlsruhe")
+    third = store.map_head("ka")
+    assert third.revision == second.revision and third.updated != second.updated
+
+
 def test_a_maps_coverage_is_kept_and_checked(store):
     """How far a map speaks for the ground: its own (``hull`` or ``markings``) or None (the
     server's); setting it moves neither its markings nor its revision."""

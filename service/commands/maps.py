@@ -106,8 +106,9 @@ def register(app: typer.Typer) -> None:
         from mapbuilder.geojson import write_geojson_object
 
         from ..cli_errors import fail
-        from ..cli_io import coverage_option, is_stdio, map_coverage
-        from ..map_index import coverage_feature, load_index
+        from ..cli_io import coverage_option, is_stdio, kept_indexes, map_coverage
+        from ..index_files import current_index
+        from ..map_index import coverage_feature
 
         coverage_option(coverage)
         store = Store()
@@ -115,7 +116,8 @@ def register(app: typer.Typer) -> None:
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
         coverage, revision = map_coverage(coverage, info.coverage), info.revision
-        feature = coverage_feature(load_index(store, map_id, info.crs, coverage), map_id, coverage, revision)
+        index = current_index(store, map_id, info.crs, coverage, kept_indexes(store))
+        feature = coverage_feature(index, map_id, coverage, revision)
         if is_stdio(out):
             typer.echo(json.dumps(feature))
             return
