@@ -363,6 +363,14 @@ def _utc(value: datetime | None) -> datetime | None:
     return value
 
 
+def _stamp(value: datetime | str) -> str:
+    """A stored time as one string, whichever driver read it (SQLite's text, a datetime, naive or
+    not, in any session time zone): UTC, ISO 8601, to the microsecond."""
+    if isinstance(value, str):
+        value = datetime.fromisoformat(value)
+    return _utc(value).astimezone(timezone.utc).isoformat(timespec="microseconds")
+
+
 def normalize_url(url: str) -> str:
     """Pick the psycopg 3 driver for plain ``postgresql://`` URLs."""
     for prefix in ("postgres://", "postgresql://"):
@@ -905,10 +913,10 @@ class Store:
         except Exception:  # noqa: BLE001 - the regular path raises the store's own errors
             with self._read() as c:
                 r = self._map_row(c, map_id)
-                return MapHead(int(r.revision), r.coverage, str(r.created_at), str(r.updated_at))
+                return MapHead(int(r.revision), r.coverage, _stamp(r.created_at), _stamp(r.updated_at))
         if row is None:
             raise UnknownMapError(map_id)
-        return MapHead(int(row[0]), row[1], str(row[2]), str(row[3]))
+        return MapHead(int(row[0]), row[1], _stamp(row[2]), _stamp(row[3]))
 
     @property
     def _head_sql(self) -> str:

@@ -276,13 +276,21 @@ class IndexCache:
             raise Problem(409, f"map {map_id!r} has no markings to localize against", "empty-map")
         if files is None or info.count < files.min_markings:
             return self._built_here(map_id, coverage, head, info.crs, t)
-        kept = files.load(map_id, head, coverage)
-        if kept is not None and (kept.revision == head.revision or self._answers_meanwhile(map_id, head, coverage,
-                                                                                           kept)):
+        with self._lock:
+            have = self._maps.get(map_id)
+        if have is not None and (have.coverage, have.created) == (coverage, head.created):
+            newer_than = have.revision  # only a file newer than what answers now is worth reading
+        elif info.count >= self.background_from:
+            newer_than = -1  # an older one may answer while the newest is built
+        else:
+            newer_than = head.revision - 1
+        kept = files.load(map_id, head, coverage, newer_than=newer_than)
+        if kept is not None:
             return self._install_kept(map_id, coverage, head, kept, t)
         with files.building(map_id, head, coverage):
-            kept = files.load(map_id, head, coverage)  # another process built it while this one waited
-            if kept is not None and kept.revision == head.revision:
+            # another process may have built it while this one waited
+            kept = files.load(map_id, head, coverage, newer_than=head.revision - 1)
+            if kept is not None:
                 return self._install_kept(map_id, coverage, head, kept, t)
             built = self._built_here(map_id, coverage, head, info.crs, t)
             files.save(map_id, head, coverage, built.index)
@@ -298,14 +306,6 @@ class IndexCache:
                  head.revision, coverage, seconds)
         metrics.index_build_seconds.observe(seconds)
         return built
-
-    def _answers_meanwhile(self, map_id: str, head, coverage: str, kept) -> bool:
-        """Whether an older kept index may answer while the newest is built: a map large enough
-        to answer from its previous index, and none here newer than the kept one."""
-        with self._lock:
-            have = self._maps.get(map_id)
-        same = have is not None and (have.coverage, have.created) == (coverage, head.created)
-        return len(kept.index) >= self.background_from and (not same or have.revision < kept.revision)
 
     def _install_kept(self, map_id: str, coverage: str, head, kept, t: float) -> IndexedMap:
         built = IndexedMap(kept.index, kept.revision, coverage, head.created)

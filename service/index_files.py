@@ -99,12 +99,12 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
     if files is None or count < files.min_markings:
         return load_index(store, map_id, crs, coverage)
     head = store.map_head(map_id)  # before the markings: a file never claims a newer revision
-    kept = files.load(map_id, head, coverage)
-    if kept is not None and kept.revision == head.revision:
+    kept = files.load(map_id, head, coverage, newer_than=head.revision - 1)
+    if kept is not None:
         return kept.index
     with files.building(map_id, head, coverage):
-        kept = files.load(map_id, head, coverage)  # built by another process meanwhile
-        if kept is not None and kept.revision == head.revision:
+        kept = files.load(map_id, head, coverage, newer_than=head.revision - 1)  # built by another process meanwhile
+        if kept is not None:
             return kept.index
         if on_build is not None:
             on_build(count)
@@ -176,12 +176,15 @@ class IndexFiles:
             out.append((revision, path))
         return sorted(out, reverse=True)
 
-    def load(self, map_id: str, head: MapHead, coverage: str) -> KeptIndex | None:
-        """The newest kept index of the map by ``coverage`` at or before ``head``'s revision; None if none.
+    def load(self, map_id: str, head: MapHead, coverage: str, newer_than: int = -1) -> KeptIndex | None:
+        """The newest kept index of the map by ``coverage`` at or before ``head``'s revision and after
+        ``newer_than``; None if none (``newer_than=head.revision - 1``: only a current one).
 
         A file that cannot be read back (cut short, of another version) is deleted.
         """
         for revision, path in self._kept(map_id, head, coverage):
+            if revision <= newer_than:
+                break
             index = self._read(path, map_id, head, coverage, revision)
             if index is not None:
                 return KeptIndex(index, revision)

@@ -100,6 +100,21 @@ def test_a_maps_head_says_when_it_last_changed(store):
     store.update_map("ka", title="Karlsruhe")
     third = store.map_head("ka")
     assert third.revision == second.revision and third.updated != second.updated
+    assert third.updated.endswith("+00:00") and store.get_map("ka").updated_at.isoformat() == third.updated
+    # the same whichever way it is read: the driver's own statement, or SQLAlchemy's when that fails
+    engine = store.engine
+
+    class NoRawConnection:
+        def __getattr__(self, name):
+            if name == "raw_connection":
+                raise OSError("driver gone")
+            return getattr(engine, name)
+
+    store.engine = NoRawConnection()
+    try:
+        assert store.map_head("ka") == third
+    finally:
+        store.engine = engine
 
 
 def test_a_maps_coverage_is_kept_and_checked(store):
