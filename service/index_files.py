@@ -80,7 +80,7 @@ def database_identity(url) -> str:
 
 
 def index_files(settings, data_dir: Path, database_url) -> "IndexFiles | None":
-    """The kept indexes as ``settings`` (:class:`service.settings.ServiceSettings`) say; None: off."""
+    """The kept indexes as ``settings`` (:class:`service.settings.IndexDirSettings`) say; None: off."""
     directory = settings.index_directory(data_dir)
     if directory is None:
         return None
