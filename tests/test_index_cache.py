@@ -230,14 +230,19 @@ def _files(tmp_path, store):
     return IndexFiles(tmp_path / "indexes", database_identity(store.engine.url), min_markings=1)
 
 
+def _kept_by_a_first_process(store, tmp_path, coverage: str):
+    """Map "a"'s index as a first server process builds and keeps it, and stops."""
+    first = IndexCache(store, coverage, background_from=0, files=_files(tmp_path, store))
+    try:
+        return _ready(first, "a")[0]
+    finally:
+        first.close()
+
+
 def test_a_process_that_starts_reads_the_index_another_kept(store, tmp_path):
     """The next worker (or the server started again) reads the map's index from the file the first
     kept, without reading the map's markings, and answers at the map's revision."""
-    first = IndexCache(store, "markings", background_from=0, files=_files(tmp_path, store))
-    try:
-        built, _ = _ready(first, "a")
-    finally:
-        first.close()
+    built = _kept_by_a_first_process(store, tmp_path, "markings")
     store.gate.clear()  # a build would wait here
     store.reading.clear()
     second = IndexCache(store, "markings", background_from=0, files=_files(tmp_path, store))
@@ -253,11 +258,7 @@ def test_a_process_that_starts_reads_the_index_another_kept(store, tmp_path):
 
 
 def test_a_large_map_edited_meanwhile_answers_from_the_kept_index_until_the_newest_is_built(store, tmp_path):
-    first = IndexCache(store, "hull", background_from=0, files=_files(tmp_path, store))
-    try:
-        built, _ = _ready(first, "a")
-    finally:
-        first.close()
+    built = _kept_by_a_first_process(store, tmp_path, "hull")
     store.add_markings("a", _markings(5, x0=457_090.0))  # while no server ran
     store.delete_map("b")
     store.gate.clear()
@@ -281,11 +282,7 @@ def test_a_large_map_edited_meanwhile_answers_from_the_kept_index_until_the_newe
 
 
 def test_a_small_map_never_answers_from_an_older_kept_index(store, tmp_path):
-    first = IndexCache(store, "hull", background_from=0, files=_files(tmp_path, store))
-    try:
-        _ready(first, "a")
-    finally:
-        first.close()
+    _kept_by_a_first_process(store, tmp_path, "hull")
     store.add_markings("a", _markings(5, x0=457_090.0))
     second = IndexCache(store, "hull", background_from=1000, files=_files(tmp_path, store))
     try:
