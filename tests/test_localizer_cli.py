@@ -426,6 +426,12 @@ def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monk
     (file,) = kept.glob("*.index")
     again, said = run()
     assert again == first and "building" not in said and list(kept.glob("*.index")) == [file]
+    # lanemap maps coverage shares them: the hull's is read, the markings' built and kept beside it
+    res = CliRunner().invoke(app, ["maps", "coverage", "ka", "-", "--coverage", "hull"])
+    assert res.exit_code == 0 and "building" not in res.stderr and json.loads(res.stdout)["geometry"]
+    res = CliRunner().invoke(app, ["maps", "coverage", "ka", "-", "--coverage", "markings"])
+    assert res.exit_code == 0 and "note: building the localization index of map ka" in res.stderr
+    assert len(list(kept.glob("*-markings-*.index"))) == 1 and list(kept.glob("*-hull-*.index")) == [file]
     # What the file holds answers, not the database: a file made to hold no markings near the
     # vehicle answers failed, and is taken as long as the map has not moved on.
     import pickle
@@ -440,7 +446,7 @@ def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monk
     edited, said = run()
     assert "building" in said and edited["status"] == "ok"
     assert abs(edited["easting"] - first["easting"]) < 1e-6
-    assert len(list(kept.glob("*.index"))) == 1 and not file.exists()  # the edited map's replaced it
+    assert len(list(kept.glob("*-hull-*.index"))) == 1 and not file.exists()  # the edited map's replaced it
     monkeypatch.setenv("LANEMAP_INDEX_DIR", "off")
     shutil.rmtree(kept)
     assert run()[0] == edited and not kept.exists()

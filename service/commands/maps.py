@@ -116,7 +116,10 @@ def register(app: typer.Typer) -> None:
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
         coverage, revision = map_coverage(coverage, info.coverage), info.revision
-        index = current_index(store, map_id, info.crs, coverage, kept_indexes(store))
+        files = kept_indexes(store)
+        index = current_index(store, map_id, info.crs, coverage, files, on_build=lambda count: typer.echo(
+            f"note: building the localization index of map {map_id} ({count:,} markings); it is kept in "
+            f"{files.directory} for the next calls", err=True))
         feature = coverage_feature(index, map_id, coverage, revision)
         if is_stdio(out):
             typer.echo(json.dumps(feature))
