@@ -80,7 +80,8 @@ def create_app(
 
     ctx = Context(store=store, settings=settings, data_dir=data_dir, tokens=tokens,
                   indexes=IndexCache(store, settings.map_coverage, settings.index_background_from,
-                                     files=index_files(settings, data_dir, store.engine.url)))
+                                     files=index_files(settings, data_dir, store.engine.url),
+                                     process_from=settings.index_process_from))
     if run_jobs:
         ctx.jobs = JobRunner(store, data_dir, workers=settings.build_workers,
                              dask_address=settings.dask_scheduler or None,

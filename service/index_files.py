@@ -113,6 +113,34 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
     return index
 
 
+#: Exit code of :func:`build_kept` when the index was built but could not be kept.
+NOT_KEPT = 3
+
+
+def build_kept(files: "IndexFiles", url: str, map_id: str, crs: str, coverage: str, head: MapHead) -> None:
+    """A child process's work: build the map's index by ``coverage`` and keep it in ``files``, as
+    at ``head`` (read by the parent before it started this). Exits with :data:`NOT_KEPT` when the
+    file could not be written.
+
+    The server builds a city's index so (``LANEMAP_INDEX_PROCESS_FROM``): in its own process the
+    triangulation and the geometry of the extent hold the server's interpreter for up to 0.8 s at
+    a time, and its peak memory, a gigabyte for 1,000,000 markings, stays with the server.
+    """
+    import sys
+
+    from mapbuilder.store import Store
+
+    from .map_index import load_index
+
+    store = Store(url)
+    try:
+        index = load_index(store, map_id, crs, coverage)
+    finally:
+        store.close()
+    if files.save(map_id, head, coverage, index, force=True) is None:
+        sys.exit(NOT_KEPT)
+
+
 def _digest(*parts: object, size: int = 20) -> str:
     return hashlib.sha256("\0".join(map(str, parts)).encode()).hexdigest()[:size]
 
@@ -212,15 +240,16 @@ class IndexFiles:
             os.utime(path)  # used: the last to go when the folder is full
         return kept["index"]
 
-    def save(self, map_id: str, head: MapHead, coverage: str, index: MapIndex) -> Path | None:
+    def save(self, map_id: str, head: MapHead, coverage: str, index: MapIndex, force: bool = False) -> Path | None:
         """Keep ``index``, built from the map at ``head`` by ``coverage``; its file, or None if not kept.
 
         The extent is drawn first, so that the file holds it. Older files of the
         map by the same coverage go; a failure to write (a full disk, a folder
         that cannot be written) is logged, not raised: the index is kept in
-        memory all the same.
+        memory all the same. An index of fewer than ``min_markings`` is kept only
+        with ``force``.
         """
-        if len(index) < self.min_markings:
+        if len(index) < self.min_markings and not force:
             return None
         kept = self._kept(map_id, head, coverage)
         if kept and kept[0][0] == head.revision:

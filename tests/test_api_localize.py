@@ -308,9 +308,9 @@ def test_a_server_builds_its_maps_indexes_as_it_starts(tmp_path, karlsruhe_fc): 
 
 
 def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc):  # noqa: F811
-    """``LANEMAP_INDEX_DIR``: a large map's index, built once, is read back by the next server
-    start instead of being built; a map edited while no server ran answers from the kept index
-    until the newest is built, and that one is kept in its place."""
+    """``LANEMAP_INDEX_DIR``: a large map's index, built once (in a process of its own), is read
+    back by the next server start instead of being built; a map edited while no server ran answers
+    from the kept index until the newest is built, and that one is kept in its place."""
     from mapbuilder.geojson import read_feature_collection
     from mapbuilder.model import Marking
     from mapbuilder.store import Store
@@ -322,7 +322,8 @@ def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc
     n = len(store.add_markings("ka", read_feature_collection(karlsruhe_fc), lonlat=True))
     first_revision = store.map_head("ka").revision
     store.close()
-    env = {"LANEMAP_INDEX_DIR_FROM": "500", "LANEMAP_INDEX_BACKGROUND_FROM": "500"}
+    # built in a child process too (LANEMAP_INDEX_PROCESS_FROM), as a city's map is
+    env = {"LANEMAP_INDEX_DIR_FROM": "500", "LANEMAP_INDEX_BACKGROUND_FROM": "500", "LANEMAP_INDEX_PROCESS_FROM": "500"}
     kept = tmp_path / "data" / "indexes"
 
     def started(wanted: str):
@@ -335,7 +336,7 @@ def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc
     built = f"map ka: spatial index of {n} markings at revision {first_revision} (coverage: hull) in"
     server = started(built)
     try:
-        assert built in server.log()
+        assert built in server.log() and re.search(r"\(coverage: hull\) in [\d.]+ s, built by process \d+", server.log())
         deadline = time.monotonic() + 10
         while not list(kept.glob("*.index")) and time.monotonic() < deadline:
             time.sleep(0.1)

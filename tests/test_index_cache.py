@@ -7,6 +7,7 @@ requests, and an index is never taken for a map it was not built from.
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -290,3 +291,44 @@ def test_a_small_map_never_answers_from_an_older_kept_index(store, tmp_path):
         assert not stale and len(new.index) == 35
     finally:
         second.close()
+
+
+def test_a_large_maps_index_is_built_in_a_child_process_and_handed_over_in_its_file(tmp_path, caplog):
+    """``process_from``: the build runs in a process of its own (its interpreter and memory are not
+    the server's), which keeps the index in a file this process reads; where the file cannot be
+    written, the request is told to come back (503), and nothing is taken for the index."""
+    import logging
+    import os
+
+    from service.index_files import IndexFiles, database_identity
+
+    url = f"sqlite:///{tmp_path / 'maps.sqlite'}"
+    store = Store(url)
+    store.create_map("a", crs=CRS)
+    store.add_markings("a", _markings(40))
+    files = IndexFiles(tmp_path / "indexes", database_identity(url), min_markings=1)
+    cache = IndexCache(store, "markings", background_from=0, files=files, process_from=40)
+    caplog.set_level(logging.INFO, logger="service.index_cache")
+    try:
+        built, stale = _ready(cache, "a")
+        assert not stale and len(built.index) == 40 and built.revision == store.map_head("a").revision
+        pid = int(re.search(r"map a: spatial index of 40 markings .* built by process (\d+)", caplog.text).group(1))
+        assert pid != os.getpid()
+        here = IndexCache(store, "markings", background_from=0)  # the same map built in this process
+        assert _ready(here, "a")[0].index.extent.area.equals(built.index.extent.area)
+        here.close()
+    finally:
+        cache.close()
+    (tmp_path / "blocked").write_text("a file where the folder would be")
+    blocked = IndexCache(store, "hull", background_from=0, process_from=40,
+                         files=IndexFiles(tmp_path / "blocked", database_identity(url), min_markings=1))
+    try:
+        with pytest.raises(IndexPending) as pending:
+            blocked.lookup("a")
+        with pytest.raises(Problem) as problem:
+            pending.value.future.result(timeout=60)
+        assert problem.value.status == 503 and "its file could not be written" in str(problem.value)
+        assert "a" not in blocked._maps
+    finally:
+        blocked.close()
+        store.close()
