@@ -30,6 +30,7 @@ import os
 import pickle
 import stat
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -44,6 +45,8 @@ except ImportError:  # not on Windows: builds there are not shared
 
 log = logging.getLogger(__name__)
 
+#: A build lock unused this long (seconds) is deleted when a file is kept.
+LOCK_UNUSED_S = 86_400.0
 #: Bumped whenever what a file holds changes shape.
 FORMAT = 1
 SUFFIX = ".index"
@@ -275,7 +278,13 @@ class IndexFiles:
         return path
 
     def _trim(self, keep: Path) -> None:
-        """Delete the least recently used files beyond ``max_bytes`` (never ``keep``)."""
+        """Delete the least recently used files beyond ``max_bytes`` (never ``keep``), and the
+        locks of builds none took for a day (a map's deleted, or built by an older version)."""
+        stale = time.time() - LOCK_UNUSED_S
+        for path in self.directory.glob("*.lock"):
+            with contextlib.suppress(OSError):
+                if path.stat().st_mtime < stale:
+                    path.unlink()
         files = []
         for path in self.directory.glob("*" + SUFFIX):
             with contextlib.suppress(OSError):
@@ -303,6 +312,7 @@ class IndexFiles:
                 path = self.directory / (self._prefix(map_id, head, coverage) + ".lock")
                 lock = os.fdopen(os.open(path, os.O_RDWR | os.O_CREAT, 0o600), "r+")
                 fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+                os.utime(path)  # used: kept by _trim
             except OSError as exc:
                 log.debug("no lock on the build of map %s: %s", map_id, exc)
         try:

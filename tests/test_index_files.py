@@ -130,6 +130,15 @@ def test_the_folder_keeps_within_its_size_least_recently_used_first(store, tmp_p
     assert files.load("b", store.map_head("b"), "markings") is None  # the least recently used went
     assert files.load("a", store.map_head("a"), "markings") is not None
     assert files.load("c", head, "markings") is not None
+    # the locks of builds: one used today stays, one unused for a day goes with the next save
+    with files.building("a", store.map_head("a"), "markings"):
+        pass
+    with files.building("b", store.map_head("b"), "markings"):
+        pass
+    old, used = sorted(files.directory.glob("*.lock"))[:2]
+    os.utime(old, (time.time() - 2 * 86_400, time.time() - 2 * 86_400))
+    files.save("c", store.map_head("c"), "hull", load_index(store, "c", CRS, "hull"))
+    assert not old.exists() and used.exists()
 
 
 def test_an_sqlite_database_is_the_same_from_any_working_directory(tmp_path, monkeypatch):
