@@ -253,11 +253,13 @@ class IndexCache:
             pending.future.result()
         return self.lookup(map_id, accept_stale=True)
 
-    def drop(self, map_id: str) -> None:
-        """Forget the map's index (a deleted map)."""
+    def drop(self, map_id: str, created: str | None = None) -> None:
+        """Forget the map's index (a deleted map), and with ``created`` (its head's) its kept files."""
         with self._lock:
             self._maps.pop(map_id, None)
             self._rest_until.pop(map_id, None)
+        if created is not None and self.files is not None:
+            self.files.forget(map_id, created)
 
     def close(self) -> None:
         """Stop building: builds not begun are cancelled, one under way is left to the process's end."""

@@ -180,8 +180,11 @@ class IndexFiles:
         self.max_bytes = max_bytes
         self._versions = _versions()
 
+    def _map_key(self, map_id: str, created: str) -> str:
+        return _digest(FORMAT, self._versions, self.database, map_id, created)
+
     def _prefix(self, map_id: str, head: MapHead, coverage: str) -> str:
-        return f"{_digest(FORMAT, self._versions, self.database, map_id, head.created)}-{coverage}"
+        return f"{self._map_key(map_id, head.created)}-{coverage}"
 
     def _name(self, map_id: str, head: MapHead, coverage: str) -> str:
         return f"{self._prefix(map_id, head, coverage)}-r{head.revision:010d}-{_digest(head.updated, size=12)}{SUFFIX}"
@@ -299,6 +302,12 @@ class IndexFiles:
                          self.max_bytes >> 20)
                 _unlink(path)
                 total -= size
+
+    def forget(self, map_id: str, created: str) -> None:
+        """Delete the kept indexes of a map deleted from the database (``created``: its head's), by
+        every coverage: what they hold is the deleted map's."""
+        for path in self.directory.glob(self._map_key(map_id, created) + "-*"):
+            _unlink(path)
 
     @contextlib.contextmanager
     def building(self, map_id: str, head: MapHead, coverage: str) -> Iterator[None]:

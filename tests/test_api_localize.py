@@ -310,7 +310,8 @@ def test_a_server_builds_its_maps_indexes_as_it_starts(tmp_path, karlsruhe_fc): 
 def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc):  # noqa: F811
     """``LANEMAP_INDEX_DIR``: a large map's index, built once (in a process of its own), is read
     back by the next server start instead of being built; a map edited while no server ran answers
-    from the kept index until the newest is built, and that one is kept in its place."""
+    from the kept index until the newest is built, and that one is kept in its place; deleting the
+    map deletes its files."""
     from mapbuilder.geojson import read_feature_collection
     from mapbuilder.model import Marking
     from mapbuilder.store import Store
@@ -366,6 +367,9 @@ def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc
             time.sleep(0.1)
         (newest,) = kept.glob("*.index")
         assert newest != file and f"-r{edited:010d}-" in newest.name
+        # deleting the map deletes what was kept of it
+        assert httpx.delete(f"{server.base_url}/collections/ka", headers=server.auth).status_code == 204
+        assert not list(kept.glob("*.index"))
     finally:
         server.stop()
 

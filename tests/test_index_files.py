@@ -181,3 +181,17 @@ def test_a_build_under_way_in_one_process_holds_the_next(store, tmp_path):
     assert order == ["first saved", "second in", "found"]
     with files.building("b", store.map_head("b"), "markings"):  # another map's builds do not wait
         assert files.load("a", head, "markings") is not None
+
+
+def test_a_deleted_maps_kept_indexes_go_with_it(store, tmp_path):
+    files = _files(store, tmp_path)
+    for map_id in ("a", "b"):
+        for coverage in ("hull", "markings"):
+            head, index = _built(store, map_id, coverage)
+            files.save(map_id, head, coverage, index)
+            with files.building(map_id, head, coverage):
+                pass
+    files.forget("a", store.map_head("a").created)
+    left = sorted(p.name for p in files.directory.iterdir())
+    assert len(left) == 4 and files.load("b", store.map_head("b"), "hull") is not None  # b's two files, two locks
+    assert files.load("a", store.map_head("a"), "hull") is None and files.load("a", store.map_head("a"), "markings") is None

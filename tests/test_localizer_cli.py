@@ -398,7 +398,7 @@ def test_maps_coverage_writes_the_ground_a_map_speaks_for(tmp_path, monkeypatch,
 def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monkeypatch):
     """A map of at least ``LANEMAP_INDEX_DIR_FROM`` markings has its index built once and kept in
     ``LANEMAP_INDEX_DIR``: the next call reads it (and says nothing about building), a call after an
-    edit builds the edited map's, and ``off`` keeps none."""
+    edit builds the edited map's, deleting the map deletes them, and ``off`` keeps none."""
     import shutil
 
     from mapbuilder.model import Marking
@@ -447,6 +447,11 @@ def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monk
     assert "building" in said and edited["status"] == "ok"
     assert abs(edited["easting"] - first["easting"]) < 1e-6
     assert len(list(kept.glob("*-hull-*.index"))) == 1 and not file.exists()  # the edited map's replaced it
+    # deleting the map deletes what was kept of it
+    res = CliRunner().invoke(app, ["maps", "delete", "ka", "--yes"])
+    assert res.exit_code == 0 and not list(kept.glob("*.index")), res.output
+    shutil.copy(stored_map.removeprefix("sqlite:///"), tmp_path / "again.sqlite")
+    monkeypatch.setenv("LANEMAP_DATABASE_URL", f"sqlite:///{tmp_path / 'again.sqlite'}")
     monkeypatch.setenv("LANEMAP_INDEX_DIR", "off")
     shutil.rmtree(kept)
-    assert run()[0] == edited and not kept.exists()
+    assert run()[0] == first and not kept.exists()

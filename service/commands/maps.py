@@ -139,7 +139,13 @@ def register(app: typer.Typer) -> None:
         info = store.get_map(map_id, with_count=True)
         if not yes and not typer.confirm(f"delete map {map_id} and its {info.count} markings?"):
             raise typer.Exit(1)
+        from ..cli_io import kept_indexes
+
+        created = store.map_head(map_id).created
         store.delete_map(map_id)
+        files = kept_indexes(store)
+        if files is not None:
+            files.forget(map_id, created)  # they hold the map's markings too
         typer.echo(f"deleted map {map_id}")
 
     @maps.command("prune-feed")

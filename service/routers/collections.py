@@ -236,8 +236,9 @@ def delete_collection(mapId: str = MapId, ctx: Context = Depends(get_ctx), who: 
     if ctx.jobs is not None:
         for job in ctx.store.find_jobs(map_id=mapId, status=("accepted", "running")):
             ctx.jobs.cancel(job.id)
+    created = ctx.store.map_head(mapId).created
     ctx.store.delete_map(mapId)
-    ctx.indexes.drop(mapId)
+    ctx.indexes.drop(mapId, created)  # the kept files hold the map's markings too
     imagery_root = (ctx.data_dir / "imagery").resolve()
     for f in files:
         # Only files the server wrote itself are removed.
