@@ -500,15 +500,48 @@ def _insert_many(conn: Connection, table, rows: list[dict[str, Any]]) -> None:
                 for row in zip(*columns):
                     out.write_row(row)
         except dialect.loaded_dbapi.Error as exc:
-            # as SQLAlchemy would raise it, so that the store maps an outage as usual
-            lost = dialect.is_disconnect(exc, raw, None)
-            if lost:
-                conn.invalidate()
-            raise DBAPIError.instance(sql, None, exc, dialect.loaded_dbapi.Error,
-                                      connection_invalidated=lost) from None
+            raise _driver_error(conn, raw, sql, exc) from None
         return
     conn.exec_driver_sql(f"INSERT INTO {quote.format_table(table)} ({names}) "
                          f"VALUES ({', '.join('?' * len(keys))})", list(zip(*columns)))
+
+
+def _driver_error(conn: Connection, raw, sql: str, exc: Exception) -> DBAPIError:
+    """A driver's error as SQLAlchemy would raise it, so that the store maps an outage as usual."""
+    dialect = conn.dialect
+    lost = dialect.is_disconnect(exc, raw, None)
+    if lost:
+        conn.invalidate()
+    return DBAPIError.instance(sql, None, exc, dialect.loaded_dbapi.Error, connection_invalidated=lost)
+
+
+def _driver_parts(conn: Connection, sql: str, params: tuple, size: int):
+    """The rows of ``sql`` (its parameters as ``?``) read straight from the driver, ``size`` at a
+    time, as tuples, within ``conn``'s transaction; None for a driver this does not know.
+
+    SQLAlchemy's rows cost more than reading them: 1.6 of 4.3 s for the 1,000,000 markings of a
+    city's index. PostgreSQL's are read through a server-side cursor, a part at a time.
+    """
+    dialect = conn.dialect
+    pg = dialect.name == "postgresql" and dialect.driver == "psycopg"
+    if not pg and not (dialect.name == "sqlite" and dialect.paramstyle == "qmark"):
+        return None
+
+    def parts():
+        raw = conn.connection.dbapi_connection
+        text_ = sql.replace("?", "%s") if pg else sql
+        try:
+            cur = raw.cursor(name="lanemap_rows") if pg else raw.cursor()
+            try:
+                cur.execute(text_, params)
+                while rows := cur.fetchmany(size):
+                    yield rows
+            finally:
+                cur.close()
+        except dialect.loaded_dbapi.Error as exc:
+            raise _driver_error(conn, raw, text_, exc) from None
+
+    return parts()
 
 
 #: Longest map title, characters.
@@ -1447,16 +1480,21 @@ class Store:
         self, map_id: str, statuses: Sequence[str] = ("unreviewed", "accepted")
     ) -> MarkingArrays:
         c = markings.c
+        statuses = list(statuses)
         q = select(c.id, c.x, c.y, c.weight, c.length_m, c.bearing_deg, c.kind, c.source).where(
-            c.map_id == map_id, c.status.in_(list(statuses))
+            c.map_id == map_id, c.status.in_(statuses)
         )
+        sql = ("SELECT id, x, y, weight, length_m, bearing_deg, kind, source FROM markings "
+               f"WHERE map_id = ? AND status IN ({', '.join('?' * len(statuses))}) ORDER BY id")
         # In parts: a city's markings read and converted at once held the GIL for
         # a tenth of a second at a time, and a server's localizations with it.
         parts, kinds, sources = [], [], []
         with self._read() as conn:
             self._map_row(conn, map_id)
-            result = conn.execute(q.order_by(c.id).execution_options(yield_per=_ARRAYS_PART))
-            for rows in result.partitions():
+            read = _driver_parts(conn, sql, (map_id, *statuses), _ARRAYS_PART) if statuses else None
+            if read is None:
+                read = conn.execute(q.order_by(c.id).execution_options(yield_per=_ARRAYS_PART)).partitions()
+            for rows in read:
                 parts.append(np.array([r[:6] for r in rows], dtype=float).reshape(-1, 6))
                 kinds.extend(r[6] for r in rows)
                 sources.extend(r[7] for r in rows)

@@ -117,6 +117,30 @@ def test_a_maps_head_says_when_it_last_changed(store):
         store.engine = engine
 
 
+def test_a_maps_arrays_are_its_markings_by_id_and_status(store, monkeypatch):
+    """``marking_arrays`` (what an index is built from), read straight from the driver in parts
+    of ``_ARRAYS_PART``, holds each marking the status filter keeps, in id order, as the store's
+    other reads give it."""
+    import mapbuilder.store as store_module
+
+    monkeypatch.setattr(store_module, "_ARRAYS_PART", 7)  # several parts, the last one short
+    store.create_map("ka", crs="EPSG:25832")
+    kinds = [None, "dash", "solid", "stop_line"]
+    store.add_markings("ka", [_m(3.0 * k, 0.5 * k, kind=kinds[k % 4], bearing_deg=10.0 * k,
+                                 status="rejected" if k % 5 == 0 else "unreviewed") for k in range(23)])
+    store.create_map("empty", crs="EPSG:25832")
+    want = [m for m in store.iter_markings("ka") if m.status != "rejected"]
+    got = store.marking_arrays("ka")
+    assert got.id.tolist() == sorted(m.id for m in want) == [m.id for m in want]
+    for name in ("x", "y", "weight", "length_m", "bearing_deg"):
+        assert np.allclose(getattr(got, name), [getattr(m, name) for m in want]), name
+    assert got.kind.tolist() == [m.kind for m in want] and got.source.tolist() == [m.source for m in want]
+    assert len(store.marking_arrays("ka", statuses=("rejected",))) == 23 - len(want)
+    assert len(store.marking_arrays("ka", statuses=())) == 0 and len(store.marking_arrays("empty")) == 0
+    with pytest.raises(UnknownMapError):
+        store.marking_arrays("nope")
+
+
 def test_a_maps_coverage_is_kept_and_checked(store):
     """How far a map speaks for the ground: its own (``hull`` or ``markings``) or None (the
     server's); setting it moves neither its markings nor its revision."""
