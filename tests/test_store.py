@@ -645,3 +645,35 @@ def test_add_markings_answers_each_marking_its_own_id(db_url):
         got = store.get_marking("c", ids[k])
         assert got.weight == items[k].weight and math.isclose(got.x, items[k].x), k
     store.close()
+
+
+def test_a_connection_lost_while_a_maps_arrays_are_read_is_an_outage(postgres_url, postgres_admin, monkeypatch):
+    """Read from the driver's own server-side cursor (``_driver_parts``), a server gone between two
+    parts is the store's outage (503 in the API), not a driver's exception, and the next read
+    works."""
+    import mapbuilder.store as store_module
+    from mapbuilder.store import StoreUnavailableError
+
+    store = Store(postgres_url)
+    try:
+        store.create_map("ka", crs="EPSG:25832")
+        store.add_markings("ka", [_m(3.0 * k, 0.0) for k in range(30)])
+        monkeypatch.setattr(store_module, "_ARRAYS_PART", 10)
+        real = np.array
+        calls = []
+
+        def array_then_cut(*args, **kwargs):  # the first part converted: the server ends the session
+            if kwargs.get("dtype") is float and not calls:
+                calls.append(1)
+                with postgres_admin.connect() as admin:
+                    admin.execute(text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :db"),
+                                  {"db": postgres_url.rsplit("/", 1)[1]})
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(store_module.np, "array", array_then_cut)
+        with pytest.raises(StoreUnavailableError, match="database unavailable"):
+            store.marking_arrays("ka")
+        monkeypatch.setattr(store_module.np, "array", real)
+        assert len(store.marking_arrays("ka")) == 30  # the pool gives a working connection again
+    finally:
+        store.close()
