@@ -1,7 +1,7 @@
 """Built localization indexes kept in files, for the next process that needs them.
 
 A city's index takes seconds to build from its stored markings (for
-1,000,000 markings about 7 s drawn by their hull, 35 s by ``markings``), and
+1,000,000 markings 5–7 s drawn by their hull, 35–45 s by ``markings``), and
 every process built its own: each ``lanemap localize`` call, and each server
 worker at every start. Kept in a file (``LANEMAP_INDEX_DIR``) it is read back
 in about 0.1 s by any process of the machine that asks for the same map at
@@ -17,8 +17,10 @@ built (the server does, for maps of at least
 map, or of the same revision changed at another time, belongs to another
 history of the database (one restored from a backup) and is deleted.
 
-The files are pickles: only files the process's own user owns, writable by
-nobody else, in a folder only it may enter, are read.
+The files are pickles: only files the process's own user owns and nobody
+else may write are read, and the folder is made for that user alone (mode
+0700). A map of at least ``LANEMAP_INDEX_PROCESS_FROM`` markings is built by
+a child process (:func:`build_kept`) that hands its index over in its file.
 """
 
 from __future__ import annotations
