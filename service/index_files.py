@@ -131,12 +131,15 @@ def build_kept(files: "IndexFiles", url: str, map_id: str, crs: str, coverage: s
     triangulation and the geometry of the extent hold the server's interpreter for up to 0.8 s at
     a time, and its peak memory, a gigabyte for 1,000,000 markings, stays with the server.
     """
+    import signal
     import sys
 
     from mapbuilder.store import Store
 
     from .map_index import load_index
 
+    # A Ctrl+C in the server's terminal reaches this process too; the server ends it when it stops.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     store = Store(url)
     try:
         index = load_index(store, map_id, crs, coverage)
