@@ -332,3 +332,29 @@ def test_a_large_maps_index_is_built_in_a_child_process_and_handed_over_in_its_f
     finally:
         blocked.close()
         store.close()
+
+
+def test_a_map_deleted_while_its_index_is_kept_leaves_no_file(store, tmp_path):
+    """The deletion removes the map's kept files, but a build that read the map just before may
+    write its file just after: the build looks again, and removes it."""
+    from service.index_files import IndexFiles, database_identity
+
+    cache = None
+
+    class DeletedMeanwhile(IndexFiles):
+        def save(self, map_id, head, coverage, index, force=False):
+            store.delete_map(map_id)  # as DELETE /collections/{id} would, between the build's read and its save
+            cache.drop(map_id, head.created)
+            return super().save(map_id, head, coverage, index, force)
+
+    files = DeletedMeanwhile(tmp_path / "indexes", database_identity(store.engine.url), min_markings=1)
+    cache = IndexCache(store, "hull", background_from=0, files=files)
+    try:
+        with pytest.raises(IndexPending) as pending:
+            cache.lookup("a")
+        pending.value.future.result(timeout=30)
+        assert not list(files.directory.glob("*.index"))
+        with pytest.raises(UnknownMapError):
+            cache.lookup("a")
+    finally:
+        cache.close()
