@@ -313,15 +313,17 @@ class IndexCache:
             self._forget_if_deleted(map_id, head)
         return built
 
-    def _forget_if_deleted(self, map_id: str, head) -> None:
+    def _forget_if_deleted(self, map_id: str, head) -> bool:
         """A map deleted while its index was built and kept: its file goes too (the deletion's own
-        clean-up, :meth:`drop`, may have come before the file was written)."""
+        clean-up, :meth:`drop`, may have come before the file was written). Whether it was."""
         try:
             now = self.store.map_head(map_id)
         except UnknownMapError:
             now = None
         if now is None or now.created != head.created:
             self.files.forget(map_id, head.created)
+            return True
+        return False
 
     def _built_in_child(self, map_id: str, coverage: str, head, crs: str, t: float) -> IndexedMap:
         child = multiprocessing.get_context("spawn").Process(
@@ -337,8 +339,8 @@ class IndexCache:
         finally:
             with self._lock:
                 self._children.discard(child)
-        if child.exitcode == 0:
-            self._forget_if_deleted(map_id, head)
+        if child.exitcode == 0 and self._forget_if_deleted(map_id, head):
+            raise UnknownMapError(map_id)
         kept = self.files.load(map_id, head, coverage, newer_than=head.revision - 1) \
             if child.exitcode == 0 else None
         if kept is None:
