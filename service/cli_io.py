@@ -57,6 +57,21 @@ def kept_indexes(store):
     return index_files(IndexDirSettings(), Settings().data_dir, store.engine.url)
 
 
+def command_index(store, map_id: str, crs: str, coverage: str):
+    """The map's localization index for a command (``lanemap localize``, ``maps coverage``): the
+    kept one at the map's revision (:func:`service.index_files.current_index`), else built and
+    kept, with a ``note:`` on stderr first, since a city's takes a while."""
+    from .index_files import current_index
+
+    files = kept_indexes(store)
+
+    def say_building(count: int) -> None:
+        typer.echo(f"note: building the localization index of map {map_id} ({count:,} markings); "
+                   f"it is kept in {files.directory} for the next calls", err=True)
+
+    return current_index(store, map_id, crs, coverage, files, on_build=say_building)
+
+
 def map_coverage(option: str | None, own: str | None) -> str:
     """The coverage a command draws a map's extent by: ``--coverage``, else the map's own, else
     ``LANEMAP_MAP_COVERAGE`` as the server reads it, else the server's default (``hull``)."""

@@ -12,8 +12,7 @@ import typer
 from localizer import METHODS, ErrorEllipse, LocalizationInputError, Options, Prior, localize, warm_up
 from localizer.robust import along_across_sigmas
 from service.cli_errors import fail
-from service.cli_io import coverage_option, is_stdio, kept_indexes, map_coverage
-from service.index_files import current_index
+from service.cli_io import command_index, coverage_option, is_stdio, map_coverage
 from service.map_index import MIN_PROBABILITY_RANGE, localize_options
 
 #: Exit codes of ``lanemap localize`` by the answer's status (the last frame's
@@ -231,14 +230,8 @@ def register(app: typer.Typer) -> None:
             fail(f"map {map_id!r} has no markings yet")
         coverage = map_coverage(coverage, info.coverage)
         _ready_kernels()
-        files = kept_indexes(store)
-
-        def say_building(count: int) -> None:
-            typer.echo(f"note: building the localization index of map {map_id} ({count:,} markings); "
-                       f"it is kept in {files.directory} for the next calls", err=True)
-
         try:
-            index = current_index(store, map_id, info.crs, coverage, files, on_build=say_building)
+            index = command_index(store, map_id, info.crs, coverage)
             # Without --position-sigma the fix takes the library's default sigma.
             sigma = {} if position_sigma is None else {"position_sigma_m": position_sigma}
             prior = None if lat is None else Prior(

@@ -106,8 +106,7 @@ def register(app: typer.Typer) -> None:
         from mapbuilder.geojson import write_geojson_object
 
         from ..cli_errors import fail
-        from ..cli_io import coverage_option, is_stdio, kept_indexes, map_coverage
-        from ..index_files import current_index
+        from ..cli_io import command_index, coverage_option, is_stdio, map_coverage
         from ..map_index import coverage_feature
 
         coverage_option(coverage)
@@ -116,11 +115,7 @@ def register(app: typer.Typer) -> None:
         if info.crs is None:
             fail(f"map {map_id!r} has no markings yet")
         coverage, revision = map_coverage(coverage, info.coverage), info.revision
-        files = kept_indexes(store)
-        index = current_index(store, map_id, info.crs, coverage, files, on_build=lambda count: typer.echo(
-            f"note: building the localization index of map {map_id} ({count:,} markings); it is kept in "
-            f"{files.directory} for the next calls", err=True))
-        feature = coverage_feature(index, map_id, coverage, revision)
+        feature = coverage_feature(command_index(store, map_id, info.crs, coverage), map_id, coverage, revision)
         if is_stdio(out):
             typer.echo(json.dumps(feature))
             return
@@ -135,12 +130,12 @@ def register(app: typer.Typer) -> None:
         yes: bool = typer.Option(False, "--yes", "-y", help="Do not ask for confirmation."),
     ) -> None:
         """Delete a map with its markings, history, imagery records and jobs."""
+        from ..cli_io import kept_indexes
+
         store = Store()
         info = store.get_map(map_id, with_count=True)
         if not yes and not typer.confirm(f"delete map {map_id} and its {info.count} markings?"):
             raise typer.Exit(1)
-        from ..cli_io import kept_indexes
-
         created = store.map_head(map_id).created
         store.delete_map(map_id)
         files = kept_indexes(store)
