@@ -339,8 +339,8 @@ class IndexCache:
         finally:
             with self._lock:
                 self._children.discard(child)
-        if child.exitcode == 0 and self._forget_if_deleted(map_id, head):
-            raise UnknownMapError(map_id)
+        if not self._closed and self._forget_if_deleted(map_id, head):
+            raise UnknownMapError(map_id)  # whether the child read it before (0) or failed to (1)
         kept = self.files.load(map_id, head, coverage, newer_than=head.revision - 1) \
             if child.exitcode == 0 else None
         if kept is None:

@@ -331,6 +331,29 @@ def test_a_large_maps_index_is_built_in_a_child_process_and_handed_over_in_its_f
         assert "a" not in blocked._maps
     finally:
         blocked.close()
+    # a map deleted before its child read it is an unknown map (404), not a failed build (503)
+    store.create_map("gone", crs=CRS)
+    store.add_markings("gone", _markings(40))
+    created = store.map_head("gone").created
+
+    class DeletedFirst(Store):
+        def get_map(self, map_id, **kw):
+            info = super().get_map(map_id, **kw)
+            if map_id == "gone" and kw.get("with_count"):
+                store.delete_map(map_id)  # after the build has read the map's head, before the child starts
+            return info
+
+    deleting = DeletedFirst(url)
+    late = IndexCache(deleting, "hull", background_from=0, process_from=40, files=files)
+    try:
+        with pytest.raises(IndexPending) as pending:
+            late.lookup("gone")
+        with pytest.raises(UnknownMapError):
+            pending.value.future.result(timeout=60)
+        assert not [p for p in files.directory.glob("*.index") if files._map_key("gone", created) in p.name]
+    finally:
+        late.close()
+        deleting.close()
         store.close()
 
 
