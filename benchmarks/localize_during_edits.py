@@ -17,8 +17,9 @@ GPS-like prior):
   map's index to be built (the server is started with
   ``LANEMAP_INDEX_PRELOAD=0``, so the build is the request's own);
 * *quiet*: nobody edits;
-* *editing*: an editor changes one filler marking's weight every
-  ``--edit-every`` seconds (a PATCH, as the web editor sends).
+* *editing*: an editor changes one filler marking's weight (or, with
+  ``--edit move``, moves it by about 10 cm) every ``--edit-every`` seconds
+  (a PATCH, as the web editor sends).
 
 Per phase it prints the answers' p50 / p99 / max latency, how many took over
 250 ms, and how far behind the map's revision the answers were
@@ -99,11 +100,12 @@ _WEIGHTS = itertools.count(37)
 
 
 class Editor(threading.Thread):
-    """Changes a filler marking's weight every ``every`` seconds; keeps the revision of each edit."""
+    """Changes a filler marking every ``every`` seconds: its weight, or (``move``) its place, by
+    about 10 cm to and fro; keeps the revision of each edit."""
 
-    def __init__(self, base: str, ids: list[int], every: float):
+    def __init__(self, base: str, ids: list[int], every: float, move: bool = False):
         super().__init__(daemon=True)
-        self.base, self.ids, self.every = base, ids, every
+        self.base, self.ids, self.every, self.move = base, ids, every, move
         self.stop = threading.Event()
         self.revisions: list[tuple[float, int]] = []  # (monotonic time answered, map revision after)
         self.errors = 0
@@ -114,8 +116,13 @@ class Editor(threading.Thread):
             k = 0
             while not self.stop.wait(self.every):
                 fid = self.ids[k % len(self.ids)]
-                r = c.patch(f"/collections/{MAP_ID}/items/{fid}", headers=headers,
-                            content=json.dumps({"properties": {"weight": next(_WEIGHTS)}}))
+                if self.move:
+                    lon, lat = c.get(f"/collections/{MAP_ID}/items/{fid}").json()["geometry"]["coordinates"]
+                    step = 1.4e-6 * (1 if (k // len(self.ids)) % 2 == 0 else -1)
+                    change = {"geometry": {"type": "Point", "coordinates": [lon + step, lat]}}
+                else:
+                    change = {"properties": {"weight": next(_WEIGHTS)}}
+                r = c.patch(f"/collections/{MAP_ID}/items/{fid}", headers=headers, content=json.dumps(change))
                 if r.status_code != 200:
                     self.errors += 1
                     continue
@@ -197,6 +204,8 @@ def main() -> None:
     ap.add_argument("--coverage", nargs="+", default=["hull", "markings"], choices=("hull", "markings"))
     ap.add_argument("--duration", type=float, default=20.0, help="seconds per phase")
     ap.add_argument("--edit-every", type=float, default=1.0, help="seconds between the editor's edits")
+    ap.add_argument("--edit", choices=("weight", "move"), default="weight",
+                    help="what each edit changes: a marking's weight, or its place (about 10 cm)")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE", help="server settings")
     ap.add_argument("--png", type=Path, default=REPO / "benchmarks" / "out" / "localize_during_edits.png",
@@ -226,7 +235,7 @@ def main() -> None:
                                headers={"Content-Type": "application/json"}, timeout=300)
                 print(f"  cold     first answer ({r.json()['status']}) after {(time.monotonic() - t) * 1e3:.0f} ms")
                 report("quiet", *drive(server.base_url, bodies, args.duration))
-                editor = Editor(server.base_url, ids, args.edit_every)
+                editor = Editor(server.base_url, ids, args.edit_every, move=args.edit == "move")
                 timeline: list = []
                 began = time.monotonic()
                 editor.start()

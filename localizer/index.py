@@ -378,7 +378,10 @@ class MapIndex:
                     length=merge(old.length, rows.length), known=merge(old.known, rows.known),
                     line=merge(old.line, rows.line), measured=merge(old.measured, rows.measured),
                     key=merged_key[order])  # fmt: skip
-        tree = cKDTree(now.xy) if len(now.xy) else cKDTree(np.zeros((0, 2)))
+        if now.xy.shape == self.xy.shape and np.array_equal(now.xy, self.xy):
+            tree = self.tree  # no marking moved, came or went (weights, kinds)
+        else:
+            tree = cKDTree(now.xy) if len(now.xy) else cKDTree(np.zeros((0, 2)))
         line = now.line.copy()
         changed_xy = np.concatenate([self.xy[gone], rows.xy])
         if now.u is not None and len(changed_xy) and not now.known.all():

@@ -20,7 +20,7 @@ from mapbuilder.store import Store, UnknownMapError
 
 from . import metrics
 from .index_files import NOT_KEPT, IndexFiles, build_kept
-from .map_index import load_index
+from .map_index import load_index, updated_index
 from .problems import Problem
 
 log = logging.getLogger(__name__)
@@ -122,6 +122,7 @@ class IndexedMap:
     revision: int
     coverage: str
     created: str
+    read: bool = False  # from a kept file
 
 
 class IndexCache:
@@ -284,6 +285,13 @@ class IndexCache:
     def _build(self, map_id: str, coverage: str) -> IndexedMap:
         t = time.perf_counter()
         head = self.store.map_head(map_id)  # before the markings: an index never claims a newer revision
+        with self._lock:
+            have = self._maps.get(map_id)
+        if have is not None and (have.coverage, have.created) == (coverage, head.created) and \
+                have.revision < head.revision:
+            updated = self._updated(map_id, have, head, t)
+            if updated is not None:
+                return updated
         files = self.files
         info = self.store.get_map(map_id, with_count=files is not None)  # counted once per revision
         if info.crs is None:
@@ -311,6 +319,30 @@ class IndexCache:
             built = self._built_here(map_id, coverage, head, info.crs, t)
             files.save(map_id, head, coverage, built.index)
             self._forget_if_deleted(map_id, head)
+        return built
+
+    def _updated(self, map_id: str, have: IndexedMap, head, t: float) -> IndexedMap | None:
+        """``have`` updated with the map's changes since (:func:`updated_index`); None where it must
+        be built anew."""
+        imaged = self.store.imaged_footprint(map_id) if have.coverage == "imagery" else None
+        done = updated_index(self.store, map_id, have.index, have.revision, have.coverage, imaged)
+        if done is None:
+            return None
+        index, revision, changes = done
+        built = IndexedMap(index, revision, have.coverage, head.created)
+        seconds = time.perf_counter() - t
+        self._install(map_id, built, rest_s=self.rest_factor * seconds)
+        log.info("map %s: spatial index of %d markings updated from revision %d to %d with %d changed markings "
+                 "(coverage: %s) in %.2f s", map_id, len(index), have.revision, revision, changes, have.coverage,
+                 seconds)  # fmt: skip
+        metrics.index_update_seconds.observe(seconds)
+        if have.read and self.files is not None and len(index) >= self.files.min_markings:
+            # An older kept index caught up (a server that started after edits): kept, so that the
+            # next start reads this one. Not after each edit: a city's file is a hundred megabytes.
+            now = self.store.map_head(map_id)
+            if now.revision == revision and now.created == head.created:
+                self.files.save(map_id, now, have.coverage, index)
+                self._forget_if_deleted(map_id, now)
         return built
 
     def _forget_if_deleted(self, map_id: str, head) -> bool:
@@ -370,7 +402,7 @@ class IndexCache:
         return built
 
     def _install_kept(self, map_id: str, coverage: str, head, kept, t: float) -> IndexedMap:
-        built = IndexedMap(kept.index, kept.revision, coverage, head.created)
+        built = IndexedMap(kept.index, kept.revision, coverage, head.created, read=True)
         self._install(map_id, built, rest_s=0.0)
         current = kept.revision == head.revision
         if not current:

@@ -95,10 +95,11 @@ def index_files(settings, data_dir: Path, database_url) -> "IndexFiles | None":
 
 def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFiles | None",
                   on_build=None) -> MapIndex:
-    """The map's index at its revision now: read from ``files`` when one is kept, else built (and
-    kept there for the next process). ``on_build(count)`` is called before building a map of
+    """The map's index at its revision now: read from ``files`` when one is kept, else an older
+    one kept there updated with the edits since (:func:`~service.map_index.updated_index`), else
+    built; kept there for the next process. ``on_build(count)`` is called before building a map of
     ``count`` markings that will be kept (``lanemap localize`` says that it takes a while)."""
-    from .map_index import load_index
+    from .map_index import load_index, updated_index
 
     count = 0 if files is None else store.get_map(map_id, with_count=True).count
     if files is None or count < files.min_markings:
@@ -111,6 +112,15 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
         kept = files.load(map_id, head, coverage, newer_than=head.revision - 1)  # built by another process meanwhile
         if kept is not None:
             return kept.index
+        older = files.load(map_id, head, coverage)  # updated with the edits since, if few
+        imaged = store.imaged_footprint(map_id) if older is not None and coverage == "imagery" else None
+        done = None if older is None else updated_index(store, map_id, older.index, older.revision, coverage, imaged)
+        if done is not None:
+            index, revision, _ = done
+            now = store.map_head(map_id)
+            if (now.revision, now.created) == (revision, head.created):
+                files.save(map_id, now, coverage, index)
+            return index
         if on_build is not None:
             on_build(count)
         index = load_index(store, map_id, crs, coverage)

@@ -65,6 +65,10 @@ index_build_seconds = Histogram(
     "lanemap_index_build_duration_seconds", "Time a map's localization index took to build from its markings, "
     "seconds", buckets=_SECONDS,
 )
+index_update_seconds = Histogram(
+    "lanemap_index_update_duration_seconds", "Time a map's localization index took to update with the markings "
+    "changed since it was built, instead of being built anew, seconds", buckets=_SECONDS,
+)
 index_file_loads = Counter(
     "lanemap_index_file_loads", "Localization indexes read from a file (LANEMAP_INDEX_DIR) instead of built, by "
     "whether they were at the map's revision (current) or older (stale, answering while the newest is built)",

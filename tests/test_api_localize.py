@@ -266,7 +266,9 @@ def test_a_large_map_answers_from_its_previous_index_until_the_new_one_is_built(
         counted = re.search(rf'lanemap_localizations_stale_total{{map="{map_id}"}} (\S+)', metrics)
         assert counted and float(counted.group(1)) >= 1
         builds = re.search(r"lanemap_index_build_duration_seconds_count (\S+)", metrics)
-        assert builds and float(builds.group(1)) >= 2  # the first index, and the edited map's
+        updates = re.search(r"lanemap_index_update_duration_seconds_count (\S+)", metrics)
+        # the first index built, then updated with the markings the edit deleted, not built anew
+        assert builds and float(builds.group(1)) == 1 and updates and float(updates.group(1)) >= 1
     finally:
         server.stop()
 
@@ -356,12 +358,14 @@ def test_a_server_started_again_reads_the_indexes_it_kept(tmp_path, karlsruhe_fc
     store.add_markings("ka", [Marking(x=457_000.0, y=5_428_000.0, length_m=3.0, width_m=0.12, weight=30.0)])
     edited = store.map_head("ka").revision
     store.close()
-    caught_up = f"map ka: spatial index of {n + 1} markings at revision {edited} (coverage: hull) in"
+    caught_up = (f"map ka: spatial index of {n + 1} markings updated from revision {first_revision} to {edited} "
+                 "with 1 changed markings (coverage: hull) in")
     server = started(caught_up)
     try:
         log = server.log()
         assert f"at revision {first_revision} of {edited} (coverage: hull) read from" in log and caught_up in log
-        assert log.index("read from") < log.index(caught_up)  # the kept one first, then the newest, unasked
+        # the kept one first, then the newest, unasked: the kept one updated with the edit, and kept
+        assert log.index("read from") < log.index(caught_up)
         deadline = time.monotonic() + 10
         while file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)

@@ -23,8 +23,8 @@ CRS = "EPSG:25832"
 
 
 class GatedStore(Store):
-    """A real store whose reads of all of a map's markings (the index builds') wait for ``gate``,
-    and then fail with ``fail`` when it is set."""
+    """A real store whose reads of a map's markings (the index builds', and the changes its
+    updates read) wait for ``gate``, and then fail with ``fail`` when it is set."""
 
     def __init__(self, url: str):
         super().__init__(url)
@@ -39,6 +39,13 @@ class GatedStore(Store):
         if self.fail is not None:
             raise self.fail
         return super().marking_arrays(map_id, *args, **kwargs)
+
+    def changes(self, map_id, *args, **kwargs):
+        self.reading.set()
+        assert self.gate.wait(30), "the test never opened the gate"
+        if self.fail is not None:
+            raise self.fail
+        return super().changes(map_id, *args, **kwargs)
 
 
 def _markings(n: int, x0: float = 457_000.0, seed: int = 0) -> list[Marking]:
@@ -381,3 +388,67 @@ def test_a_map_deleted_while_its_index_is_kept_leaves_no_file(store, tmp_path):
             cache.lookup("a")
     finally:
         cache.close()
+
+
+@pytest.mark.parametrize("coverage", ["hull", "markings"])
+def test_an_index_updated_from_the_change_feed_is_the_one_built_anew(tmp_path, coverage, monkeypatch):
+    """A real SQLite store: the Karlsruhe map with detections beside it, then edits of every kind a
+    person or a build makes (moves, kinds, weights, deletions, creations, detections rejected and
+    accepted, a changeset reverted): the index updated with the change feed since it was built
+    is the one built from the map as it is, revision after revision."""
+    from mapbuilder.store import Change
+    from service.map_index import load_index, updated_index
+
+    from ._localizer_helpers import CRS, karlsruhe_store
+
+    store = Store(karlsruhe_store(tmp_path))
+    try:
+        rng = np.random.default_rng(11)
+        detected = [Marking(x=457_300.0 + 9.0 * k, y=5_428_650.0 + 3.5 * (k % 2) + rng.normal(0, 0.05),
+                            length_m=float(rng.choice([3.0, 1.2, 3.1])), width_m=0.12, bearing_deg=90.0,
+                            weight=30.0, source="detected", score=float(rng.uniform(0.2, 0.9)))
+                    for k in range(60)]  # fmt: skip
+        store.add_markings("ka", detected)
+        index = load_index(store, "ka", CRS, coverage)
+        _ = index.extent
+        revision = store.map_head("ka").revision
+        ids = [m.id for m in store.iter_markings("ka")]
+        edits = [
+            [Change("update", id=ids[3], fields={"x": store.get_marking("ka", ids[3]).x + 4.0}),
+             Change("update", id=ids[10], fields={"kind": None}), Change("update", id=ids[11], fields={"weight": 99.0}),
+             Change("delete", id=ids[20])],
+            [Change("create", marking=Marking(x=457_250.0, y=5_428_640.0, length_m=3.0, width_m=0.12,
+                                              bearing_deg=12.0, weight=20.0, kind="solid"))],
+        ]
+        steps = [lambda e=e: store.apply_changeset("ka", e, who="test") for e in edits]
+        steps.append(lambda: store.review_by_score("ka", accept_from=0.7, reject_below=0.4, who="test"))
+        steps.append(lambda: store.revert_changeset("ka", store.changesets("ka")[0][0].id, who="test"))
+        sizes = []
+        for step in steps:
+            step()
+            updated, at, changes = updated_index(store, "ka", index, revision, coverage)
+            anew = load_index(store, "ka", CRS, coverage)
+            assert at == store.map_head("ka").revision and changes >= 1
+            np.testing.assert_array_equal(updated.key, anew.key)
+            np.testing.assert_array_equal(updated.xy, anew.xy)
+            np.testing.assert_array_equal(updated.weight, anew.weight)
+            np.testing.assert_array_equal(updated.half_length, anew.half_length)
+            np.testing.assert_array_equal(updated.axis, anew.axis)
+            np.testing.assert_array_equal(updated.extent.squares, anew.extent.squares)
+            assert all(a.equals_exact(b, 0.0) for a, b in zip(updated.extent.pieces, anew.extent.pieces))
+            index, revision = updated, at
+            sizes.append(len(index))
+        # the review's rejections left the index, and its revert brought them back
+        assert sizes[2] < sizes[1] == 819 + 60 - 1 + 1 == sizes[3]
+        # more changes than an update is worth (here 100 at least, a tenth of the map): built anew
+        from service import map_index
+
+        monkeypatch.setattr(map_index, "UPDATE_MIN", 100)
+        store.apply_changeset("ka", [Change("update", id=i, fields={"weight": 5.0}) for i in index.key[:100].tolist()],
+                              who="test")  # fmt: skip
+        assert updated_index(store, "ka", index, revision, coverage) is not None
+        store.apply_changeset("ka", [Change("update", id=i, fields={"weight": 6.0}) for i in index.key[:101].tolist()],
+                              who="test")  # fmt: skip
+        assert updated_index(store, "ka", index, revision, coverage) is None
+    finally:
+        store.close()

@@ -398,7 +398,8 @@ def test_maps_coverage_writes_the_ground_a_map_speaks_for(tmp_path, monkeypatch,
 def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monkeypatch):
     """A map of at least ``LANEMAP_INDEX_DIR_FROM`` markings has its index built once and kept in
     ``LANEMAP_INDEX_DIR``: the next call reads it (and says nothing about building), a call after an
-    edit builds the edited map's, deleting the map deletes them, and ``off`` keeps none."""
+    edit updates it with the edit and keeps the edited map's, deleting the map deletes them, and
+    ``off`` keeps none."""
     import shutil
 
     from mapbuilder.model import Marking
@@ -440,11 +441,13 @@ def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monk
     far = held["index"].__class__.from_arrays(held["index"].xy[:, 0] + 5000.0, held["index"].xy[:, 1], crs="EPSG:25832")
     file.write_bytes(pickle.dumps({**held, "index": far}))
     assert run()[0]["status"] == "failed"
+    file.write_bytes(pickle.dumps(held))
     store = Store(url)
     store.add_markings("ka", [Marking(x=pose[0] + 500.0, y=pose[1], length_m=3.0, width_m=0.12, weight=30.0)])
     store.close()
     edited, said = run()
-    assert "building" in said and edited["status"] == "ok"
+    # the kept index is updated with the edit, not built anew, and kept in place of the older
+    assert "building" not in said and edited["status"] == "ok"
     assert abs(edited["easting"] - first["easting"]) < 1e-6
     assert len(list(kept.glob("*-hull-*.index"))) == 1 and not file.exists()  # the edited map's replaced it
     # deleting the map deletes what was kept of it
