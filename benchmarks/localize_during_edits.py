@@ -39,6 +39,7 @@ import argparse
 import itertools
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -97,6 +98,16 @@ def fill(url: str, n: int) -> list[int]:
 
 #: Each edit sets a weight no edit set before: an edit that changes nothing moves no revision on.
 _WEIGHTS = itertools.count(37)
+
+
+def index_work(metrics: str) -> str:
+    """The server's index builds and updates so far, from its ``/metrics``."""
+    out = []
+    for what, name in (("builds", "build"), ("updates", "update")):
+        got = {k: float(v) for k, v in re.findall(rf"lanemap_index_{name}_duration_seconds_(count|sum) (\S+)", metrics)}
+        n = int(got.get("count", 0))
+        out.append(f"{n} {what}" + (f" (mean {got['sum'] / n:.2f} s)" if n else ""))
+    return ", ".join(out)
 
 
 class Editor(threading.Thread):
@@ -244,6 +255,7 @@ def main() -> None:
                 editor.join()
                 runs[coverage] = (timeline, [at - began for at, _ in editor.revisions])
                 report("editing", *result, extra=f"; {len(editor.revisions)} edits ({editor.errors} refused)")
+                print(f"  index    {index_work(httpx.get(f'{server.base_url}/metrics').text)}")
                 if "Traceback" in server.log():
                     print("  server log has a traceback:\n" + server.log()[-3000:])
             finally:
