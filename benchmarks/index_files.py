@@ -5,8 +5,10 @@ plus ``--markings`` filler markings of a jittered street grid 13 km east of
 it (``localize_during_edits.py``), in a fresh SQLite store.
 
 * *CLI*: ``lanemap localize`` of ``docs/examples/frame.json``, for each
-  coverage: the first call (it builds the index and keeps it) and the next
-  (it reads it), wall clock, CPU and peak memory of the process.
+  coverage: the first call (it builds the index and keeps it), the next
+  (it reads it) and one after a marking was moved (it reads the kept index,
+  updates it with the edit and keeps that), wall clock, CPU and peak memory
+  of the process.
 * *Server*: ``lanemap serve --workers N`` started with ``LANEMAP_INDEX_DIR=off``
   (every worker builds its own), then with no kept index (one builds and
   keeps it, the others wait for it and read it), then started again with
@@ -63,6 +65,18 @@ def cli_call(env: dict, coverage: str, tmp: Path) -> tuple[float, float, float, 
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, status.group(1)
 
 
+def move_one(url: str, marking_id: int) -> None:
+    """Move a filler marking by 10 cm: the next call updates the kept index with it."""
+    from mapbuilder.store import Change, Store
+
+    store = Store(url)
+    try:
+        x = store.get_marking(MAP_ID, marking_id).x
+        store.apply_changeset(MAP_ID, [Change("update", id=marking_id, fields={"x": x + 0.1})], who="benchmark")
+    finally:
+        store.close()
+
+
 def server_start(url: str, data: Path, env: dict, workers: int, bodies: list[bytes], settle: int) -> dict:
     launched = time.monotonic()
     server = start_server(url, data, env=env, args=("--workers", str(workers), "--log-level", "info"), timeout=600)
@@ -105,7 +119,7 @@ def main() -> None:
     try:
         n = load_map(url)
         t = time.perf_counter()
-        fill(url, args.markings)
+        ids = fill(url, args.markings)
         print(f"map {MAP_ID}: {n} Karlsruhe markings + {args.markings:,} filler ones (loaded in "
               f"{time.perf_counter() - t:.0f} s)\n")
         base_env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
@@ -114,7 +128,9 @@ def main() -> None:
         print("lanemap localize docs/examples/frame.json   wall s   CPU s   peak MB   status")
         for coverage in [] if args.no_cli else args.coverage:
             shutil.rmtree(kept, ignore_errors=True)
-            for label in ("builds, keeps", "reads the kept"):
+            for label in ("builds, keeps", "reads the kept", "after an edit"):
+                if label == "after an edit":
+                    move_one(url, ids[0])
                 wall, cpu, rss, status = cli_call(base_env, coverage, tmp)
                 print(f"  {coverage:9s} {label:22s} {wall:8.2f} {cpu:7.2f} {rss:9.0f}   {status}")
             size = sum(p.stat().st_size for p in kept.glob("*.index"))
