@@ -143,6 +143,10 @@ class IndexCache:
     core in each server process, not all of it. A request for a map without
     an index yet, or whose coverage changed, waits for the build
     (:class:`IndexPending`), but other maps' requests do not wait with it.
+    After an edit, a map's index is not built anew but updated with the
+    markings changed since its revision (:func:`updated_index`: 0.1 s for an
+    edit of 200,000 markings, against 0.7-2.6 s for a build), unless they are
+    more than a tenth of the map.
 
     Parameters
     ----------
