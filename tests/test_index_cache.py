@@ -33,18 +33,18 @@ class GatedStore(Store):
         self.reading = threading.Event()
         self.fail: Exception | None = None
 
-    def marking_arrays(self, map_id, *args, **kwargs):
+    def _wait_at_gate(self) -> None:
         self.reading.set()
         assert self.gate.wait(30), "the test never opened the gate"
         if self.fail is not None:
             raise self.fail
+
+    def marking_arrays(self, map_id, *args, **kwargs):
+        self._wait_at_gate()
         return super().marking_arrays(map_id, *args, **kwargs)
 
     def changes(self, map_id, *args, **kwargs):
-        self.reading.set()
-        assert self.gate.wait(30), "the test never opened the gate"
-        if self.fail is not None:
-            raise self.fail
+        self._wait_at_gate()
         return super().changes(map_id, *args, **kwargs)
 
 
@@ -391,18 +391,21 @@ def test_a_map_deleted_while_its_index_is_kept_leaves_no_file(store, tmp_path):
 
 
 @pytest.mark.parametrize("coverage", ["hull", "markings"])
-def test_an_index_updated_from_the_change_feed_is_the_one_built_anew(tmp_path, coverage, monkeypatch):
-    """A real SQLite store: the Karlsruhe map with detections beside it, then edits of every kind a
-    person or a build makes (moves, kinds, weights, deletions, creations, detections rejected and
-    accepted, a changeset reverted): the index updated with the change feed since it was built
-    is the one built from the map as it is, revision after revision."""
+def test_an_index_updated_from_the_change_feed_is_the_one_built_anew(db_url, coverage, monkeypatch,
+                                                                     karlsruhe_markings):  # fmt: skip
+    """A real SQLite file and PostgreSQL server: the Karlsruhe map with detections beside it, then
+    edits of every kind a person or a build makes (moves, kinds, weights, deletions, creations,
+    detections rejected and accepted, a changeset reverted): the index updated with the change
+    feed since it was built is the one built from the map as it is, revision after revision."""
     from mapbuilder.store import Change
     from service.map_index import load_index, updated_index
 
-    from ._localizer_helpers import CRS, karlsruhe_store
+    from ._localizer_helpers import CRS
 
-    store = Store(karlsruhe_store(tmp_path))
+    store = Store(db_url)
     try:
+        store.create_map("ka", "Karlsruhe", CRS)
+        store.add_markings("ka", karlsruhe_markings)
         rng = np.random.default_rng(11)
         detected = [Marking(x=457_300.0 + 9.0 * k, y=5_428_650.0 + 3.5 * (k % 2) + rng.normal(0, 0.05),
                             length_m=float(rng.choice([3.0, 1.2, 3.1])), width_m=0.12, bearing_deg=90.0,
