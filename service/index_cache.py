@@ -15,7 +15,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from localizer import MapIndex
+from localizer import LocalizationInputError, MapIndex
 from mapbuilder.store import Store, UnknownMapError
 
 from . import metrics
@@ -329,7 +329,11 @@ class IndexCache:
         """``have`` updated with the map's changes since (:func:`updated_index`); None where it must
         be built anew."""
         imaged = self.store.imaged_footprint(map_id) if have.coverage == "imagery" else None
-        done = updated_index(self.store, map_id, have.index, have.revision, have.coverage, imaged)
+        try:
+            done = updated_index(self.store, map_id, have.index, have.revision, have.coverage, imaged)
+        except LocalizationInputError as exc:  # values a build would refuse too: it says so
+            log.warning("map %s: its spatial index could not be updated (%s); building it anew", map_id, exc)
+            return None
         if done is None:
             return None
         index, revision, changes = done

@@ -390,6 +390,36 @@ def test_a_map_deleted_while_its_index_is_kept_leaves_no_file(store, tmp_path):
         cache.close()
 
 
+def test_an_edit_updates_the_index_and_an_update_refused_is_a_build(store, monkeypatch, caplog):
+    """A small map (it waits for its new index) after an edit: updated with the edit, not built;
+    where the update refuses the changes (values a build checks too), built anew, with a warning."""
+    import logging
+
+    from localizer import LocalizationInputError
+    from service import index_cache
+
+    cache = IndexCache(store, "hull", background_from=1000)
+    try:
+        _ready(cache, "a")
+        store.add_markings("a", _markings(5, x0=457_090.0))
+        with caplog.at_level(logging.INFO, logger="service.index_cache"):
+            new, stale = _ready(cache, "a")
+        assert not stale and len(new.index) == 35 and "updated from revision" in caplog.text
+        caplog.clear()
+
+        def refuse(*args, **kwargs):
+            raise LocalizationInputError("key: keys must be unique")
+
+        monkeypatch.setattr(index_cache, "updated_index", refuse)
+        store.add_markings("a", _markings(5, x0=457_200.0))
+        with caplog.at_level(logging.INFO, logger="service.index_cache"):
+            new, stale = _ready(cache, "a")
+        assert not stale and len(new.index) == 40 and new.revision == store.map_head("a").revision
+        assert "could not be updated (key: keys must be unique); building it anew" in caplog.text
+        assert "spatial index of 40 markings at revision" in caplog.text  # the build's own line
+    finally:
+        cache.close()
+
 @pytest.mark.parametrize("coverage", ["hull", "markings"])
 def test_an_index_updated_from_the_change_feed_is_the_one_built_anew(db_url, coverage, monkeypatch,
                                                                      karlsruhe_markings):  # fmt: skip
