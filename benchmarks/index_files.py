@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from load_localize import MAP_ID, load_map, make_bodies  # noqa: E402
-from localize_during_edits import fill  # noqa: E402
+from localize_during_edits import city_arguments, fill, header, load_average  # noqa: E402
 from tests._api_helpers import start_server  # noqa: E402
 
 FRAME = REPO / "docs" / "examples" / "frame.json"
@@ -104,15 +104,13 @@ def server_start(url: str, data: Path, env: dict, workers: int, bodies: list[byt
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--markings", type=int, default=1_000_000, help="filler markings beside the Karlsruhe ones")
-    ap.add_argument("--coverage", nargs="+", default=["hull", "markings"], choices=("hull", "markings"))
+    city_arguments(ap, 1_000_000)
     ap.add_argument("--workers", type=int, default=2, help="server worker processes")
     ap.add_argument("--settle", type=int, default=20, help="answers in a row within 100 ms that end a start")
     ap.add_argument("--no-cli", action="store_true", help="the server's starts only")
     args = ap.parse_args()
 
-    print(f"lanemap kept indexes, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
-          f"load average {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(header("kept indexes"))
     tmp = Path(tempfile.mkdtemp(prefix="lanemap-kept-"))
     url = f"sqlite:///{tmp / 'lanemap.sqlite'}"
     kept = tmp / "data" / "indexes"
@@ -148,7 +146,7 @@ def main() -> None:
                       f"        {r['builds']} / {r['reads']}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    print(f"\nload average at the end: {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(f"\nload average at the end: {load_average()}")
 
 
 if __name__ == "__main__":

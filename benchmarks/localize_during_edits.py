@@ -209,10 +209,25 @@ def report(name: str, lat: np.ndarray, lags: np.ndarray, statuses: dict, extra: 
           f"{int((lat > SLOW_MS).sum())} over {SLOW_MS:.0f} ms{lag}{extra}")
 
 
+def city_arguments(ap: argparse.ArgumentParser, markings: int) -> None:
+    """The options of the benchmarks on the filler city: its size and the coverages to run."""
+    ap.add_argument("--markings", type=int, default=markings, help="filler markings beside the Karlsruhe ones")
+    ap.add_argument("--coverage", nargs="+", default=["hull", "markings"], choices=("hull", "markings"))
+
+
+def load_average() -> str:
+    return "/".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def header(title: str) -> str:
+    """A run's first line: what, when, on how many cores, under what load."""
+    return (f"lanemap {title}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
+            f"load average {load_average()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--markings", type=int, default=200_000, help="filler markings beside the Karlsruhe ones")
-    ap.add_argument("--coverage", nargs="+", default=["hull", "markings"], choices=("hull", "markings"))
+    city_arguments(ap, 200_000)
     ap.add_argument("--duration", type=float, default=20.0, help="seconds per phase")
     ap.add_argument("--edit-every", type=float, default=1.0, help="seconds between the editor's edits")
     ap.add_argument("--edit", choices=("weight", "move"), default="weight",
@@ -223,8 +238,7 @@ def main() -> None:
                     help="where the editing phases' latency timeline is saved")
     args = ap.parse_args()
 
-    print(f"lanemap localization during edits, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
-          f"{os.cpu_count()} cores, load average {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(header("localization during edits"))
     bodies = make_bodies(args.frames, 7, 1.5, 2.0)
     tmp = Path(tempfile.mkdtemp(prefix="lanemap-edits-"))
     url = f"sqlite:///{tmp / 'lanemap.sqlite'}"
@@ -264,7 +278,7 @@ def main() -> None:
         print(f"\nplot: {args.png}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    print(f"\nload average at the end: {'/'.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(f"\nload average at the end: {load_average()}")
 
 
 if __name__ == "__main__":
