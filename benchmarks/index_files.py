@@ -40,8 +40,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from load_localize import MAP_ID, load_map, make_bodies  # noqa: E402
-from localize_during_edits import city_arguments, fill, header, load_average  # noqa: E402
+from load_localize import MAP_ID, make_bodies  # noqa: E402
+from localize_during_edits import city_arguments, city_map, header, load_average  # noqa: E402
 from tests._api_helpers import start_server  # noqa: E402
 
 FRAME = REPO / "docs" / "examples" / "frame.json"
@@ -115,11 +115,8 @@ def main() -> None:
     url = f"sqlite:///{tmp / 'lanemap.sqlite'}"
     kept = tmp / "data" / "indexes"
     try:
-        n = load_map(url)
-        t = time.perf_counter()
-        ids = fill(url, args.markings)
-        print(f"map {MAP_ID}: {n} Karlsruhe markings + {args.markings:,} filler ones (loaded in "
-              f"{time.perf_counter() - t:.0f} s)\n")
+        ids, loaded = city_map(url, args.markings)
+        print(f"{loaded}\n")
         base_env = {k: v for k, v in os.environ.items() if not k.startswith("LANEMAP_")}
         base_env.update(LANEMAP_DATABASE_URL=url, LANEMAP_DATA_DIR=str(tmp / "data"))
         subprocess.run([LANEMAP, "maps", "list"], env=base_env, capture_output=True, check=True)  # compiled, warm

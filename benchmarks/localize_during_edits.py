@@ -209,6 +209,16 @@ def report(name: str, lat: np.ndarray, lags: np.ndarray, statuses: dict, extra: 
           f"{int((lat > SLOW_MS).sum())} over {SLOW_MS:.0f} ms{lag}{extra}")
 
 
+def city_map(url: str, markings: int) -> tuple[list[int], str]:
+    """Load the Karlsruhe map and ``markings`` filler ones: the ids of the first 1,000 filler
+    markings, and a line that says what was loaded and how long it took."""
+    n = load_map(url)
+    t = time.perf_counter()
+    ids = fill(url, markings)
+    return ids, (f"map {MAP_ID}: {n} Karlsruhe markings + {markings:,} filler ones "
+                 f"(loaded in {time.perf_counter() - t:.0f} s)")
+
+
 def city_arguments(ap: argparse.ArgumentParser, markings: int) -> None:
     """The options of the benchmarks on the filler city: its size and the coverages to run."""
     ap.add_argument("--markings", type=int, default=markings, help="filler markings beside the Karlsruhe ones")
@@ -243,11 +253,8 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="lanemap-edits-"))
     url = f"sqlite:///{tmp / 'lanemap.sqlite'}"
     try:
-        n = load_map(url)
-        t = time.perf_counter()
-        ids = fill(url, args.markings)
-        print(f"map {MAP_ID}: {n} Karlsruhe markings + {args.markings:,} filler ones "
-              f"(loaded in {time.perf_counter() - t:.0f} s); an edit every {args.edit_every:g} s")
+        ids, loaded = city_map(url, args.markings)
+        print(f"{loaded}; an edit every {args.edit_every:g} s")
         runs: dict = {}
         for coverage in args.coverage:
             env = {"LANEMAP_MAP_COVERAGE": coverage, "LANEMAP_INDEX_PRELOAD": "0",
