@@ -58,8 +58,9 @@ def index_from_markings(arrays: MarkingArrays, crs: str, coverage: str = "hull",
 
 
 #: Markings' bearings are turned by the meridian convergence at the centre of
-#: their square of this side, metres: within 0.01 degrees of their own up to
-#: 55 degrees of latitude (0.005 in Karlsruhe, 0.04 at 80 degrees), and a
+#: their square of this side, metres: 0.005 degrees from their own at most
+#: in Karlsruhe (measured at 49 degrees of latitude; the gap grows with the
+#: latitude's tangent, so reckoned 0.01 at 57 degrees and 0.04 at 80), and a
 #: marking's grid bearing a function of its own place (an index updated with
 #: an edit has the bearings of one built anew).
 CONVERGENCE_SQUARE_M = 1000.0
@@ -93,8 +94,9 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
                   imaged=None) -> tuple[MapIndex, int, int] | None:  # fmt: skip
     """The map's index ``index``, built at revision ``since``, updated with the markings
     written and removed since (``Store.changes``): ``(index, revision, changes)``, the same as
-    :func:`load_index` at that revision (a tenth of a second for a few edits of a city, against
-    seconds to minutes). None where it must be built anew: an index without keys, more changes
+    :func:`load_index` at that revision (an edit of 200,000 markings in 0.08-0.10 s, against
+    2.4-4.8 s for a build; of 1,000,000 in 0.45-1.1 s, against 25-27 s, on a server's two
+    busy cores). None where it must be built anew: an index without keys, more changes
     than :data:`UPDATE_SHARE` of it, a change feed that no longer reaches back to ``since``, or
     (``coverage`` ``imagery``) imaged ground that is not ``imaged`` any more.
 
