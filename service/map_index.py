@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import functools
+import logging
 
 import numpy as np
 
 from localizer import GeoFrame, MapIndex, Options
 from mapbuilder.store import MarkingArrays, StaleRevisionError, Store
+
+log = logging.getLogger(__name__)
 
 #: Range of a request's ``min_probability``, the posterior an ``ok`` answer
 #: needs: below 0.5 an ``ok`` answer could be likelier wrong than right.
@@ -105,17 +108,24 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
     mapbuilder.store.UnknownMapError
         The map was deleted.
     """
-    if index.key is None or not len(index) or (coverage == "imagery" and not _same_ground(index.extent_area, imaged)):
-        return None  # an empty map's index has no columns to update
+    if index.key is None or not len(index):
+        return None  # kept by an older version, or an empty map's index, which has no columns to update
+    if coverage == "imagery" and not _same_ground(index.extent_area, imaged):
+        log.info("map %s: its imaged ground changed since revision %d; its index is built anew", map_id, since)
+        return None
     cap = max(UPDATE_MIN, int(UPDATE_SHARE * len(index)))
     records, after = [], None
     while True:
         try:
             page = store.changes(map_id, since, statuses=INDEXED_STATUSES, after=after, limit=1000)
         except StaleRevisionError:
+            log.info("map %s: its change feed no longer reaches back to revision %d; its index is built anew",
+                     map_id, since)  # fmt: skip
             return None
         records += [(rev, m.id, m) for rev, m in page.changed] + [(rev, i, None) for rev, i in page.removed]
         if len(records) > cap:
+            log.info("map %s: more than %d markings changed since revision %d; its index is built anew",
+                     map_id, cap, since)  # fmt: skip
             return None
         if not page.more:
             break
@@ -123,10 +133,10 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
     last = {i: m for _, i, m in sorted(records, key=lambda r: (r[0], r[1]))}  # each marking as it is now
     written = [m for m in last.values() if m is not None]
     removed = np.array([i for i, m in last.items() if m is None], np.int64)
-    cols = np.array([(m.id, m.x, m.y, m.weight, m.length_m, m.bearing_deg) for m in written], float).reshape(-1, 6)
+    cols = np.array([(m.x, m.y, m.weight, m.length_m, m.bearing_deg) for m in written], float).reshape(-1, 5)
     shaped = {} if index.inputs is None or index.inputs.u is None else {
-        "bearing_deg": grid_bearings(index.frame, cols[:, 1], cols[:, 2], cols[:, 5]), "length_m": cols[:, 4]}
-    updated = index.updated(removed, cols[:, 0].astype(np.int64), cols[:, 1], cols[:, 2], cols[:, 3],
+        "bearing_deg": grid_bearings(index.frame, cols[:, 0], cols[:, 1], cols[:, 4]), "length_m": cols[:, 3]}
+    updated = index.updated(removed, np.array([m.id for m in written], np.int64), cols[:, 0], cols[:, 1], cols[:, 2],
                             kind=[m.kind for m in written], measured=[m.source == "detected" for m in written],
                             **shaped)  # fmt: skip
     return updated, page.revision, len(last)

@@ -7,6 +7,7 @@ requests, and an index is never taken for a map it was not built from.
 
 from __future__ import annotations
 
+import logging
 import re
 import threading
 import time
@@ -393,8 +394,6 @@ def test_a_map_deleted_while_its_index_is_kept_leaves_no_file(store, tmp_path):
 def test_an_edit_updates_the_index_and_an_update_refused_is_a_build(store, monkeypatch, caplog):
     """A small map (it waits for its new index) after an edit: updated with the edit, not built;
     where the update refuses the changes (values a build checks too), built anew, with a warning."""
-    import logging
-
     from localizer import LocalizationInputError
     from service import index_cache
 
@@ -422,7 +421,7 @@ def test_an_edit_updates_the_index_and_an_update_refused_is_a_build(store, monke
 
 @pytest.mark.parametrize("coverage", ["hull", "markings"])
 def test_an_index_updated_from_the_change_feed_is_the_one_built_anew(db_url, coverage, monkeypatch,
-                                                                     karlsruhe_markings):  # fmt: skip
+                                                                     karlsruhe_markings, caplog):  # fmt: skip
     """A real SQLite file and PostgreSQL server: the Karlsruhe map with detections beside it, then
     edits of every kind a person or a build makes (moves, kinds, weights, deletions, creations,
     detections rejected and accepted, a changeset reverted): the index updated with the change
@@ -482,6 +481,8 @@ def test_an_index_updated_from_the_change_feed_is_the_one_built_anew(db_url, cov
         assert updated_index(store, "ka", index, revision, coverage) is not None
         store.apply_changeset("ka", [Change("update", id=i, fields={"weight": 6.0}) for i in index.key[:101].tolist()],
                               who="test")  # fmt: skip
-        assert updated_index(store, "ka", index, revision, coverage) is None
+        with caplog.at_level(logging.INFO, logger="service.map_index"):
+            assert updated_index(store, "ka", index, revision, coverage) is None
+        assert f"more than 100 markings changed since revision {revision}; its index is built anew" in caplog.text
     finally:
         store.close()
