@@ -130,6 +130,43 @@ def test_an_update_that_moves_nothing_keeps_the_extent_and_one_not_drawn_stays_u
     assert later.extent.squares.shape[0] >= 1
 
 
+@pytest.mark.parametrize("kinds", [True, False], ids=["imported", "detected"])
+def test_an_update_of_weights_alone_shares_all_but_the_weights(kinds):
+    """A review's decisions and corrected weights leave the markings' places, kinds and lengths as
+    they were: the updated index is still the one built anew, but it keeps the index's own
+    arrays, KD-tree and extent, and an update that changes nothing keeps its weights too. A
+    marking moved, lengthened, measured otherwise or made a piece of a solid line is no such
+    update."""
+    rng = np.random.default_rng(8)
+    cols = _map(kinds)
+    index = _build(cols, "markings")
+    drawn = index.extent
+    probes = np.column_stack([rng.uniform(cols["x"].min(), cols["x"].max(), 5_000),
+                              rng.uniform(cols["y"].min(), cols["y"].max(), 5_000)])  # fmt: skip
+    pick = np.sort(rng.choice(len(cols["key"]), 40, replace=False))
+    rows = {k: v[pick].copy() for k, v in cols.items()}
+    rows["weight"] = rows["weight"] * 2.0 + 1.0
+    after = {k: v.copy() for k, v in cols.items()}
+    after["weight"][pick] = rows["weight"]
+    updated = _update(index, [999_999_999], rows)
+    _assert_same(updated, _build(after, "markings"), probes)
+    assert updated.tree is index.tree and updated.expect_xy is index.expect_xy and updated.extent is drawn
+    assert index.weight[pick[0]] == cols["weight"][pick[0]]  # the index it was updated from is as it was
+    unchanged = {k: v[pick].copy() for k, v in after.items()}
+    same = _update(updated, [], unchanged)
+    assert same.weight is updated.weight and same.tree is index.tree
+    one = next(i for i in pick if after["kind"][i] != "solid" and after["length_m"][i] > 0.5)
+    for column, value in (("measured", kinds), ("kind", "solid"), ("x", after["x"][one] + 0.3),
+                          ("length_m", after["length_m"][one] + 1.0)):
+        rows = {k: v[[one]].copy() for k, v in after.items()}
+        rows[column] = np.array([value], after[column].dtype)
+        other = {k: v.copy() for k, v in after.items()}
+        other[column][one] = value
+        changed = _update(updated, [], rows)
+        assert changed.expect_xy is not index.expect_xy  # the whole update
+        _assert_same(changed, _build(other, "markings"), probes)
+
+
 def test_a_square_is_drawn_from_its_halo_alone():
     """Markings beyond a square's halo do not change its piece: the squares an edit does not reach
     keep what they had, and a map of separate parts is drawn part by part."""
