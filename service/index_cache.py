@@ -20,10 +20,18 @@ from mapbuilder.store import Store, UnknownMapError
 
 from . import metrics
 from .index_files import NOT_KEPT, IndexFiles, build_kept
-from .map_index import load_index, updated_index
+from .map_index import UPDATE_SHARE, load_index, updated_index
 from .problems import Problem
 
 log = logging.getLogger(__name__)
+
+#: An index kept current by updates is kept in a file again once the markings written since
+#: the last was kept reach this share of the map (half of what an update takes on: a process
+#: that starts then catches up by updating, not building) ...
+KEEP_SHARE = UPDATE_SHARE / 2
+#: ... or this many seconds after the last, if any was written (a change feed pruned of its
+#: deletions older than ``LANEMAP_FEED_RETENTION_DAYS`` still reaches back to the file).
+KEEP_AFTER_S = 3600.0
 
 
 def _heap_trimmer():
@@ -165,7 +173,9 @@ class IndexCache:
         has none here yet, an older one to answer from meanwhile), and keeps
         what it builds there. A process that starts then reads a city's index
         in a tenth of a second, and the workers of one server build each
-        revision once between them.
+        revision once between them. An index kept current by updates is kept
+        again after :data:`KEEP_SHARE` of the map was written, or
+        :data:`KEEP_AFTER_S`, and after catching up at a start.
     process_from : int, optional
         A map of at least this many markings has its index built in a child
         process (``LANEMAP_INDEX_PROCESS_FROM``; with ``files`` only, through
@@ -191,6 +201,7 @@ class IndexCache:
         self._building: dict[str, tuple[str, concurrent.futures.Future]] = {}  # map id: coverage, build
         self._rest_until: dict[str, float] = {}  # map id: no background build before (time.monotonic)
         self._catch_up: set[str] = set()  # maps answering from an older kept index: build the newest next
+        self._unkept: dict[str, tuple[float, int]] = {}  # map id: last kept (time.monotonic), markings written since
         self._closed = False
         self._builder = _Builder()
 
@@ -263,6 +274,7 @@ class IndexCache:
         with self._lock:
             self._maps.pop(map_id, None)
             self._rest_until.pop(map_id, None)
+            self._unkept.pop(map_id, None)
         if created is not None and self.files is not None:
             self.files.forget(map_id, created)
 
@@ -321,7 +333,8 @@ class IndexCache:
             if self.process_from is not None and info.count >= self.process_from:
                 return self._built_in_child(map_id, coverage, head, info.crs, t)
             built = self._built_here(map_id, coverage, head, info.crs, t)
-            files.save(map_id, head, coverage, built.index)
+            if files.save(map_id, head, coverage, built.index) is not None:
+                self._kept(map_id)
             self._forget_if_deleted(map_id, head)
         return built
 
@@ -344,14 +357,35 @@ class IndexCache:
                  "(coverage: %s) in %.2f s", map_id, len(index), have.revision, revision, changes, have.coverage,
                  seconds)  # fmt: skip
         metrics.index_update_seconds.observe(seconds)
-        if have.read and self.files is not None and len(index) >= self.files.min_markings:
-            # An older kept index caught up (a server that started after edits): kept, so that the
-            # next start reads this one. Not after each edit: a city's file is a hundred megabytes.
+        if self._keep_due(map_id, have, len(index), changes):
+            # Not after each edit: a city's file is 150 MB. Only at the map's head: a file of an
+            # older revision than the map's newest kept file would replace it.
             now = self.store.map_head(map_id)
             if now.revision == revision and now.created == head.created:
-                self.files.save(map_id, now, have.coverage, index)
+                t_keep = time.perf_counter()
+                if self.files.save(map_id, now, have.coverage, index) is not None:
+                    self._kept(map_id)
+                    log.info("map %s: spatial index at revision %d kept in %s in %.2f s", map_id, revision,
+                             self.files.directory, time.perf_counter() - t_keep)  # fmt: skip
                 self._forget_if_deleted(map_id, now)
         return built
+
+    def _keep_due(self, map_id: str, have: IndexedMap, size: int, changes: int) -> bool:
+        """Whether the map's index, updated from ``have`` with ``changes`` markings, is to be kept:
+        ``have`` was read from an older file (a process that started after edits), or
+        :data:`KEEP_SHARE` of the map was written or :data:`KEEP_AFTER_S` passed since the last."""
+        if self.files is None or size < self.files.min_markings:
+            return False
+        with self._lock:
+            since, written = self._unkept.get(map_id, (time.monotonic(), 0))
+            written += changes
+            self._unkept[map_id] = (since, written)
+        return have.read or written >= KEEP_SHARE * size or time.monotonic() - since >= KEEP_AFTER_S
+
+    def _kept(self, map_id: str) -> None:
+        """The map's index was kept in a file (or read from one) just now."""
+        with self._lock:
+            self._unkept[map_id] = (time.monotonic(), 0)
 
     def _forget_if_deleted(self, map_id: str, head) -> bool:
         """A map deleted while its index was built and kept: its file goes too (the deletion's own
@@ -393,6 +427,7 @@ class IndexCache:
         built = IndexedMap(kept.index, head.revision, coverage, head.created)
         seconds = time.perf_counter() - t
         self._install(map_id, built, rest_s=self.rest_factor * seconds)
+        self._kept(map_id)
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s) in %.2f s, built by process %d",
                  map_id, len(kept.index), head.revision, coverage, seconds, child.pid)
         metrics.index_build_seconds.observe(seconds)
@@ -412,6 +447,7 @@ class IndexCache:
     def _install_kept(self, map_id: str, coverage: str, head, kept, t: float) -> IndexedMap:
         built = IndexedMap(kept.index, kept.revision, coverage, head.created, read=True)
         self._install(map_id, built, rest_s=0.0)
+        self._kept(map_id)
         current = kept.revision == head.revision
         if not current:
             with self._lock:

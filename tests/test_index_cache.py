@@ -266,6 +266,49 @@ def test_a_process_that_starts_reads_the_index_another_kept(store, tmp_path):
         second.close()
 
 
+def test_an_index_kept_current_by_updates_is_kept_again_after_enough_edits_or_time(store, tmp_path, monkeypatch,
+                                                                                   caplog):  # fmt: skip
+    """A server that edits a map all day keeps its index in a file again once a twentieth of the
+    map was written since the last (then a start updates the file's index rather than build
+    one), or an hour after the last if anything was; not after each edit."""
+    from mapbuilder.store import Change
+    from service import index_cache
+
+    files = _files(tmp_path, store)
+    cache = IndexCache(store, "hull", background_from=1000, files=files)
+    try:
+        first, _ = _ready(cache, "a")
+        assert files.load("a", store.map_head("a"), "hull").revision == first.revision
+        ids = [m.id for m in store.query_bbox("a", 456_000, 5_427_000, 458_000, 5_429_000)][:2]
+
+        def edit(i: int) -> int:
+            weight = 50.0 + store.map_head("a").revision  # another each time
+            store.apply_changeset("a", [Change("update", id=ids[i], fields={"weight": weight})], who="test")
+            with caplog.at_level(logging.INFO, logger="service.index_cache"):
+                now, stale = _ready(cache, "a")
+            assert not stale and "updated from revision" in caplog.text
+            return now.revision
+
+        edit(0)  # 1 of 30 markings: not yet a twentieth
+        assert files.load("a", store.map_head("a"), "hull").revision == first.revision
+        revision = edit(1)
+        assert files.load("a", store.map_head("a"), "hull").revision == revision
+        assert f"spatial index at revision {revision} kept in" in caplog.text
+        assert len(list(files.directory.glob("*.index"))) == 1
+        monkeypatch.setattr(index_cache, "KEEP_AFTER_S", 0.0)  # as if an hour passed
+        revision = edit(0)
+        assert files.load("a", store.map_head("a"), "hull").revision == revision
+        second = IndexCache(store, "hull", background_from=1000, files=files)  # a start reads it, current
+        try:
+            store.reading.clear()
+            read, stale = _ready(second, "a")
+            assert read.revision == revision and not store.reading.is_set()
+        finally:
+            second.close()
+    finally:
+        cache.close()
+
+
 def test_a_large_map_edited_meanwhile_answers_from_the_kept_index_until_the_newest_is_built(store, tmp_path):
     built = _kept_by_a_first_process(store, tmp_path, "hull")
     store.add_markings("a", _markings(5, x0=457_090.0))  # while no server ran
