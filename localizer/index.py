@@ -555,7 +555,8 @@ class _Rows:
         keys = None
         if key is not None:
             try:
-                keys = np.asarray(key).astype(np.int64, casting="safe").reshape(-1)
+                keys = np.asarray(key)
+                keys = (keys if keys.size else keys.astype(np.int64)).astype(np.int64, casting="safe").reshape(-1)
             except (TypeError, ValueError) as exc:
                 raise LocalizationInputError("key: not an array of integers") from exc
             if keys.size != n:

@@ -127,6 +127,9 @@ def test_an_update_that_moves_nothing_keeps_the_extent_and_one_not_drawn_stays_u
     fresh = _build(cols, "markings")
     later = _update(fresh, cols["key"][:3], {k: v[:0] for k, v in cols.items()})
     assert "extent" not in later.__dict__ and len(later) == len(cols["key"]) - 3
+    removals = fresh.updated(cols["key"][:3].tolist(), [], [], [], [], kind=[], bearing_deg=[], length_m=[],
+                             measured=[])  # plain lists, none written  # fmt: skip
+    np.testing.assert_array_equal(removals.key, later.key)
     assert later.extent.squares.shape[0] >= 1
 
 
