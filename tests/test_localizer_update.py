@@ -7,7 +7,7 @@ import pytest
 import shapely
 
 from localizer import LocalizationInputError, MapIndex
-from localizer.index import EXTENT_SQUARE_M, map_extent
+from localizer.index import EXTENT_SQUARE_M, _triangles_area, map_extent
 
 from ._localizer_helpers import CRS, KarlsruheMarkings
 
@@ -188,6 +188,41 @@ def test_a_square_is_drawn_from_its_halo_alone():
     assert not line.beyond(dashes[:, 0], dashes[:, 1] + 0.9).any()
     assert line.beyond(dashes[:, 0], dashes[:, 1] + 1.1).all()
     assert shapely.get_num_geometries(line.area) == 300
+
+
+def test_the_area_of_triangles_drawn_from_their_outline_is_their_union(monkeypatch):
+    """The short triangles of a triangulation, drawn from the edges of one triangle only: the
+    union of the triangles as polygons, holes and parts touching at a corner included, on the
+    Karlsruhe markings and on random points; degenerate (flat) triangles are joined as polygons."""
+    from scipy.spatial import Delaunay
+
+    from localizer import index
+
+    joins, union_all = [], shapely.union_all
+    monkeypatch.setattr(index.shapely, "union_all", lambda *a, **k: joins.append(1) or union_all(*a, **k))
+    rng = np.random.default_rng(3)
+    ka = KarlsruheMarkings().xy
+    holes = 0
+    for pts, link in ((ka, 30.0), (ka, 8.0), (rng.uniform(0.0, 100.0, (400, 2)), 9.0)):
+        tri = Delaunay(pts)
+        corners = pts[tri.simplices]
+        short = (np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2) <= link).all(axis=1)
+        drawn = _triangles_area(pts, tri.simplices[short])
+        joined = union_all(shapely.polygons(corners[short]))
+        assert drawn.is_valid and abs(drawn.area - joined.area) < 1e-6 * joined.area
+        assert drawn.symmetric_difference(joined).area < 1e-6 * joined.area
+        assert shapely.get_num_geometries(drawn) == shapely.get_num_geometries(joined)
+        holes += shapely.get_num_interior_rings(shapely.get_parts(drawn)).sum()
+        assert shapely.get_num_interior_rings(shapely.get_parts(joined)).sum() == \
+            shapely.get_num_interior_rings(shapely.get_parts(drawn)).sum()  # fmt: skip
+    assert holes > 0  # the case is exercised
+    assert not joins  # drawn from the outlines, not joined as polygons
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [2.0, 2.0], [2.0, 1.0], [1.0, 2.0]])
+    pinched = _triangles_area(square, np.array([[0, 1, 2], [0, 2, 3], [2, 5, 4], [2, 4, 6]]))
+    assert pinched.area == pytest.approx(2.0) and shapely.get_num_geometries(pinched) == 2
+    flat = _triangles_area(np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [1.0, 1.0]]),
+                           np.array([[0, 1, 2], [0, 1, 3], [1, 2, 3]]))  # fmt: skip
+    assert flat.area == pytest.approx(1.0) and joins
 
 
 def test_updates_are_refused_where_they_cannot_be_right():
