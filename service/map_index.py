@@ -98,8 +98,9 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
     """The map's index ``index``, built at revision ``since``, updated with the markings
     written and removed since (``Store.changes``): ``(index, revision, changes)``, the same as
     :func:`load_index` at that revision (an edit of 200,000 markings in 0.08-0.10 s, against
-    2.4-4.8 s for a build; of 1,000,000 in 1.1 s for a moved marking and 0.01 s for a weight or
-    a review's decision, against 25-27 s, on a server's two busy cores). None where it must be built anew: an index without keys, more changes
+    2.4-4.8 s for a build; of 1,000,000 in 0.7-1.1 s for a moved marking and 0.01 s for a
+    weight or a review's decision, against 18-27 s, on a server's two busy cores). None where
+    it must be built anew: an index without keys, more changes
     than :data:`UPDATE_SHARE` of it, a change feed that no longer reaches back to ``since``, or
     (``coverage`` ``imagery``) imaged ground that is not ``imaged`` any more.
 
