@@ -335,6 +335,7 @@ class IndexCache:
             built = self._built_here(map_id, coverage, head, info.crs, t)
             if files.save(map_id, head, coverage, built.index) is not None:
                 self._kept(map_id)
+                metrics.index_file_saves.labels("build").inc()
             self._forget_if_deleted(map_id, head)
         return built
 
@@ -365,6 +366,7 @@ class IndexCache:
                 t_keep = time.perf_counter()
                 if self.files.save(map_id, now, have.coverage, index) is not None:
                     self._kept(map_id)
+                    metrics.index_file_saves.labels("update").inc()
                     log.info("map %s: spatial index at revision %d kept in %s in %.2f s", map_id, revision,
                              self.files.directory, time.perf_counter() - t_keep)  # fmt: skip
                 self._forget_if_deleted(map_id, now)
@@ -428,6 +430,7 @@ class IndexCache:
         seconds = time.perf_counter() - t
         self._install(map_id, built, rest_s=self.rest_factor * seconds)
         self._kept(map_id)
+        metrics.index_file_saves.labels("build").inc()  # by the child
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s) in %.2f s, built by process %d",
                  map_id, len(kept.index), head.revision, coverage, seconds, child.pid)
         metrics.index_build_seconds.observe(seconds)

@@ -74,6 +74,11 @@ index_file_loads = Counter(
     "whether they were at the map's revision (current) or older (stale, answering while the newest is built)",
     ["revision"],
 )
+index_file_saves = Counter(
+    "lanemap_index_file_saves", "Localization indexes kept in a file (LANEMAP_INDEX_DIR), by what they came from: "
+    "a build, or updates (a start's catch-up, a twentieth of the map written, or an hour since the last)",
+    ["after"],
+)
 stale_localizations = Counter(
     "lanemap_localizations_stale", "Localization answers from a map's previous index while the index of its "
     "newest revision was built, by map", ["map"],

@@ -274,11 +274,18 @@ def test_an_index_kept_current_by_updates_is_kept_again_after_enough_edits_or_ti
     from mapbuilder.store import Change
     from service import index_cache
 
+    from prometheus_client import REGISTRY
+
+    def saves(after: str) -> float:
+        return REGISTRY.get_sample_value("lanemap_index_file_saves_total", {"after": after}) or 0.0
+
     files = _files(tmp_path, store)
     cache = IndexCache(store, "hull", background_from=1000, files=files)
+    built, updated = saves("build"), saves("update")
     try:
         first, _ = _ready(cache, "a")
         assert files.load("a", store.map_head("a"), "hull").revision == first.revision
+        assert saves("build") == built + 1
         ids = [m.id for m in store.query_bbox("a", 456_000, 5_427_000, 458_000, 5_429_000)][:2]
 
         def edit(i: int) -> int:
@@ -293,7 +300,7 @@ def test_an_index_kept_current_by_updates_is_kept_again_after_enough_edits_or_ti
         assert files.load("a", store.map_head("a"), "hull").revision == first.revision
         revision = edit(1)
         assert files.load("a", store.map_head("a"), "hull").revision == revision
-        assert f"spatial index at revision {revision} kept in" in caplog.text
+        assert f"spatial index at revision {revision} kept in" in caplog.text and saves("update") == updated + 1
         assert len(list(files.directory.glob("*.index"))) == 1
         monkeypatch.setattr(index_cache, "KEEP_AFTER_S", 0.0)  # as if an hour passed
         revision = edit(0)
@@ -360,9 +367,16 @@ def test_a_large_maps_index_is_built_in_a_child_process_and_handed_over_in_its_f
     files = IndexFiles(tmp_path / "indexes", database_identity(url), min_markings=1)
     cache = IndexCache(store, "markings", background_from=0, files=files, process_from=40)
     caplog.set_level(logging.INFO, logger="service.index_cache")
+    from prometheus_client import REGISTRY
+
+    def saves() -> float:
+        return REGISTRY.get_sample_value("lanemap_index_file_saves_total", {"after": "build"}) or 0.0
+
+    before = saves()
     try:
         built, stale = _ready(cache, "a")
         assert not stale and len(built.index) == 40 and built.revision == store.map_head("a").revision
+        assert saves() == before + 1  # the child's, counted here
         pid = int(re.search(r"map a: spatial index of 40 markings .* built by process (\d+)", caplog.text).group(1))
         assert pid != os.getpid()
         here = IndexCache(store, "markings", background_from=0)  # the same map built in this process
