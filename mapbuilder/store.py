@@ -1384,6 +1384,24 @@ class Store:
         last = (records[-1][0], records[-1][1]) if records else None
         return Changes(revision=upto, changed=changed, removed=removed, more=more, after=last, crs=row.crs)
 
+    def count_changes(self, map_id: str, since: int) -> int:
+        """How many markings :meth:`changes` lists after revision ``since``, written or
+        removed (each once), without reading them: two counts over the feed's indexes.
+
+        Raises
+        ------
+        UnknownMapError
+            If the map does not exist.
+        """
+        c, rm = markings.c, removed_markings.c
+        with self._read() as conn:
+            self._map_row(conn, map_id)
+            written = conn.execute(select(func.count()).select_from(markings)
+                                   .where(c.map_id == map_id, c.revision > since)).scalar_one()
+            gone = conn.execute(select(func.count()).select_from(removed_markings)
+                                .where(rm.map_id == map_id, rm.revision > since)).scalar_one()
+        return int(written) + int(gone)
+
     def prune_removed(self, map_id: str, older_than: datetime) -> tuple[int, int]:
         """Forget the deletions recorded before ``older_than`` (an aware datetime).
 

@@ -115,6 +115,8 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
         log.info("map %s: its imaged ground changed since revision %d; its index is built anew", map_id, since)
         return None
     cap = max(UPDATE_MIN, int(UPDATE_SHARE * len(index)))
+    if store.count_changes(map_id, since) > cap:  # before reading them: a review's 100,000 decisions
+        return _too_many(map_id, cap, since)
     records, after = [], None
     while True:
         try:
@@ -124,10 +126,8 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
                      map_id, since)  # fmt: skip
             return None
         records += [(rev, m.id, m) for rev, m in page.changed] + [(rev, i, None) for rev, i in page.removed]
-        if len(records) > cap:
-            log.info("map %s: more than %d markings changed since revision %d; its index is built anew",
-                     map_id, cap, since)  # fmt: skip
-            return None
+        if len(records) > cap:  # written since they were counted
+            return _too_many(map_id, cap, since)
         if not page.more:
             break
         after = page.after
@@ -141,6 +141,10 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
                             kind=[m.kind for m in written], measured=[m.source == "detected" for m in written],
                             **shaped)  # fmt: skip
     return updated, page.revision, len(last)
+
+
+def _too_many(map_id: str, cap: int, since: int) -> None:
+    log.info("map %s: more than %d markings changed since revision %d; its index is built anew", map_id, cap, since)
 
 
 def _same_ground(a, b) -> bool:
