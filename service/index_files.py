@@ -99,7 +99,7 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
     one kept there updated with the edits since (:func:`~service.map_index.updated_index`), else
     built; kept there for the next process. ``on_build(count)`` is called before building a map of
     ``count`` markings that will be kept (``lanemap localize`` says that it takes a while)."""
-    from .map_index import load_index, updated_index
+    from .map_index import load_index, update_cap, updated_index
 
     count = 0 if files is None else store.get_map(map_id, with_count=True).count
     if files is None or count < files.min_markings:
@@ -112,7 +112,10 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
         kept = files.load(map_id, head, coverage, newer_than=head.revision - 1)  # built by another process meanwhile
         if kept is not None:
             return kept.index
-        older = files.load(map_id, head, coverage)  # updated with the edits since, if few
+        older = None  # updated with the edits since, if few: counted before the file is read
+        since = files.newest_revision(map_id, head, coverage)
+        if since is not None and store.count_changes(map_id, since) <= update_cap(count):
+            older = files.load(map_id, head, coverage)
         imaged = store.imaged_footprint(map_id) if older is not None and coverage == "imagery" else None
         done = None if older is None else updated_index(store, map_id, older.index, older.revision, coverage, imaged)
         if done is not None:
@@ -224,6 +227,12 @@ class IndexFiles:
                 continue
             out.append((revision, path))
         return sorted(out, reverse=True)
+
+    def newest_revision(self, map_id: str, head: MapHead, coverage: str) -> int | None:
+        """The revision of the newest kept index of the map by ``coverage`` at or before ``head``'s,
+        from the files' names (not read); None if none."""
+        kept = self._kept(map_id, head, coverage)
+        return kept[0][0] if kept else None
 
     def load(self, map_id: str, head: MapHead, coverage: str, newer_than: int = -1) -> KeptIndex | None:
         """The newest kept index of the map by ``coverage`` at or before ``head``'s revision and after

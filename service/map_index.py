@@ -114,7 +114,7 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
     if coverage == "imagery" and not _same_ground(index.extent_area, imaged):
         log.info("map %s: its imaged ground changed since revision %d; its index is built anew", map_id, since)
         return None
-    cap = max(UPDATE_MIN, int(UPDATE_SHARE * len(index)))
+    cap = update_cap(len(index))
     if store.count_changes(map_id, since) > cap:  # before reading them: a review's 100,000 decisions
         return _too_many(map_id, cap, since)
     records, after = [], None
@@ -141,6 +141,12 @@ def updated_index(store: Store, map_id: str, index: MapIndex, since: int, covera
                             kind=[m.kind for m in written], measured=[m.source == "detected" for m in written],
                             **shaped)  # fmt: skip
     return updated, page.revision, len(last)
+
+
+def update_cap(size: int) -> int:
+    """The most markings changed since an index of ``size`` markings that :func:`updated_index`
+    takes on (:data:`UPDATE_SHARE`, :data:`UPDATE_MIN`); more are built anew."""
+    return max(UPDATE_MIN, int(UPDATE_SHARE * size))
 
 
 def _too_many(map_id: str, cap: int, since: int) -> None:

@@ -450,6 +450,21 @@ def test_a_large_maps_index_is_kept_for_the_next_call(stored_map, tmp_path, monk
     assert "building" not in said and edited["status"] == "ok"
     assert abs(edited["easting"] - first["easting"]) < 1e-6
     assert len(list(kept.glob("*-hull-*.index"))) == 1 and not file.exists()  # the edited map's replaced it
+    # more changes than an update takes on: built anew, and the older file not even read
+    from service import map_index
+    from service.index_files import IndexFiles
+
+    monkeypatch.setattr(map_index, "UPDATE_MIN", 10)
+    store = Store(url)
+    store.add_markings("ka", [Marking(x=pose[0] + 600.0 + 3.0 * k, y=pose[1], length_m=3.0, width_m=0.12, weight=30.0)
+                              for k in range(store.get_map("ka", with_count=True).count // 5)])  # fmt: skip
+    store.close()
+    reads = []
+    read = IndexFiles._read
+    monkeypatch.setattr(IndexFiles, "_read", lambda self, path, *a: reads.append(path) or read(self, path, *a))
+    rebuilt, said = run()
+    assert "note: building the localization index" in said and not reads and rebuilt["status"] == "ok"
+    assert len(list(kept.glob("*-hull-*.index"))) == 1
     # deleting the map deletes what was kept of it
     res = CliRunner().invoke(app, ["maps", "delete", "ka", "--yes"])
     assert res.exit_code == 0 and not list(kept.glob("*.index")), res.output
