@@ -1,7 +1,8 @@
 """Built localization indexes kept in files, for the next process that needs them.
 
 A city's index takes seconds to build from its stored markings (for
-1,000,000 markings 5–7 s drawn by their hull, 35–45 s by ``markings``), and
+1,000,000 markings 7–10 s drawn by their hull, 18–25 s by ``markings`` on
+two cores, 2026-12-07), and
 every process built its own: each ``lanemap localize`` call, and each server
 worker at every start. Kept in a file (``LANEMAP_INDEX_DIR``) it is read back
 in about 0.1 s by any process of the machine that asks for the same map at
