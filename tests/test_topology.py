@@ -156,14 +156,13 @@ def test_a_worker_killed_mid_build_costs_nothing(topology):
         job_id = _start_build(a, map_id, imagery_id)
 
         def busy_worker():
-            for addr, keys in client.processing().items():
-                if keys:
-                    return addr
-            return None
+            held = {addr: len(keys) for addr, keys in client.processing().items() if keys}
+            return max(held, key=held.get) if held else None
 
+        # Killed at once: a request in between gave the worker time to finish the tile in its hands.
         victim = wait_for(busy_worker, 60, period=0.005, what="a worker running the build's tiles")
-        status = httpx.get(f"{b.base_url}/jobs/{job_id}").json()["status"]
         dask.kill_worker(int(str(names[victim]).lstrip("w")))
+        status = httpx.get(f"{b.base_url}/jobs/{job_id}").json()["status"]
         assert status in ("accepted", "running"), "the build ended before a worker could be killed"
         t0 = time.monotonic()
         wait_for(lambda: victim not in client.scheduler_info(n_workers=-1)["workers"], 30,
