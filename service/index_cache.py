@@ -358,18 +358,14 @@ class IndexCache:
                  "(coverage: %s) in %.2f s", map_id, len(index), have.revision, revision, changes, have.coverage,
                  seconds)  # fmt: skip
         metrics.index_update_seconds.observe(seconds)
-        if self._keep_due(map_id, have, len(index), changes):
-            # Not after each edit: a city's file is 150 MB. Only at the map's head: a file of an
-            # older revision than the map's newest kept file would replace it.
-            now = self.store.map_head(map_id)
-            if now.revision == revision and now.created == head.created:
-                t_keep = time.perf_counter()
-                if self.files.save(map_id, now, have.coverage, index) is not None:
-                    self._kept(map_id)
-                    metrics.index_file_saves.labels("update").inc()
-                    log.info("map %s: spatial index at revision %d kept in %s in %.2f s", map_id, revision,
-                             self.files.directory, time.perf_counter() - t_keep)  # fmt: skip
-                self._forget_if_deleted(map_id, now)
+        if self._keep_due(map_id, have, len(index), changes):  # not after each edit: a city's file is 150 MB
+            t_keep = time.perf_counter()
+            if self.files.save_updated(self.store, map_id, head.created, revision, have.coverage, index) is not None:
+                self._kept(map_id)
+                metrics.index_file_saves.labels("update").inc()
+                log.info("map %s: spatial index at revision %d kept in %s in %.2f s", map_id, revision,
+                         self.files.directory, time.perf_counter() - t_keep)  # fmt: skip
+                self._forget_if_deleted(map_id, head)
         return built
 
     def _keep_due(self, map_id: str, have: IndexedMap, size: int, changes: int) -> bool:

@@ -121,9 +121,7 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
         done = None if older is None else updated_index(store, map_id, older.index, older.revision, coverage, imaged)
         if done is not None:
             index, revision, _ = done
-            now = store.map_head(map_id)
-            if (now.revision, now.created) == (revision, head.created):
-                files.save(map_id, now, coverage, index)
+            files.save_updated(store, map_id, head.created, revision, coverage, index)
             return index
         if on_build is not None:
             on_build(count)
@@ -270,6 +268,15 @@ class IndexFiles:
         with contextlib.suppress(OSError):
             os.utime(path)  # used: the last to go when the folder is full
         return kept["index"]
+
+    def save_updated(self, store, map_id: str, created: str, revision: int, coverage: str,
+                     index: MapIndex) -> Path | None:  # fmt: skip
+        """:meth:`save` an index updated to ``revision`` of the map made at ``created``, if that is
+        still the map's head: an older revision would replace the newest file another process kept."""
+        now = store.map_head(map_id)
+        if (now.revision, now.created) != (revision, created):
+            return None
+        return self.save(map_id, now, coverage, index)
 
     def save(self, map_id: str, head: MapHead, coverage: str, index: MapIndex, force: bool = False) -> Path | None:
         """Keep ``index``, built from the map at ``head`` by ``coverage``; its file, or None if not kept.
