@@ -563,6 +563,37 @@ def test_review_by_score_decides_the_sure_detections_in_one_revertible_changeset
     assert (none.accepted, none.rejected, none.changeset_id) == (0, 0, None)
 
 
+def test_a_changeset_past_the_drivers_parameter_limit_is_reverted_whole(store):
+    """A review of a city's detections, and its revert, name more markings than one statement may
+    take parameters: PostgreSQL takes 65,535, SQLite as built here 250,000 and before 3.32 999 (set
+    so here, as such a build would have it). The revert puts every marking back all the same."""
+    if store.dialect == "sqlite":
+        import sqlite3
+
+        from sqlalchemy import event
+
+        @event.listens_for(store.engine, "connect")
+        def _old_limit(dbapi_conn, _):
+            dbapi_conn.setlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER, 999)
+
+        store.engine.dispose()
+        n = 2_500
+    else:
+        n = 66_000
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 3000, (n, 2))
+    store.bulk_load("ka", (_m(a, b, source="detected", score=0.5) for a, b in xy))
+    res = store.review_by_score("ka", accept_from=0.2, who="t")
+    assert (res.accepted, res.rejected) == (n, 0)
+    back = store.revert_changeset("ka", res.changeset_id, who="t")
+    assert len(back.results) == n
+    now = store.marking_arrays("ka", ["unreviewed"])
+    assert len(now) == n and store.summary("ka").by_status == {"unreviewed": n}
+    assert {m.version for m in store.iter_markings("ka")} == {3}
+    assert store.count_changes("ka", res.revision) == n
+
+
 def test_counts_follow_writes_made_by_another_store(store):
     """A store counts a map's markings once per revision: another process's writes (here another
     Store on the same database) move the revision on, and the next listing counts again."""
