@@ -1537,6 +1537,36 @@ class Store:
             ).all()
         return _markings_from_rows(rows), total
 
+    def review_queue(
+        self, map_id: str, *, after: tuple[float | None, int] | None = None, limit: int = 500,
+        lonlat_box: tuple[float, float, float, float] | None = None,
+    ) -> tuple[list[Marking], int]:  # fmt: skip
+        """The next ``limit`` unreviewed detections of a map (those inside ``lonlat_box`` only,
+        when given) in the order a person reviews them: lowest score first, those without a
+        score last, then by id; and how many there are in all.
+
+        ``after`` is the (score, id) of the last detection of the page before (keyset
+        pagination): a detection decided meanwhile leaves the queue without moving the rest,
+        which an offset would.
+        """
+        c = markings.c
+        with self._read() as conn:
+            where = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
+            if where is None:
+                return [], 0
+            where = and_(where, c.source == "detected")
+            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            if after is not None:
+                score, last = after
+                if score is None:
+                    where = and_(where, c.score.is_(None), c.id > last)
+                else:
+                    where = and_(where, or_(c.score > score, and_(c.score == score, c.id > last), c.score.is_(None)))
+            rows = conn.execute(
+                select(*_READ_COLUMNS).where(where).order_by(c.score.is_(None), c.score, c.id).limit(limit)
+            ).all()  # fmt: skip
+        return _markings_from_rows(rows), int(total)
+
     def get_marking(self, map_id: str, marking_id: int) -> Marking:
         with self._read() as conn:
             self._map_row(conn, map_id)

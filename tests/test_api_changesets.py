@@ -320,3 +320,51 @@ def test_detections_are_accepted_and_rejected_by_score_over_http(api):
         assert after == {k: "rejected" if k in rejected else "unreviewed" for k in before}
     with api.client() as c:  # no token: no write
         assert_problem(c.post(url, json={"accept_from": 0.5}), 401)
+
+
+def test_the_review_queue_goes_on_past_detections_decided_meanwhile(api):
+    """``GET /collections/{id}/review/queue``: the unreviewed detections lowest score first (ties by
+    id, those without a score last), a page at a time; a page's ``next`` link goes on after its last
+    detection, so that the detections decided between two pages move nothing; people's markings and
+    decided ones are not in it; a box narrows it; a bad ``after`` is a 400 problem."""
+    map_id = api.new_map(prefix="queue")
+    scores = [0.7, 0.2, None, 0.5, 0.2, 0.9, 0.05, None, 0.5, 0.31, 0.6]
+    feats = [feature(8.428 + k * 1e-4, 49.0071, source="detected", score=s) for k, s in enumerate(scores)]
+    feats += [feature(8.428, 49.0075, source="manual", score=0.01),
+              feature(8.4281, 49.0075, source="detected", score=0.01, status="rejected")]  # fmt: skip
+    with api.client(headers=api.auth) as c:
+        assert c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats}).status_code == 201
+        ids = sorted(int(k) for k, v in _state(c, map_id).items())[:len(scores)]
+        key = {i: (s is None, s or 0.0, i) for i, s in zip(ids, scores)}
+        want = [str(i) for i in sorted(ids, key=key.get)]
+        url = f"/collections/{map_id}/review/queue"
+        first = c.get(url, params={"limit": 4})
+        assert first.status_code == 200 and first.headers["content-type"].startswith("application/geo+json")
+        page = first.json()
+        assert [f["id"] for f in page["features"]] == want[:4] and page["numberMatched"] == len(scores)
+        # two detections of the page and one further on are decided before the next page is read:
+        # the queue skips none (an offset would skip two) and loses the one decided
+        decided = [want[0], want[1], want[6]]
+        for fid in decided:
+            f = c.get(f"/collections/{map_id}/items/{fid}")
+            r = c.patch(f"/collections/{map_id}/items/{fid}", json={"properties": {"status": "accepted"}},
+                        headers={"If-Match": f.headers["etag"], "Content-Type": "application/merge-patch+json"})  # fmt: skip
+            assert r.status_code == 200, r.text
+        got = [f["id"] for f in page["features"]]
+        for _ in range(len(scores)):  # a queue that did not go on would loop
+            nxt = [ln["href"] for ln in page["links"] if ln["rel"] == "next"]
+            if not nxt:
+                break
+            page = c.get(nxt[0]).json()
+            got += [f["id"] for f in page["features"]]
+        assert got == [i for i in want if i != want[6]]
+        assert page["numberMatched"] == len(scores) - 3
+        # within a box: those of the first four detections not decided
+        box = c.get(url, params={"bbox": "8.4279,49.007,8.42835,49.0072"}).json()
+        inside = [str(i) for i in sorted(ids[:4], key=key.get) if str(i) not in decided]
+        assert [f["id"] for f in box["features"]] == inside and len(inside) == 3
+        assert box["numberMatched"] == 3 and not [ln for ln in box["links"] if ln["rel"] == "next"]
+        for bad in ("0.5", "x,3", "nan,3", "0.5,-1", "0.5,0", "inf,2", "0.5,99999999999999999999"):
+            assert_problem(c.get(url, params={"after": bad}), 400, "after")
+        assert_problem(c.get(url, params={"bbox": "1,2,3"}), 400, "bbox")
+        assert_problem(c.get("/collections/no-such-map/review/queue"), 404)

@@ -593,6 +593,41 @@ def test_review_queue_steps_through_detections_by_score(editor, fx):
     page.wait_for_function(f"document.getElementById('review-progress').textContent === {json.dumps(progress)}")
 
 
+def test_the_review_queue_comes_a_page_at_a_time(editor, fx, server):
+    """The queue is read from the server a page at a time (``GET .../review/queue``), the next page
+    asked for before the reviewer reaches it; the reviewer steps through every detection in score
+    order across pages, and one that someone else decided in a page not yet read is not shown."""
+    editor.open().enter_token()
+    page = editor.page
+    q = fx.detected
+    assert len(q) > 12
+    page.evaluate("Object.assign(lanemapEditor.reviewPaging, {page: 4, prefetch: 2})")
+    # someone else accepts the tenth, in the third page, before the review reads it
+    with server.client(headers=server.auth) as c:
+        f = c.get(f"/collections/{fx.map_id}/items/{q[9]}")
+        r = c.patch(f"/collections/{fx.map_id}/items/{q[9]}", json={"properties": {"status": "accepted"}},
+                    headers={"If-Match": f.headers["etag"], "Content-Type": "application/merge-patch+json"})  # fmt: skip
+        assert r.status_code == 200, r.text
+    page.click("#review-start")
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{q[0]}')")
+    assert page.evaluate("lanemapEditor.state.review.queue.length") == 4
+    assert f"1 of {len(q) - 1}:" in page.text_content("#review-status")
+    seen = [q[0]]
+    for k in range(1, len(q) - 1):
+        editor.key("a" if k == 3 else " ")
+        page.wait_for_function("lanemapEditor.state.selection.size === 1 && !lanemapEditor.state.review?.waiting"
+                               f" && !lanemapEditor.state.selection.has('{seen[-1]}')")  # fmt: skip
+        seen.append(next(iter(editor.selection())))
+        loaded = page.evaluate("lanemapEditor.state.review.queue.length")
+        assert loaded <= min(k + 2 + 4, len(q) - 1), (k, loaded)  # read ahead by a page, no further
+    assert seen == [i for i in q if i != q[9]]
+    assert editor.pending()[q[2]]["cur"]["status"] == "accepted"
+    editor.key(" ")
+    page.wait_for_selector("#review-status:has-text('Review done')")
+    pages = [u for s_, u in editor.responses if "/review/queue" in u]
+    assert len(pages) == -(-(len(q) - 1) // 4) + ((len(q) - 1) % 4 == 0), pages
+
+
 def test_the_sure_detections_are_decided_at_once_by_score(editor, fx, server):
     """*Count* says what a review by score would do without writing; *Apply…* asks, then writes
     one changeset, which the history lists and the progress counts; a read-only page cannot apply."""

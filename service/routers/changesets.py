@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from fastapi import APIRouter, Body, Depends, Query, Request
@@ -24,9 +25,12 @@ from mapbuilder.store import (
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem
 from ._common import (
+    GEOJSON,
     JSON,
+    MAX_ID,
     base_url,
     bbox_param,
+    feature_of,
     link,
     marking_from_feature,
     parse_id,
@@ -271,6 +275,53 @@ def review_by_score(
     url = f"{base_url(request)}/collections/{mapId}/changesets/{res.changeset_id}"
     out["links"] = [link(url, "self", JSON)]
     return JSONResponse(out, status_code=201, headers={"Location": url})
+
+
+@router.get(
+    "/collections/{mapId}/review/queue", summary="The unreviewed detections, lowest score first",
+    responses={200: {"content": {GEOJSON: {}}}},
+)  # fmt: skip
+def review_queue(
+    request: Request,
+    mapId: str = MapId,
+    bbox: str | None = Query(None, max_length=200, description="Only inside minLon,minLat,maxLon,maxLat (WGS84)"),
+    limit: int | None = Query(None, ge=1, description="Page size (clamped to the server's maximum)"),
+    after: str | None = Query(None, max_length=80, description="Where the page before ended: its `next` link "
+                                                                "gives it (`score,id`; `none,id` past the scores)"),
+    ctx: Context = Depends(get_ctx),
+):
+    """The queue a person steps through (the web editor's *Start review*): the map's unreviewed
+    detections (within `bbox` when given), lowest score first, those without a score last, a page
+    at a time. The `next` link goes on after the page's last detection, so that the detections
+    decided meanwhile leave the queue without moving the rest. `numberMatched` counts the whole
+    queue as it is now."""
+    lim = min(limit if limit is not None else ctx.settings.items_default_limit, ctx.settings.items_max_limit)
+    key = _queue_key(after)
+    items, matched = ctx.store.review_queue(mapId, after=key, limit=lim, lonlat_box=bbox_param(bbox))
+    links = [link(str(request.url), "self", GEOJSON)]
+    if len(items) == lim:
+        last = items[-1]
+        token = f"{'none' if last.score is None else repr(float(last.score))},{last.id}"
+        links.append(link(str(request.url.include_query_params(after=token, limit=lim)), "next", GEOJSON))
+    body = {"type": "FeatureCollection", "features": [feature_of(m) for m in items], "numberMatched": matched,
+            "numberReturned": len(items), "links": links}  # fmt: skip
+    return JSONResponse(body, media_type=GEOJSON)
+
+
+def _queue_key(after: str | None) -> tuple[float | None, int] | None:
+    """A review queue's ``after`` (``score,id`` or ``none,id``) as (score, id)."""
+    if after is None:
+        return None
+    score, _, mid = after.partition(",")
+    try:
+        key = None if score == "none" else float(score)
+        ok = (key is None or math.isfinite(key)) and mid.isdigit() and 0 < int(mid) <= MAX_ID
+    except ValueError:
+        ok = False
+    if not ok:
+        raise Problem(400, f"after: {after[:80]!r} is not a score and an id (score,id) from a next link",
+                      "bad-request")  # fmt: skip
+    return key, int(mid)
 
 
 @router.post("/collections/{mapId}/changesets/{changesetId}/revert", summary="Revert a changeset",

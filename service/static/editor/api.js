@@ -98,6 +98,23 @@ export class Api {
   }
 
   /**
+   * A page of the map's review queue (its unreviewed detections, lowest score first; within
+   * `bbox` when given), from its start or from the `next` URL of the page before:
+   * {items, total (the whole queue's length), next (null after the last page)}.
+   */
+  async reviewQueue(mapId, bbox, { next = null, pageSize = 500, signal } = {}) {
+    let url = next;
+    if (!url) {
+      const q = new URLSearchParams({ limit: String(pageSize) });
+      if (bbox) q.set('bbox', bbox.map((v) => v.toFixed(7)).join(','));
+      url = this.url(`collections/${encodeURIComponent(mapId)}/review/queue?${q}`);
+    }
+    const page = await this.request('GET', url, { signal });
+    const link = (page.links || []).find((l) => l.rel === 'next');
+    return { items: page.features.map(fromFeature), total: page.numberMatched, next: link ? new URL(link.href) : null };
+  }
+
+  /**
    * What changed in the map since `revision` (following the `next` links): the revision
    * the map is now at, and each changed marking's id with its state now (null: deleted).
    */

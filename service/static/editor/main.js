@@ -28,7 +28,7 @@ const state = {
   selection: new Set(),
   conflicts: new Map(), // id -> conflict from the server
   mode: 'select',
-  review: null, // {queue: [marking], index} or, for a list, {queue: [place], index, list, overlay}
+  review: null, // {queue: [marking], index, total, next, loading, waiting} or, for a list, {queue: [place], index, list, overlay}
   lengthDoubts: new Map(), // id -> typical length (m) of detections whose length the localizer doubts
   gesture: null, // a drag, box or dash being drawn
   afterGesture: false, // the click that ends a drag is not a click
@@ -767,15 +767,10 @@ async function startReview() {
   if (!state.mapId) return;
   $('review-status').textContent = 'Loading unreviewed detections…';
   try {
-    const items = await api.items(state.mapId, reviewBox(), {
-      status: 'unreviewed',
-      pageSize: 10000,
-      onPage: (n, of) => ($('review-status').textContent = `Loading unreviewed detections… ${n} of ${of}`),
-    });
-    for (const m of items) state.known.set(m.id, m);
-    const queue = items.filter((m) => m.source === 'detected')
-      .sort((a, b) => (a.score ?? Infinity) - (b.score ?? Infinity) || Number(a.id) - Number(b.id));
-    state.review = { queue, index: -1 };
+    const page = await api.reviewQueue(state.mapId, reviewBox(), { pageSize: reviewPaging.page });
+    const r = { queue: [], index: -1, total: page.total, next: null, mapId: state.mapId };
+    addReviewPage(r, page);
+    state.review = r;
     $('review-start').hidden = true;
     $('review-stop').hidden = false;
     setMode('select');
@@ -783,6 +778,26 @@ async function startReview() {
   } catch (err) {
     $('review-status').textContent = `Review could not start: ${problemText(err)}`;
   }
+}
+
+// The queue comes a page at a time, the next one asked for while `prefetch` are left: a city's
+// detections would fit neither in a page's memory nor in a reviewer's patience for their download.
+const reviewPaging = { page: 500, prefetch: 100 };
+
+function addReviewPage(r, page) {
+  for (const m of page.items) state.known.set(m.id, m);
+  r.queue.push(...page.items);
+  r.next = page.next;
+}
+
+/** The review queue's next page, once (a promise while it loads). */
+function moreReview(r) {
+  if (!r.loading && r.next) {
+    r.loading = api.reviewQueue(r.mapId, null, { next: r.next })
+      .then((page) => { if (state.review === r) addReviewPage(r, page); })
+      .finally(() => { r.loading = null; });
+  }
+  return r.loading;
 }
 
 /** Centre the view on ``latlng`` at ``zoom``, after a running zoom animation (Leaflet drops a
@@ -918,11 +933,26 @@ function nextReview() {
   }
   do r.index += 1;
   while (r.index < r.queue.length && (current(r.queue[r.index].id)?.status ?? 'gone') !== 'unreviewed');
+  if (r.index >= r.queue.length && r.next) {
+    // past what is loaded: wait for the next page, deciding nothing meanwhile
+    r.index = r.queue.length - 1;
+    r.waiting = true;
+    $('review-status').textContent = 'Loading more unreviewed detections…';
+    moreReview(r).then(() => {
+      r.waiting = false;
+      if (state.review === r) nextReview();
+    }, (err) => {
+      r.failed = true;
+      if (state.review === r) $('review-status').textContent = `The review queue could not go on: ${problemText(err)}; A, R or Space tries again`;
+    });
+    return;
+  }
   if (r.index >= r.queue.length) {
     $('review-status').textContent = `Review done: ${r.queue.length} detections in the queue.`;
     stopReview(false);
     return;
   }
+  if (r.next && r.queue.length - r.index <= reviewPaging.prefetch) moreReview(r)?.catch(() => {}); // tried again when needed
   const m = current(r.queue[r.index].id);
   state.selection = new Set([String(m.id)]);
   goTo([m.lat, m.lon], REVIEW_ZOOM);
@@ -930,7 +960,7 @@ function nextReview() {
   const typical = state.lengthDoubts.get(String(m.id));
   const doubt = typical === undefined ? ''
     : `; ${m.length_m.toFixed(2)} m long where ${typical.toFixed(2)} m is typical: a dash cut short or run long? Fix its ends, or set its kind if it is right`;
-  $('review-status').textContent = `${r.index + 1} of ${r.queue.length}: marking ${m.id}, score ${m.score == null ? '–' : m.score.toFixed(3)}${doubt}`;
+  $('review-status').textContent = `${r.index + 1} of ${Math.max(r.total, r.queue.length)}: marking ${m.id}, score ${m.score == null ? '–' : m.score.toFixed(3)}${doubt}`;
 }
 
 /** At a listed place with no marking of the map, add the marking the list describes
@@ -952,7 +982,16 @@ function addListedMarking() {
 
 function reviewDecide(status) {
   const r = state.review;
-  if (!r || r.index >= r.queue.length) return;
+  if (!r) return;
+  if (r.waiting) {
+    // the next page is loading, or failed to: nothing to decide on until it is here
+    if (r.failed) {
+      r.waiting = r.failed = false;
+      nextReview();
+    }
+    return;
+  }
+  if (r.index >= r.queue.length) return;
   const id = r.list ? r.queue[r.index].id : String(r.queue[r.index].id);
   if (status && r.list && !(id && current(id))) {
     toast('No marking of this map here to decide on: Space goes on.');
@@ -1266,4 +1305,4 @@ function start() {
 start();
 
 // For scripting and end-to-end tests: the map and the editor's state, read-only by convention.
-globalThis.lanemapEditor = { map, state, layer, api, coverage: () => coverage };
+globalThis.lanemapEditor = { map, state, layer, api, reviewPaging, coverage: () => coverage };
