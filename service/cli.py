@@ -101,7 +101,19 @@ def main() -> None:
     else:
         modules = None if module is None else [module]
     try:
-        make_app(modules)()
+        rc = make_app(modules)(prog_name="lanemap", standalone_mode=False)
+    except typer.TyperException as exc:  # what Click calls a ClickException: a usage error, mostly
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a group named alone shows its help
+            exc.show()
+            sys.exit(exc.exit_code)
+        # A usage error is one line too: what is wrong, and where the command's help is.
+        ctx = getattr(exc, "ctx", None)
+        where = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
+        typer.echo(f"error: {exc.format_message().rstrip('.')}{where}", err=True)
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(1)
     except (ValueError, OSError) as exc:
         if os.environ.get("LANEMAP_DEBUG"):
             raise
@@ -115,6 +127,7 @@ def main() -> None:
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         sys.exit(130)
+    sys.exit(rc if isinstance(rc, int) else 0)
 
 
 if __name__ == "__main__":

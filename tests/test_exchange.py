@@ -283,6 +283,24 @@ def test_review_cli(sqlite_url, tmp_path, cli):
     assert cli(["review", "m", "--accept-from", "1.5"], sqlite_url, tmp_path, check=False).returncode == 2
 
 
+def test_a_usage_error_is_one_line_naming_the_help(sqlite_url, tmp_path):
+    """A mistyped command line (an unknown option or command, a missing argument, a value out of
+    range) is one ``error:`` line that names the command's help, exit code 2, as a user sees it;
+    the command or group named alone still shows its help."""
+    for args, says in ((["import", "g.geojson", "--map", "m"], "error: No such option: --map; see 'lanemap import --help'"),
+                       (["import"], "error: Missing argument 'MAP'; see 'lanemap import --help'"),
+                       (["nosuch"], "error: No such command 'nosuch'; see 'lanemap --help'"),
+                       (["maps", "create"], "error: Missing argument 'MAP'; see 'lanemap maps create --help'"),
+                       (["review", "m", "--accept-from", "1.5"],
+                        "error: Invalid value for '--accept-from': Input should be less than or equal to 1; "
+                        "see 'lanemap review --help'")):  # fmt: skip
+        bad = run(args, sqlite_url, tmp_path, check=False)
+        assert (bad.returncode, bad.stdout, bad.stderr.splitlines()) == (2, "", [says]), (args, bad.stderr)
+    for args in ([], ["maps"]):
+        shown = run(args, sqlite_url, tmp_path, check=False)
+        assert shown.returncode == 2 and "Usage: lanemap" in shown.stdout + shown.stderr, shown.stderr
+
+
 def test_delete_map_cli(sqlite_url, tmp_path, cli):
     run = cli
     (tmp_path / "g.geojson").write_text(json.dumps(_fc(_pt())))
