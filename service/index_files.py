@@ -100,7 +100,7 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
     one kept there updated with the edits since (:func:`~service.map_index.updated_index`), else
     built; kept there for the next process. ``on_build(count)`` is called before building a map of
     ``count`` markings that will be kept (``lanemap localize`` says that it takes a while)."""
-    from .map_index import load_index, update_cap, updated_index
+    from .map_index import INDEXED_STATUSES, load_index, update_cap, updated_index
 
     count = 0 if files is None else store.get_map(map_id, with_count=True).count
     if files is None or count < files.min_markings:
@@ -115,8 +115,12 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
             return kept.index
         older = None  # updated with the edits since, if few: counted before the file is read
         since = files.newest_revision(map_id, head, coverage)
-        if since is not None and store.count_changes(map_id, since) <= update_cap(count):
-            older = files.load(map_id, head, coverage)
+        if since is not None:
+            # The update's cap is a share of the index, not of the map: its rejected markings are
+            # not in it. The index's size now differs from the file's by no more than the changes.
+            indexed = store.list_markings(map_id, limit=1, statuses=INDEXED_STATUSES)[1]
+            if store.count_changes(map_id, since) <= update_cap(indexed):
+                older = files.load(map_id, head, coverage)
         imaged = store.imaged_footprint(map_id) if older is not None and coverage == "imagery" else None
         done = None if older is None else updated_index(store, map_id, older.index, older.revision, coverage, imaged)
         if done is not None:

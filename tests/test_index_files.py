@@ -195,3 +195,33 @@ def test_a_deleted_maps_kept_indexes_go_with_it(store, tmp_path):
     left = sorted(p.name for p in files.directory.iterdir())
     assert len(left) == 4 and files.load("b", store.map_head("b"), "hull") is not None  # b's two files, two locks
     assert files.load("a", store.map_head("a"), "hull") is None and files.load("a", store.map_head("a"), "markings") is None
+
+
+def test_a_kept_index_too_far_behind_is_not_read_before_building(store, tmp_path, monkeypatch):
+    """``current_index`` counts the changes since the newest kept file before reading it, against
+    the update's cap, a share of the indexed markings: a map of many rejected markings (not in
+    its index) caps its updates lower than its count, and the file is not read only to be
+    refused."""
+    from service import map_index
+    from service.index_files import current_index
+
+    monkeypatch.setattr(map_index, "UPDATE_MIN", 1)
+    store.create_map("r", crs=CRS)
+    store.add_markings("r", _markings(100))
+    store.bulk_load("r", (Marking(x=457_000.0 + 3.0 * k, y=5_428_050.0, length_m=3.0, width_m=0.12, weight=40.0,
+                                  status="rejected") for k in range(400)))  # fmt: skip
+    files = _files(store, tmp_path)
+    first = current_index(store, "r", CRS, "markings", files)
+    assert len(first) == 100 and files.newest_revision("r", store.map_head("r"), "markings") is not None
+    reads = []
+    read = IndexFiles._read
+    monkeypatch.setattr(IndexFiles, "_read", lambda self, path, *a: reads.append(path) or read(self, path, *a))
+    # 20 changes: over a tenth of the 100 indexed, under a tenth of the 500 in the map
+    store.add_markings("r", _markings(20, x0=458_000.0))
+    built = []
+    index = current_index(store, "r", CRS, "markings", files, on_build=built.append)
+    assert len(index) == 120 and built == [520] and not reads
+    # 5 more: within the cap, the file just kept is read and updated
+    store.add_markings("r", _markings(5, x0=459_000.0))
+    index = current_index(store, "r", CRS, "markings", files, on_build=built.append)
+    assert len(index) == 125 and built == [520] and len(reads) == 1
