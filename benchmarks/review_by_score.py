@@ -25,6 +25,17 @@ from mapbuilder.store import Store
 E0, N0 = 455000.0, 5425000.0  # EPSG:25832, Karlsruhe
 
 
+def scored_detections(store: Store, map_id: str, n: int) -> np.ndarray:
+    """Load ``n`` unreviewed detections, scores spread evenly over 0-1, over a 5 km square into
+    ``map_id`` (EPSG:25832); their scores."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 5000, size=(n, 2))
+    scores = rng.uniform(0, 1, n).round(3)
+    store.bulk_load(map_id, (Marking(x=E0 + a, y=N0 + b, length_m=3, width_m=0.12, weight=36, source="detected",
+                                     score=float(s)) for (a, b), s in zip(xy, scores)))  # fmt: skip
+    return scores
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200_000)
@@ -35,11 +46,7 @@ def main() -> None:
     if any(m.id == "review" for m in store.list_maps()):
         store.delete_map("review")
     store.create_map("review", crs="EPSG:25832")
-    rng = np.random.default_rng(0)
-    xy = rng.uniform(0, 5000, size=(args.n, 2))
-    scores = rng.uniform(0, 1, args.n).round(3)
-    store.bulk_load("review", (Marking(x=E0 + a, y=N0 + b, length_m=3, width_m=0.12, weight=36, source="detected",
-                                       score=float(s)) for (a, b), s in zip(xy, scores)))  # fmt: skip
+    scored_detections(store, "review", args.n)
     print(f"database      {store.dialect}, {args.n:,} unreviewed detections")
     print(f"machine       {platform.machine()}, {__import__('os').cpu_count()} cores, Python {platform.python_version()}")
     t = time.perf_counter()

@@ -33,11 +33,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mapbuilder.model import Marking
 from mapbuilder.store import Store
+from review_by_score import scored_detections
 from tests._api_helpers import start_server
-
-E0, N0 = 455000.0, 5425000.0  # EPSG:25832, Karlsruhe
 
 
 def main() -> None:
@@ -48,11 +46,7 @@ def main() -> None:
     url = f"sqlite:///{tmp / 'bench.sqlite'}"
     store = Store(url)
     store.create_map("city", crs="EPSG:25832")
-    rng = np.random.default_rng(0)
-    xy = rng.uniform(0, 5000, size=(args.n, 2))
-    scores = rng.uniform(0, 1, args.n).round(3)
-    store.bulk_load("city", (Marking(x=E0 + a, y=N0 + b, length_m=3, width_m=0.12, weight=36, source="detected",
-                                     score=float(s)) for (a, b), s in zip(xy, scores)))  # fmt: skip
+    scores = scored_detections(store, "city", args.n)
     store.close()
     print(f"map           {args.n:,} unreviewed detections, SQLite")
     print(f"machine       {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
