@@ -151,6 +151,56 @@ BAD_FILES = [
 ]
 
 
+def _no_constant(value: str):
+    raise GeoJSONError(f"invalid JSON number {value}")  # as lanemap reads GeoJSON: NaN is no number
+
+
+def test_a_file_is_read_a_feature_at_a_time_as_json_would_read_it(tmp_path):
+    """``read_geojson_file`` parses a FeatureCollection's features one at a time (a city's file
+    would not fit in memory parsed whole) and reads the same markings as ``json.loads`` then
+    ``read_feature_collection``, whatever the members' order, spacing and placement; what the
+    one refuses the other does; a byte order mark is dropped; its progress goes up to the
+    exact count."""
+    feats = [_pt(8.43 + 1e-5 * k, 49.0 + 1e-6 * k, weight=1 + k, kind="dash", note={"k": [k, None]})
+             for k in range(25_003)]  # fmt: skip
+    texts = [json.dumps(_fc(*feats)), json.dumps({"features": feats, "bbox": [1, 2, 3, 4], "type": "FeatureCollection",
+                                                  "crs": {"properties": {"name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}}),
+             json.dumps(_fc(*feats[:3]), indent="\t").replace("\n", "\r\n"), json.dumps(_fc()), json.dumps(feats[7]),
+             " \n" + json.dumps(_fc(*feats[:2]), separators=(",", ":")) + "\n\n"]  # fmt: skip
+    for k, text in enumerate(texts):
+        path = tmp_path / f"good{k}.geojson"
+        path.write_bytes(("\ufeff" if k == 2 else "").encode() + text.encode())
+        calls = []
+        got = read_geojson_file(path, progress=lambda done, total: calls.append((done, total)))
+        assert got == read_feature_collection(json.loads(text)), k
+        if k < 2:
+            assert [d for d, _ in calls] == sorted({*range(10_000, 25_003, 10_000), 25_003})
+            assert calls[-1] == (25_003, 25_003) and all(abs(t - 25_003) < 500 for _, t in calls), calls
+    for k, text in enumerate(["{", "[]", "", '{"type": "FeatureCollection", "features": []} {}', "{}",
+                              '{"type": "FeatureCollection", "features": [],}', '{"features": [] "type": 1}',
+                              '{"type": "FeatureCollection", "features": [%s,]}' % json.dumps(feats[0]),
+                              '{"type": "FeatureCollection", "features": [%s' % json.dumps(feats[0]),
+                              '{"type": "FeatureCollection", 7: []}', '{"type": "FeatureCollection", "features": 7}',
+                              '{"features": [], "crs": {"properties": {"name": "EPSG:25832"}}, "type": "FeatureCollection"}',
+                              *[t for t, _ in BAD_FILES]]):  # fmt: skip
+        path = tmp_path / f"bad{k}.geojson"
+        path.write_text(text)
+        with pytest.raises(GeoJSONError) as streamed:
+            read_geojson_file(path)
+        try:
+            read_feature_collection(json.loads(text, parse_constant=_no_constant))
+        except json.JSONDecodeError as exc:
+            assert f"{exc.msg} at line {exc.lineno} column {exc.colno}" in str(streamed.value), (text, streamed)
+        except GeoJSONError as exc:
+            assert str(exc) == str(streamed.value), text
+        else:
+            raise AssertionError(f"json.loads took {text!r}")
+    two = tmp_path / "two.geojson"
+    two.write_text('{"type": "FeatureCollection", "features": [], "features": []}')
+    with pytest.raises(GeoJSONError, match='two "features" members'):
+        read_geojson_file(two)
+
+
 def test_bad_input_is_one_clear_line_and_writes_nothing(db_url, tmp_path, cli):
     run = cli
     good = tmp_path / "good.geojson"
