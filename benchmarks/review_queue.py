@@ -8,7 +8,11 @@ then times, over HTTP:
   time: every page of ``GET .../items?status=unreviewed&limit=10000``;
 * the queue's first page as the editor reads it now
   (``GET .../review/queue?limit=500``), and a page in the middle of the
-  queue (from a ``next`` link's ``after``), each 20 times (p50 and max).
+  queue (from a ``next`` link's ``after``), each 20 times (p50 and max);
+* after a review by score of a fifth of the map, what an editor open
+  meanwhile reads: the change feed whole (pages of 5,000), as it did before,
+  and its first page alone, which counts the changes: past 5,000 the editor
+  reads its view again instead.
 
 It prints the wall time and the bytes of each.
 
@@ -78,6 +82,25 @@ def main() -> None:
             print(f"first page    p50 {np.median(first) * 1e3:.0f} ms, max {max(first) * 1e3:.0f} ms, "
                   f"{len(r.content) / 1e3:.0f} kB")
             print(f"middle page   p50 {np.median(middle) * 1e3:.0f} ms, max {max(middle) * 1e3:.0f} ms")
+            # an editor open meanwhile follows a review by score of a fifth of the map
+            rev = c.get("/collections/city").json()["revision"]
+            r = c.post("/collections/city/review", json={"accept_from": 0.9, "reject_below": 0.1},
+                       headers={"Authorization": f"Bearer {server.token}"})  # fmt: skip
+            r.raise_for_status()
+            t, size, pages, total = time.perf_counter(), 0, 0, None
+            nxt = f"/collections/city/changes?since={rev}&limit=5000"
+            while nxt:
+                r = c.get(nxt)
+                r.raise_for_status()
+                size, pages = size + len(r.content), pages + 1
+                total = r.json().get("numberMatched", total)
+                links = [ln["href"] for ln in r.json()["links"] if ln["rel"] == "next"]
+                nxt = links[0] if links else None
+            print(f"feed whole    {time.perf_counter() - t:.2f} s for {total:,} changes, {pages} pages, "
+                  f"{size / 1e6:.1f} MB")
+            t = time.perf_counter()
+            c.get(f"/collections/city/changes?since={rev}&limit=5000").raise_for_status()
+            print(f"feed counted  {(time.perf_counter() - t) * 1e3:.0f} ms (its first page, then the view read again)")
     finally:
         server.stop()
 

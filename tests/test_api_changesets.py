@@ -228,13 +228,17 @@ def test_many_concurrent_writers_lose_nothing(api):
 
 def _follow(c, map_id, since, **params):
     """Apply every page of ``/changes`` since ``since`` to a fresh dict; (copy, revision, pages)."""
-    copy, url, pages = {}, f"/collections/{map_id}/changes", 0
+    copy, url, pages, listed, total = {}, f"/collections/{map_id}/changes", 0, 0, None
     query = {"since": since, **params}
     while True:
         r = c.get(url, params=query)
         assert r.status_code == 200 and r.headers["content-type"].startswith("application/geo+json"), r.text
         page = r.json()
         pages += 1
+        listed += page["numberReturned"]
+        # the first page says how many the pages hold in all (nothing is written meanwhile here)
+        assert (pages == 1) == ("numberMatched" in page)
+        total = page.get("numberMatched", total)
         for gone in page["removed"]:
             copy[gone["id"]] = None
         for f in page["features"]:
@@ -242,6 +246,7 @@ def _follow(c, map_id, since, **params):
             copy[f["id"]] = (f["properties"]["weight"], f["properties"]["status"], f["properties"]["version"])
         nxt = [ln["href"] for ln in page["links"] if ln["rel"] == "next"]
         if not nxt:
+            assert listed == total == len(copy), (listed, total, len(copy))
             return copy, page["revision"], pages
         url, query = nxt[0], None
 

@@ -487,6 +487,48 @@ def test_what_others_save_appears_and_conflicts_show_before_saving(browser, edit
     other.close()
 
 
+def test_a_review_by_score_elsewhere_is_taken_in_without_reading_every_change(editor, fx, server):
+    """More changes at once than the page follows one by one (``lanemapEditor.follow.max``; such as a
+    review by score across a city): the page reads its view again instead of every change, an unsaved
+    edit of a marking changed there is a conflict all the same, and a running review goes on with
+    the detections still unreviewed on the server, in score order."""
+    editor.page.goto(f"{server.base_url}/editor/?live=300#map={fx.map_id}")
+    editor.wait_loaded()
+    editor.enter_token()
+    page = editor.page
+    q = fx.detected
+    score = {i: fx.features[i]["properties"]["score"] for i in q}
+    page.evaluate("Object.assign(lanemapEditor.follow, {max: 3}); Object.assign(lanemapEditor.reviewPaging, {page: 4, prefetch: 1})")
+    page.click("#review-start")
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{q[0]}')")
+    editor.key("a")  # an unsaved decision on the first
+    page.wait_for_function(f"lanemapEditor.state.selection.has('{q[1]}')")
+    # elsewhere, at once: the first is made wider and the detections from 0.5 on are accepted
+    seen = len(editor.responses)
+    sure = [i for i in q if score[i] >= 0.5]
+    body = {"comment": "wider, and the sure ones", "changes": [
+        {"op": "update", "id": q[0], "patch": {"properties": {"width_m": 0.3}}},
+        *[{"op": "update", "id": i, "patch": {"properties": {"status": "accepted"}}} for i in sure]]}  # fmt: skip
+    r = httpx.post(f"{server.base_url}/collections/{fx.map_id}/changesets", json=body, headers=server.auth)
+    assert r.status_code == 201 and len(sure) > 3, r.text
+    page.wait_for_selector("#view-status:has-text('markings changed on the server')", timeout=10_000)
+    assert f"{len(sure) + 1} markings changed on the server" in page.text_content("#view-status")
+    page.wait_for_selector("#conflict", state="visible")
+    assert page.evaluate("[...lanemapEditor.state.conflicts.keys()]") == [q[0]]
+    feeds = [u for _, u in editor.responses[seen:] if "/changes?" in u]
+    assert feeds and all("limit=3" in u and "after=" not in u for u in feeds), feeds
+    # the view holds what the server holds now
+    shown = page.evaluate("Object.fromEntries([...lanemapEditor.state.server].map(([k, m]) => [k, m.status]))")
+    assert shown and all(st == "accepted" for k, st in shown.items() if k in score and score[k] >= 0.5), shown
+    page.click("#conflict-close")
+    # the review goes on past the second with the detections still unreviewed there
+    left = [i for i in q[2:] if score[i] < 0.5]
+    assert len(left) >= 3
+    for want in left[:3]:
+        editor.key(" ")
+        page.wait_for_function(f"lanemapEditor.state.selection.has('{want}')", timeout=10_000)
+
+
 def test_a_server_error_names_the_request_to_report(editor, fx, server):
     """A 5xx on save keeps the edits and names the answer's X-Request-ID (what the server's log shows:
     tests/test_api_errors.py); the 503 is answered in the browser, as the store answers an outage."""

@@ -36,7 +36,8 @@ def _after(text: str | None) -> tuple[int, int] | None:
         "`features` are the markings to hold now (their `revision` is the one that wrote them last), "
         "`removed` the ids to drop, `storageCrs` the metric CRS the map keeps its markings in (the "
         "features are WGS84 lon/lat; a copy that localizes projects them to it). With `status`, the copy holds only markings of those statuses, and a "
-        "marking whose status left them is listed as removed. A copy starts from `since=0`. 409 "
+        "marking whose status left them is listed as removed. The first page (without `after`) says "
+        "in `numberMatched` how many changes the pages hold in all. A copy starts from `since=0`. 409 "
         "(`stale-revision`) when `since` is from before the map was made anew under its id (a map "
         "created again goes on past the old one's last revision, see `changesSince`), from before the "
         "deletions it keeps (`lanemap maps prune-feed`), or one the map has not reached (a database "
@@ -77,4 +78,8 @@ def get_changes(
         "numberReturned": len(features) + len(page.removed),
         "links": links,
     }
+    if after is None:
+        # How many the pages hold in all (a marking written after this page's read may be counted
+        # too): a client may read the map anew instead of a feed longer than the map it shows.
+        body["numberMatched"] = ctx.store.count_changes(mapId, since)
     return JSONResponse(body, media_type=GEOJSON)

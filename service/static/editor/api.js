@@ -99,14 +99,16 @@ export class Api {
 
   /**
    * A page of the map's review queue (its unreviewed detections, lowest score first; within
-   * `bbox` when given), from its start or from the `next` URL of the page before:
+   * `bbox` when given), from its start, after a detection of it (`after`: {score, id}), or
+   * from the `next` URL of the page before:
    * {items, total (the whole queue's length), next (null after the last page)}.
    */
-  async reviewQueue(mapId, bbox, { next = null, pageSize = 500, signal } = {}) {
+  async reviewQueue(mapId, bbox, { next = null, after = null, pageSize = 500, signal } = {}) {
     let url = next;
     if (!url) {
       const q = new URLSearchParams({ limit: String(pageSize) });
       if (bbox) q.set('bbox', bbox.map((v) => v.toFixed(7)).join(','));
+      if (after) q.set('after', `${after.score ?? 'none'},${after.id}`);
       url = this.url(`collections/${encodeURIComponent(mapId)}/review/queue?${q}`);
     }
     const page = await this.request('GET', url, { signal });
@@ -117,13 +119,18 @@ export class Api {
   /**
    * What changed in the map since `revision` (following the `next` links): the revision
    * the map is now at, and each changed marking's id with its state now (null: deleted).
+   * With `max`, more changes than that are not read: `now` is then null, and `count` says
+   * how many there are.
    */
-  async changes(mapId, revision, { signal } = {}) {
-    let url = this.url(`collections/${encodeURIComponent(mapId)}/changes?since=${encodeURIComponent(revision)}`);
+  async changes(mapId, revision, { signal, max = null } = {}) {
+    const q = new URLSearchParams({ since: String(revision) });
+    if (max) q.set('limit', String(max));
+    let url = this.url(`collections/${encodeURIComponent(mapId)}/changes?${q}`);
     const now = new Map();
     let at = revision;
     while (url) {
       const page = await this.request('GET', url, { signal });
+      if (max && page.numberMatched > max) return { revision: page.revision, now: null, count: page.numberMatched };
       for (const r of page.removed) now.set(String(r.id), null);
       for (const f of page.features) now.set(String(f.id), fromFeature(f));
       at = page.revision;

@@ -700,9 +700,13 @@ async function followChanges() {
   const seq = state.writeSeq;
   state.polling = true;
   try {
-    const { revision, now } = await api.changes(mapId, state.revision);
+    const { revision, now, count } = await api.changes(mapId, state.revision, { max: follow.max });
     // A save or revert of this editor began meanwhile: the next round sees the map after it.
     if (mapId !== state.mapId || revision === state.revision || seq !== state.writeSeq || state.writes) return;
+    if (now === null) {
+      await readAgain(mapId, revision, count);
+      return;
+    }
     const conflicts = new Map(state.conflicts);
     for (const [id, m] of now) {
       const e = state.session.pending.get(id);
@@ -739,6 +743,54 @@ async function followChanges() {
     state.polling = false;
   }
 }
+// More changes than `follow.max` at once (a review by score across a city) are not read one by
+// one: the page reads again what it shows instead (readAgain).
+const follow = { max: 5000 };
+
+/**
+ * After `count` changes since the loaded revision, too many to read: the markings with unsaved
+ * edits are read again one by one (those that changed are conflicts, as with the change feed),
+ * the view is loaded again, and a running review queue goes on from its detection with what the
+ * server holds now. What else was known of the map is forgotten, to be read when needed.
+ */
+async function readAgain(mapId, revision, count) {
+  const edited = [...state.session.pending].filter(([, e]) => e.base).map(([id]) => id);
+  const fresh = edited.length <= READ_AGAIN_EDITS
+    ? new Map(await Promise.all(edited.map(async (id) => [id, await api.item(mapId, id)]))) : new Map();
+  if (mapId !== state.mapId) return;
+  const conflicts = new Map(state.conflicts);
+  for (const [id, m] of fresh) {
+    const e = state.session.pending.get(id);
+    if (!e?.base) continue;
+    if (!m) conflicts.set(id, { id, reason: 'missing', expected_version: e.base.version });
+    else if (String(m.version) !== String(e.base.version)) {
+      conflicts.set(id, { id, reason: 'version', expected_version: e.base.version, actual_version: m.version });
+    }
+  }
+  const keep = new Map();
+  for (const [id, e] of state.session.pending) if (e.base) keep.set(id, fresh.get(id) ?? state.known.get(id) ?? e.base);
+  state.known = keep;
+  state.revision = revision;
+  const r = state.review;
+  if (r && !r.list) {
+    const at = r.queue[r.index];
+    if (at) state.known.set(String(at.id), at);
+    r.queue.length = Math.max(r.index + 1, 0);
+    r.next = api.url(`collections/${encodeURIComponent(mapId)}/review/queue?${new URLSearchParams({
+      limit: String(reviewPaging.page), ...(r.box ? { bbox: r.box.map((v) => v.toFixed(7)).join(',') } : {}),
+      ...(at ? { after: `${at.score ?? 'none'},${at.id}` } : {}) })}`);
+  }
+  await loadView();
+  $('view-status').textContent = `${count.toLocaleString()} markings changed on the server: ${$('view-status').textContent} Up to date with revision ${revision}.`;
+  if (conflicts.size > state.conflicts.size) showConflict({ conflicts: [...conflicts.values()] }, { live: true });
+  else render();
+  renderSelection();
+  loadHistory(true);
+  loadProgress();
+}
+/** Unsaved edits of markings read again one by one after too many changes; beyond, the save finds the conflicts. */
+const READ_AGAIN_EDITS = 200;
+
 setInterval(followChanges, LIVE_MS);
 document.addEventListener('visibilitychange', () => { if (!document.hidden) followChanges(); });
 
@@ -768,7 +820,7 @@ async function startReview() {
   $('review-status').textContent = 'Loading unreviewed detections…';
   try {
     const page = await api.reviewQueue(state.mapId, reviewBox(), { pageSize: reviewPaging.page });
-    const r = { queue: [], index: -1, total: page.total, next: null, mapId: state.mapId };
+    const r = { queue: [], index: -1, total: page.total, next: null, mapId: state.mapId, box: reviewBox() };
     addReviewPage(r, page);
     state.review = r;
     $('review-start').hidden = true;
@@ -793,8 +845,9 @@ function addReviewPage(r, page) {
 /** The review queue's next page, once (a promise while it loads). */
 function moreReview(r) {
   if (!r.loading && r.next) {
-    r.loading = api.reviewQueue(r.mapId, null, { next: r.next })
-      .then((page) => { if (state.review === r) addReviewPage(r, page); })
+    const from = r.next; // the queue may be read again meanwhile (readAgain): this page is then not its
+    r.loading = api.reviewQueue(r.mapId, null, { next: from })
+      .then((page) => { if (state.review === r && r.next === from) addReviewPage(r, page); })
       .finally(() => { r.loading = null; });
   }
   return r.loading;
@@ -1305,4 +1358,4 @@ function start() {
 start();
 
 // For scripting and end-to-end tests: the map and the editor's state, read-only by convention.
-globalThis.lanemapEditor = { map, state, layer, api, reviewPaging, coverage: () => coverage };
+globalThis.lanemapEditor = { map, state, layer, api, reviewPaging, follow, coverage: () => coverage };
