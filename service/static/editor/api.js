@@ -99,21 +99,23 @@ export class Api {
 
   /**
    * A page of the map's review queue (its unreviewed detections, lowest score first; within
-   * `bbox` when given), from its start, after a detection of it (`after`: {score, id}), or
-   * from the `next` URL of the page before:
+   * `bbox` when given), from its start or from the `next` URL of the page before
+   * (or of `reviewQueueUrl`):
    * {items, total (the whole queue's length), next (null after the last page)}.
    */
-  async reviewQueue(mapId, bbox, { next = null, after = null, pageSize = 500, signal } = {}) {
-    let url = next;
-    if (!url) {
-      const q = new URLSearchParams({ limit: String(pageSize) });
-      if (bbox) q.set('bbox', bbox.map((v) => v.toFixed(7)).join(','));
-      if (after) q.set('after', `${after.score ?? 'none'},${after.id}`);
-      url = this.url(`collections/${encodeURIComponent(mapId)}/review/queue?${q}`);
-    }
+  async reviewQueue(mapId, bbox, { next = null, pageSize = 500, signal } = {}) {
+    const url = next ?? this.reviewQueueUrl(mapId, bbox, { pageSize });
     const page = await this.request('GET', url, { signal });
     const link = (page.links || []).find((l) => l.rel === 'next');
     return { items: page.features.map(fromFeature), total: page.numberMatched, next: link ? new URL(link.href) : null };
+  }
+
+  /** The review queue's page of `pageSize` from its start, or after a detection of it (`after`: {score, id}). */
+  reviewQueueUrl(mapId, bbox, { after = null, pageSize = 500 } = {}) {
+    const q = new URLSearchParams({ limit: String(pageSize) });
+    if (bbox) q.set('bbox', bbox.map((v) => v.toFixed(7)).join(','));
+    if (after) q.set('after', `${after.score ?? 'none'},${after.id}`);
+    return this.url(`collections/${encodeURIComponent(mapId)}/review/queue?${q}`);
   }
 
   /**

@@ -689,6 +689,14 @@ function inLoaded(m) {
   return state.loadedBounds ? state.loadedBounds.contains([m.lat, m.lon]) : state.loadedAll;
 }
 
+/** The conflict of an unsaved edit `e` of marking `id` with the server's marking `m` now (null:
+ * deleted there), or null where there is none: it changed there since the edit's base. */
+function conflictWith(id, e, m) {
+  if (!e?.base || (m && String(m.version) === String(e.base.version))) return null;
+  return m ? { id, reason: 'version', expected_version: e.base.version, actual_version: m.version }
+    : { id, reason: 'missing', expected_version: e.base.version };
+}
+
 /**
  * Take in what others saved since the loaded revision: their markings replace the loaded ones,
  * deleted ones go, and a marking with an unsaved edit here that changed there is a conflict
@@ -710,10 +718,8 @@ async function followChanges() {
     const conflicts = new Map(state.conflicts);
     for (const [id, m] of now) {
       const e = state.session.pending.get(id);
-      if (e?.base && (!m || String(m.version) !== String(e.base.version))) {
-        conflicts.set(id, m ? { id, reason: 'version', expected_version: e.base.version, actual_version: m.version }
-          : { id, reason: 'missing', expected_version: e.base.version });
-      }
+      const conflict = conflictWith(id, e, m);
+      if (conflict) conflicts.set(id, conflict);
       if (m) {
         if (inLoaded(m)) state.server.set(id, m);
         else state.server.delete(id);
@@ -760,12 +766,8 @@ async function readAgain(mapId, revision, count) {
   if (mapId !== state.mapId) return;
   const conflicts = new Map(state.conflicts);
   for (const [id, m] of fresh) {
-    const e = state.session.pending.get(id);
-    if (!e?.base) continue;
-    if (!m) conflicts.set(id, { id, reason: 'missing', expected_version: e.base.version });
-    else if (String(m.version) !== String(e.base.version)) {
-      conflicts.set(id, { id, reason: 'version', expected_version: e.base.version, actual_version: m.version });
-    }
+    const conflict = conflictWith(id, state.session.pending.get(id), m);
+    if (conflict) conflicts.set(id, conflict);
   }
   const keep = new Map();
   for (const [id, e] of state.session.pending) if (e.base) keep.set(id, fresh.get(id) ?? state.known.get(id) ?? e.base);
@@ -776,9 +778,7 @@ async function readAgain(mapId, revision, count) {
     const at = r.queue[r.index];
     if (at) state.known.set(String(at.id), at);
     r.queue.length = Math.max(r.index + 1, 0);
-    r.next = api.url(`collections/${encodeURIComponent(mapId)}/review/queue?${new URLSearchParams({
-      limit: String(reviewPaging.page), ...(r.box ? { bbox: r.box.map((v) => v.toFixed(7)).join(',') } : {}),
-      ...(at ? { after: `${at.score ?? 'none'},${at.id}` } : {}) })}`);
+    r.next = api.reviewQueueUrl(mapId, r.box, { after: at, pageSize: reviewPaging.page });
   }
   await loadView();
   $('view-status').textContent = `${count.toLocaleString()} markings changed on the server: ${$('view-status').textContent} Up to date with revision ${revision}.`;
@@ -819,8 +819,9 @@ async function startReview() {
   if (!state.mapId) return;
   $('review-status').textContent = 'Loading unreviewed detections…';
   try {
-    const page = await api.reviewQueue(state.mapId, reviewBox(), { pageSize: reviewPaging.page });
-    const r = { queue: [], index: -1, total: page.total, next: null, mapId: state.mapId, box: reviewBox() };
+    const box = reviewBox();
+    const page = await api.reviewQueue(state.mapId, box, { pageSize: reviewPaging.page });
+    const r = { queue: [], index: -1, total: page.total, next: null, mapId: state.mapId, box };
     addReviewPage(r, page);
     state.review = r;
     $('review-start').hidden = true;
