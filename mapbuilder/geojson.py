@@ -146,8 +146,8 @@ def read_feature_collection(obj: Any, progress: Callable[[int, int], None] | Non
 
 
 def _check_collection(obj: Any) -> None:
-    """Refuse what is not a FeatureCollection of WGS84 features (``features`` may be parsed
-    already: None)."""
+    """Refuse what is not a FeatureCollection of WGS84 features, by its members (a ``features``
+    array read feature by feature stands there as an empty list)."""
     if not isinstance(obj, dict) or obj.get("type") != "FeatureCollection":
         raise GeoJSONError("not a GeoJSON FeatureCollection (expected an object with \"type\": \"FeatureCollection\")")
     if not isinstance(obj.get("features"), list):

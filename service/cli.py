@@ -125,8 +125,9 @@ def main() -> None:
         typer.echo(f"error: {message or exc.__class__.__name__}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
+        rc = 130
+    if rc == 130:  # Ctrl+C: Typer answers it with exit code 130, silently
         typer.echo("interrupted", err=True)
-        sys.exit(130)
     sys.exit(rc if isinstance(rc, int) else 0)
 
 

@@ -334,8 +334,7 @@ class IndexCache:
                 return self._built_in_child(map_id, coverage, head, info.crs, t)
             built = self._built_here(map_id, coverage, head, info.crs, t)
             if files.save(map_id, head, coverage, built.index) is not None:
-                self._kept(map_id)
-                metrics.index_file_saves.labels("build").inc()
+                self._kept(map_id, "build")
             self._forget_if_deleted(map_id, head)
         return built
 
@@ -361,8 +360,7 @@ class IndexCache:
         if self._keep_due(map_id, have, len(index), changes):  # not after each edit: a city's file is 150 MB
             t_keep = time.perf_counter()
             if self.files.save_updated(self.store, map_id, head.created, revision, have.coverage, index) is not None:
-                self._kept(map_id)
-                metrics.index_file_saves.labels("update").inc()
+                self._kept(map_id, "update")
                 log.info("map %s: spatial index at revision %d kept in %s in %.2f s", map_id, revision,
                          self.files.directory, time.perf_counter() - t_keep)  # fmt: skip
                 self._forget_if_deleted(map_id, head)
@@ -380,10 +378,13 @@ class IndexCache:
             self._unkept[map_id] = (since, written)
         return have.read or written >= KEEP_SHARE * size or time.monotonic() - since >= KEEP_AFTER_S
 
-    def _kept(self, map_id: str) -> None:
-        """The map's index was kept in a file (or read from one) just now."""
+    def _kept(self, map_id: str, after: str | None = None) -> None:
+        """The map's index was kept in a file just now, after a ``"build"`` or an ``"update"``
+        (counted), or read from one (``after`` None)."""
         with self._lock:
             self._unkept[map_id] = (time.monotonic(), 0)
+        if after is not None:
+            metrics.index_file_saves.labels(after).inc()
 
     def _forget_if_deleted(self, map_id: str, head) -> bool:
         """A map deleted while its index was built and kept: its file goes too (the deletion's own
@@ -425,8 +426,7 @@ class IndexCache:
         built = IndexedMap(kept.index, head.revision, coverage, head.created)
         seconds = time.perf_counter() - t
         self._install(map_id, built, rest_s=self.rest_factor * seconds)
-        self._kept(map_id)
-        metrics.index_file_saves.labels("build").inc()  # by the child
+        self._kept(map_id, "build")  # by the child
         log.info("map %s: spatial index of %d markings at revision %d (coverage: %s) in %.2f s, built by process %d",
                  map_id, len(kept.index), head.revision, coverage, seconds, child.pid)
         metrics.index_build_seconds.observe(seconds)
