@@ -4,7 +4,8 @@ A map of N unreviewed detections with scores spread evenly over 0-1 (a 5 km
 square near Karlsruhe) is counted (a dry run), then the detections scoring at
 least 0.9 are accepted and those below 0.1 rejected in one changeset (a fifth
 of the map), and that changeset is reverted. Prints the wall time of each on
-the database given (a fresh SQLite file by default).
+the database given (a fresh SQLite file by default). Last, changesets of 20
+updates of markings anywhere in the map are timed, as an editor's bulk edit.
 
 Run: ``.venv/bin/python benchmarks/review_by_score.py [--n 200000] [--url postgresql://...]``
 """
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mapbuilder.model import Marking
-from mapbuilder.store import Store
+from mapbuilder.store import Change, Store
 
 E0, N0 = 455000.0, 5425000.0  # EPSG:25832, Karlsruhe
 
@@ -60,6 +61,16 @@ def main() -> None:
     store.revert_changeset("review", res.changeset_id, who="bench")
     print(f"revert        {time.perf_counter() - t:.2f} s")
     assert store.summary("review").detections["unreviewed"] == args.n
+    ids = store.marking_arrays("review", ["unreviewed"]).id
+    rng = np.random.default_rng(1)
+    took = []
+    for _ in range(10):
+        pick = rng.choice(ids, 20, replace=False)
+        t = time.perf_counter()
+        store.apply_changeset("review", [Change("update", id=int(i), fields={"status": "accepted"}) for i in pick],
+                              who="bench")  # fmt: skip
+        took.append(time.perf_counter() - t)
+    print(f"changeset     {1000 * float(np.median(took)):.0f} ms: 20 updates, median of 10")
     store.delete_map("review")
 
 

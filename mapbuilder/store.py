@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
+from operator import itemgetter
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -648,6 +649,22 @@ def _row_json(r) -> dict[str, Any]:
     d = {k: getattr(r, k) for k in _JSON_FIELDS}
     d["extra"] = dict(d["extra"] or {})
     return d
+
+
+def _changed_fields(pairs: Iterable[tuple[dict[str, Any], dict[str, Any]]]) -> list[str]:
+    """The editable fields (:data:`_MARKING_FIELDS`) that differ between the states of any
+    (before, after) pair: compared as tuples of the fields not yet found changed, so that a
+    review's 200,000 pairs cost a tuple comparison each, not sixteen."""
+    rest, changed = list(_MARKING_FIELDS), set()
+    get = itemgetter(*rest)
+    for b, a in pairs:
+        if get(b) != get(a):
+            changed.update(k for k in rest if b[k] != a[k])
+            rest = [k for k in rest if k not in changed]
+            if not rest:
+                break
+            get = itemgetter(*rest)
+    return [k for k in _MARKING_FIELDS if k in changed]
 
 
 def _bounds_of(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float, float, float]:
@@ -1635,12 +1652,7 @@ class Store:
                 if i in seen:
                     raise StoreError(f"marking {i} appears more than once in the changeset")
                 seen.add(i)
-            current = {}
-            for at in range(0, len(ids), ID_CHUNK):
-                q = select(markings).where(markings.c.map_id == map_id, markings.c.id.in_(ids[at:at + ID_CHUNK]))
-                if self.dialect == "postgresql":
-                    q = q.with_for_update()
-                current.update((r.id, r) for r in conn.execute(q))
+            current = self._current(conn, map_id, ids, select(markings))
             conflicts = []
             for c in changes:
                 if c.op not in ("create", "update", "delete"):
@@ -1689,6 +1701,23 @@ class Store:
             _insert_many(conn, edits, log_rows)
             self._touch_map(conn, map_id, xs, ys)
         return ChangesetResult(changeset_id=cs_id, results=results, markings=written)
+
+    def _current(self, conn: Connection, map_id: str, ids: Sequence[int], query) -> dict[int, Any]:
+        """The rows ``query`` (a select of ``markings`` columns, ``id`` and ``map_id`` among them)
+        reads of the map's markings ``ids``, by id, locked for this transaction.
+
+        Read by id alone, ``ID_CHUNK`` at a time: with the map's id beside the list, SQLite
+        (no statistics) reads the whole map through its index once per statement, from five
+        ids on: 30 s of a profiled revert's 92 s at 1,000,000 markings, 127 ms of a changeset
+        of 20 updates. Other maps' rows are dropped here.
+        """
+        out = {}
+        for at in range(0, len(ids), ID_CHUNK):
+            q = query.where(markings.c.id.in_(ids[at:at + ID_CHUNK]))
+            if self.dialect == "postgresql":
+                q = q.with_for_update()
+            out.update((r.id, r) for r in conn.execute(q) if r.map_id == map_id)
+        return out
 
     def review_by_score(
         self, map_id: str, *, accept_from: float | None = None, reject_below: float | None = None,
@@ -1857,15 +1886,28 @@ class Store:
         return _edit_info(r) if r is not None else None
 
     def revert_changeset(self, map_id: str, changeset_id: int, who: str, comment: str = "") -> ChangesetResult:
-        """Undo a changeset with a new changeset; conflicts if its markings changed since."""
+        """Undo a changeset with a new changeset; conflicts if its markings changed since.
+
+        Raises
+        ------
+        UnknownChangesetError
+            If the map has no changeset of that id.
+        ConflictError
+            If a marking it wrote was changed or deleted since; nothing is written.
+        """
+        e = edits.c
         with self._read() as conn:
             self._map_row(conn, map_id)
             log_rows = [_edit_info(r) for r in conn.execute(
-                select(edits).where(edits.c.map_id == map_id, edits.c.changeset_id == changeset_id))]  # fmt: skip
+                select(edits).where(e.map_id == map_id, e.changeset_id == changeset_id).order_by(e.id.desc())
+            )]  # fmt: skip
         if not log_rows:
             raise UnknownChangesetError(map_id, changeset_id)
+        comment = comment or f"revert changeset {changeset_id}"
+        if all(e.op == "update" for e in log_rows):
+            return self._restore(map_id, changeset_id, log_rows, who, comment)
         inverse: list[Change] = []
-        for e in sorted(log_rows, key=lambda e: e.id, reverse=True):
+        for e in log_rows:
             if e.op == "import":
                 raise StoreError(
                     f"changeset {changeset_id} is an import; delete the map or its markings instead"
@@ -1879,9 +1921,65 @@ class Store:
             else:
                 fields_ = {k: e.before[k] for k in _MARKING_FIELDS}
                 inverse.append(Change("update", id=e.marking_id, version=e.after["version"], fields=fields_))
-        return self.apply_changeset(
-            map_id, inverse, who, comment or f"revert changeset {changeset_id}", reverts=changeset_id
-        )
+        return self.apply_changeset(map_id, inverse, who, comment, reverts=changeset_id)
+
+    def _restore(self, map_id: str, changeset_id: int, log_rows: list[EditInfo], who: str,
+                 comment: str) -> ChangesetResult:  # fmt: skip
+        """Revert a changeset of updates alone (a review by score, a bulk edit): each marking
+        gets back the state logged before its edit, in as many statements as a review takes.
+
+        A marking still at the version its edit left is in the state logged after it: every
+        write of a marking moves its version on. So the revert reads versions, not markings,
+        writes only the columns the changeset changed, and logs the states it already has,
+        where :meth:`apply_changeset` checks and converts each marking as an edit of its own.
+        """
+        now = _now()
+        c = markings.c
+        with self._write() as conn:
+            self._map_row(conn, map_id, lock=True)
+            ids = [e.marking_id for e in log_rows]
+            current = self._current(conn, map_id, ids, select(c.id, c.map_id, c.version))
+            conflicts = []
+            for e in log_rows:
+                row, expected = current.get(e.marking_id), e.after["version"]
+                if row is None:
+                    conflicts.append(Conflict(id=e.marking_id, reason="missing", expected_version=expected))
+                elif row.version != expected:
+                    conflicts.append(Conflict(e.marking_id, "version", expected_version=expected,
+                                              actual_version=row.version))  # fmt: skip
+            if conflicts:
+                raise ConflictError(conflicts)
+            rev = self._next_revision(conn, map_id)
+            cs_id = conn.execute(
+                insert(changesets).values(map_id=map_id, who=who, at=now, comment=comment, n_create=0,
+                                          n_update=len(log_rows), n_delete=0, reverts=changeset_id)
+            ).inserted_primary_key[0]  # fmt: skip
+            changed = _changed_fields((e.before, e.after) for e in log_rows)
+            moved = "x" in changed or "y" in changed
+            if moved:
+                changed += ["lon", "lat"]
+            updates, log_new, results, xs, ys = [], [], [], [], []
+            for e in log_rows:
+                version = e.after["version"] + 1
+                after = {**e.before, "version": version}
+                u = {"_id": e.marking_id, **{f"_v_{k}": after[k] for k in changed}}
+                if moved:
+                    u["_v_gx"] = math.floor(after["x"] / GRID_CELL_M)
+                    u["_v_gy"] = math.floor(after["y"] / GRID_CELL_M)
+                    xs.append(after["x"])
+                    ys.append(after["y"])
+                u.update(_v_version=version, _v_revision=rev, _v_updated_at=now)
+                updates.append(u)
+                log_new.append(dict(map_id=map_id, changeset_id=cs_id, marking_id=e.marking_id, op="update",
+                                    who=who, at=now, before=e.after, after=after, comment=comment))  # fmt: skip
+                results.append({"op": "update", "id": e.marking_id, "version": version})
+            _update_many(conn, updates)
+            _insert_many(conn, edits, log_new)
+            self._touch_map(conn, map_id, xs, ys)
+        written = {r["marking_id"]: Marking(**{**r["after"], "id": r["marking_id"]}) for r in log_new}
+        log.info("map %s: changeset %d reverted by %s (%d markings), changeset %d",
+                 map_id, changeset_id, who, len(log_rows), cs_id)  # fmt: skip
+        return ChangesetResult(changeset_id=cs_id, results=results, markings=written)
 
     # ------------------------------------------------------------------ builds
     def replace_detected(
