@@ -47,9 +47,12 @@ def main() -> None:
     if any(m.id == "review" for m in store.list_maps()):
         store.delete_map("review")
     store.create_map("review", crs="EPSG:25832")
+    t = time.perf_counter()
     scored_detections(store, "review", args.n)
+    loaded = time.perf_counter() - t
     print(f"database      {store.dialect}, {args.n:,} unreviewed detections")
     print(f"machine       {platform.machine()}, {__import__('os').cpu_count()} cores, Python {platform.python_version()}")
+    print(f"load          {loaded:.2f} s (Store.bulk_load)")
     t = time.perf_counter()
     dry = store.review_by_score("review", accept_from=0.9, reject_below=0.1, who="bench", dry_run=True)
     print(f"dry run       {time.perf_counter() - t:.2f} s: {dry.accepted:,} to accept, {dry.rejected:,} to reject")

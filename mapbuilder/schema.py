@@ -99,6 +99,8 @@ markings = Table(
     Index("ix_markings_grid", "map_id", "gx", "gy", "x", "y"),
     Index("ix_markings_tile", "map_id", "tile_key", "source", "status"),
     Index("ix_markings_revision", "map_id", "revision", "id"),
+    # A map's markings in id order: pages of /items and exports, without sorting the map.
+    Index("ix_markings_map", "map_id", "id"),
     # Never reuse the id of a deleted marking: ids are feature ids and ETag scopes.
     sqlite_autoincrement=True,
 )
@@ -164,6 +166,7 @@ edits = Table(
     CheckConstraint("op IN ('create', 'update', 'delete', 'import')", name="op"),
     Index("ix_edits_map", "map_id", "id"),
     Index("ix_edits_changeset", "changeset_id"),
+    Index("ix_edits_marking", "map_id", "marking_id", "id"),
 )
 
 imagery = Table(

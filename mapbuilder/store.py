@@ -25,7 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from sqlalchemy import (
-    Text, and_, bindparam, case, create_engine, delete, event, func, insert, or_, select, text, type_coerce, update,
+    Text, and_, bindparam, case, create_engine, delete, event, func, insert, literal_column, or_, select, text,
+    type_coerce, update,
 )  # fmt: skip
 from sqlalchemy.engine import Connection, Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
@@ -651,6 +652,14 @@ def _row_json(r) -> dict[str, Any]:
     return d
 
 
+#: A marking's id in the reads of a box, as an expression, so that no index of ids serves them.
+#: With the column, SQLite (no statistics) would rather walk the whole map in id order
+#: (``ix_markings_map``) and test every marking against the box than read the box through the
+#: grid index and sort it: 221 ms instead of 3 ms for a page of a box of 54 markings among
+#: 1,000,000.
+_BOXED_ID = markings.c.id + literal_column("0")
+
+
 def _changed_fields(pairs: Iterable[tuple[dict[str, Any], dict[str, Any]]]) -> list[str]:
     """The editable fields (:data:`_MARKING_FIELDS`) that differ between the states of any
     (before, after) pair: compared as tuples of the fields not yet found changed, so that a
@@ -1268,7 +1277,7 @@ class Store:
         where = self._bbox_clause(map_id, minx, miny, maxx, maxy)
         if statuses:
             where = and_(where, markings.c.status.in_(list(statuses)))
-        q = select(*_READ_COLUMNS).where(where).order_by(markings.c.id).offset(offset)
+        q = select(*_READ_COLUMNS).where(where).order_by(_BOXED_ID).offset(offset)
         if limit is not None:
             q = q.limit(limit)
         with self._read() as conn:
@@ -1333,7 +1342,7 @@ class Store:
                 return [], 0
             total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
             rows = conn.execute(
-                select(*_READ_COLUMNS).where(where).order_by(markings.c.id).limit(limit).offset(offset)
+                select(*_READ_COLUMNS).where(where).order_by(_BOXED_ID).limit(limit).offset(offset)
             ).all()
         return _markings_from_rows(rows), total
 
@@ -1528,11 +1537,9 @@ class Store:
                 where = self._selection(conn, map_id, statuses, lonlat_box)
                 if where is None:
                     return
+                key = markings.c.id if lonlat_box is None else _BOXED_ID
                 rows = conn.execute(
-                    select(*_READ_COLUMNS)
-                    .where(where, markings.c.id > last)
-                    .order_by(markings.c.id)
-                    .limit(batch)
+                    select(*_READ_COLUMNS).where(where, key > last).order_by(key).limit(batch)
                 ).all()
             if not rows:
                 return
