@@ -1549,13 +1549,17 @@ class Store:
     def list_markings(
         self, map_id: str, limit: int = 100, offset: int = 0, statuses=None
     ) -> tuple[list[Marking], int]:
-        """A page of a map's markings by id, and the total count."""
+        """A page of a map's markings by id, and the total count (of them all counted once per
+        revision, :meth:`_count_at`)."""
         where = markings.c.map_id == map_id
         if statuses:
             where = and_(where, markings.c.status.in_(list(statuses)))
         with self._read() as conn:
-            self._map_row(conn, map_id)
-            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            row = self._map_row(conn, map_id)
+            if statuses:
+                total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            else:
+                total = self._count_at(conn, row)
             rows = conn.execute(
                 select(*_READ_COLUMNS).where(where).order_by(markings.c.id).limit(limit).offset(offset)
             ).all()

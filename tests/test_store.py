@@ -715,9 +715,13 @@ def test_counts_follow_writes_made_by_another_store(store):
     ids = other.add_markings("ka", [_m(3.0 * k, 9.0) for k in range(3)])
     other.apply_changeset("ka", [Change("delete", id=ids[0])], who="t")
     assert _count(store, "ka") == 6 and [m.count for m in store.list_maps()] == [6]
+    assert store.list_markings("ka", limit=2)[1] == 6 and store.list_markings("ka", statuses=["accepted"])[1] == 0
+    other.apply_changeset("ka", [Change("update", id=ids[1], fields={"status": "accepted"}),
+                                 Change("delete", id=ids[2])], who="t")  # fmt: skip
+    assert store.list_markings("ka", limit=2)[1] == 5 and store.list_markings("ka", statuses=["accepted"])[1] == 1
     other.delete_map("ka")
     other.create_map("ka", crs="EPSG:25832")  # made anew: its revision goes on past the old one's
-    assert _count(store, "ka") == 0
+    assert _count(store, "ka") == 0 and store.list_markings("ka")[1] == 0
     other.close()
 
 
