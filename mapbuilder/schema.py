@@ -105,6 +105,20 @@ markings = Table(
     sqlite_autoincrement=True,
 )
 
+#: How many markings each map holds by status, source, kind ('' where unknown) and score bin
+#: (``floor(10 * score)`` up to 9; -1 without a score or below 0), kept by every write of
+#: markings in its own transaction: a map's summary without reading its markings.
+marking_counts = Table(
+    "marking_counts",
+    metadata,
+    Column("map_id", String(64), ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True),
+    Column("status", String(16), primary_key=True),
+    Column("source", String(16), primary_key=True),
+    Column("kind", String(32), primary_key=True),
+    Column("score_bin", Integer, primary_key=True, autoincrement=False),
+    Column("n", Integer, nullable=False),
+)
+
 #: Markings deleted from a map, with the revision that deleted them, so that a
 #: copy of the map kept elsewhere learns of deletions as well as of changes. An
 #: id is live in ``markings`` or listed here, never both.

@@ -629,6 +629,123 @@ def test_summary_counts_what_the_map_holds_and_its_review(store):
     assert (empty.count, empty.reviewed_share, sum(empty.unreviewed_scores)) == (0, None, 0)
 
 
+def _summary_as_counted(store: Store, map_id: str):
+    """The map's summary counted from its markings (a box around the whole map), beside the one
+    its kept counts give."""
+    whole = store.summary(map_id, lonlat_box=(-180.0, -90.0, 180.0, 90.0))
+    kept = store.summary(map_id)
+    return kept, whole
+
+
+def test_the_kept_counts_follow_every_kind_of_write(store):
+    """The whole map's summary is read from counts that every write keeps in its transaction:
+    after an import, a bulk load, creates, updates and deletes, a review by score, reverts of
+    each (a deleted marking back under its id), a rebuilt tile, a failed changeset and a map
+    made anew, they equal a count of the markings themselves."""
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(8)
+    steps = []
+
+    def check(what):
+        kept, whole = _summary_as_counted(store, "ka")
+        assert kept == whole, what
+        steps.append(what)
+
+    scores = [None, -0.5, 0.0, 0.1, 0.3, 0.7, 0.9, 0.95, 1.0, 1.5, *rng.uniform(0, 1, 20).round(3)]
+    ids = store.add_markings("ka", [_m(2.0 * k, 0.0, source="detected", score=v, kind=("dash", None, "solid")[k % 3])
+                                    for k, v in enumerate(scores)])  # fmt: skip
+    check("import")
+    # a box just around the map holds its every marking, those at its edges too
+    assert store.count_markings("ka", lonlat_box=store.get_map("ka").bounds_wgs84()) == len(scores)
+    store.bulk_load("ka", (_m(2.0 * k, 5.0, source="imported", kind="stop_line", status="accepted")
+                           for k in range(7)))  # fmt: skip
+    check("bulk load")
+    cs = store.apply_changeset("ka", [
+        Change("update", id=ids[3], fields={"status": "accepted"}),
+        Change("update", id=ids[4], fields={"score": 0.05, "kind": "stop_line"}),
+        Change("update", id=ids[5], fields={"source": "manual", "x": E0 + 77.0}),
+        Change("delete", id=ids[6]),
+        Change("create", marking=_m(50.0, 50.0, source="manual", score=0.42)),
+    ], who="t")  # fmt: skip
+    check("changeset")
+    with pytest.raises(ConflictError):
+        store.apply_changeset("ka", [Change("update", id=ids[7], fields={"status": "rejected"}),
+                                     Change("delete", id=ids[6])], who="t")  # fmt: skip
+    check("a changeset refused")
+    store.revert_changeset("ka", cs.changeset_id, who="t")
+    check("revert of creates, updates and deletes")
+    review = store.review_by_score("ka", accept_from=0.8, reject_below=0.2, who="t")
+    assert review.accepted and review.rejected
+    check("review by score")
+    store.revert_changeset("ka", review.changeset_id, who="t")
+    check("revert of updates alone")
+    store.apply_changeset("ka", [Change("update", id=i, fields={"tile_key": "t1"}) for i in ids[:12]], who="t")
+    n = store.replace_detected("ka", "t1", [_m(3.0 * k, 30.0, score=0.61, kind="dash") for k in range(5)])
+    assert n == 5
+    check("rebuilt tile")
+    store.delete_map("ka")
+    store.create_map("ka", crs="EPSG:25832")
+    check("made anew")
+    assert store.summary("ka").count == 0 and len(steps) == 9
+
+
+def test_a_large_load_has_postgresql_count_the_table(postgres_url):
+    """After a load of ``ANALYZE_FROM`` markings or more PostgreSQL's statistics count them (it
+    plans a box's read by them), without waiting for autovacuum; a small load leaves that to it."""
+    from mapbuilder.store import ANALYZE_FROM
+
+    store = Store(postgres_url)
+    store.create_map("ka", crs="EPSG:25832")
+
+    def analyzed():
+        with store.engine.connect() as conn:
+            return conn.exec_driver_sql("SELECT reltuples FROM pg_class WHERE relname = 'markings'").scalar()
+
+    store.add_markings("ka", [_m(float(k), 0.0) for k in range(10)])
+    assert analyzed() <= 0  # never counted (-1 on PostgreSQL 14 and later)
+    rng = np.random.default_rng(2)
+    store.bulk_load("ka", (_m(a, b) for a, b in rng.uniform(0, 3000, (ANALYZE_FROM, 2))))
+    assert analyzed() == ANALYZE_FROM + 10
+    store.close()
+
+
+def test_an_upgrade_counts_the_markings_stored_before(db_url):
+    """Schema revision 0007 counts the markings a database held before it, as the writes since
+    keep them."""
+    old = Store(db_url, upgrade=False)
+    old.upgrade("0006")
+    rows = [("detected", "unreviewed", None, None), ("detected", "unreviewed", 0.3, "dash"),
+            ("detected", "unreviewed", 0.95, "dash"), ("detected", "unreviewed", 0.95, "dash"),
+            ("detected", "accepted", 0.5, None), ("manual", "accepted", -1.0, "solid"),
+            ("imported", "rejected", 1.2, None), ("detected", "unreviewed", 0.1, None)]  # fmt: skip
+    with old.engine.begin() as conn:
+        conn.execute(text("INSERT INTO maps (id, title, crs, revision, feed_since, created_at, updated_at) "
+                          "VALUES ('old', '', 'EPSG:25832', 1, 0, CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"))
+        for k, (source, status, score, kind) in enumerate(rows):
+            conn.execute(text(
+                "INSERT INTO markings (map_id, gx, gy, x, y, lon, lat, weight, length_m, width_m, bearing_deg, "
+                "score, kind, source, status, extra, version, revision, created_at, updated_at) VALUES ('old', 0, 0, "
+                f"{E0 + k}, {N0}, 8.4, 49.0, 1, 1, 0.1, 0, :score, :kind, :source, :status, '{{}}', 1, 1, "
+                "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"), dict(score=score, kind=kind, source=source, status=status))
+    old.close()
+    up = Store(db_url, upgrade=False)
+    assert up.upgrade() == ("0006", migrate.head_revision())
+    up.close()
+    store = Store(db_url)
+    kept = store.summary("old")
+    assert kept.count == len(rows) and kept.unreviewed_scores == [0, 1, 0, 1, 0, 0, 0, 0, 0, 2]
+    assert kept.by_kind == {"dash": 3, "solid": 1, "unknown": 4}
+    assert kept.by_status == {"accepted": 2, "rejected": 1, "unreviewed": 5}
+    assert kept.by_source == {"detected": 6, "imported": 1, "manual": 1}
+    assert kept.detections == {"unreviewed": 5, "accepted": 1, "rejected": 0}
+    # and the writes since keep them
+    mid = next(m.id for m in store.iter_markings("old") if m.score == 0.3)
+    store.apply_changeset("old", [Change("update", id=mid, fields={"status": "rejected"})], who="t")
+    kept = store.summary("old")
+    assert kept.unreviewed_scores == [0, 1, 0, 0, 0, 0, 0, 0, 0, 2] and kept.detections["rejected"] == 1
+    store.close()
+
+
 def test_review_by_score_decides_the_sure_detections_in_one_revertible_changeset(store):
     """``review_by_score``: the unreviewed detections at or above ``accept_from`` are accepted and
     those below ``reject_below`` rejected, in one changeset that a revert undoes; people's
