@@ -494,7 +494,7 @@ def test_sqlite_reads_markings_through_the_index_each_read_needs(sqlite_url):
     assert _sqlite_plans(store, lambda: list(store.iter_markings("ka", batch=10)), "markings") == [by_id] * 5
     assert _sqlite_plans(store, lambda: store.list_markings("ka", offset=10), "markings")[-1] == [
         "SEARCH markings USING INDEX ix_markings_map (map_id=?)"]  # fmt: skip
-    box = (8.0, 48.0, 9.0, 50.0)
+    box = store.get_map("ka").bounds_wgs84()  # a box reaching past the map reads the map whole
     assert _sqlite_plans(store, lambda: list(store.iter_markings("ka", lonlat_box=box)), "markings") == [
         [grid, "USE TEMP B-TREE FOR ORDER BY"]] * 2  # fmt: skip
     assert _sqlite_plans(store, lambda: store.query_lonlat_box("ka", box), "markings")[-1] == [
@@ -630,11 +630,10 @@ def test_summary_counts_what_the_map_holds_and_its_review(store):
 
 
 def _summary_as_counted(store: Store, map_id: str):
-    """The map's summary counted from its markings (a box around the whole map), beside the one
-    its kept counts give."""
-    whole = store.summary(map_id, lonlat_box=(-180.0, -90.0, 180.0, 90.0))
-    kept = store.summary(map_id)
-    return kept, whole
+    """The map's summary from its kept counts, beside the one counted from its markings (a box
+    just around the map: one reaching past it is read as the whole map, from its counts)."""
+    box = store.get_map(map_id).bounds_wgs84() or (-180.0, -90.0, 180.0, 90.0)
+    return store.summary(map_id), store.summary(map_id, lonlat_box=box)
 
 
 def test_the_kept_counts_follow_every_kind_of_write(store):
@@ -687,6 +686,38 @@ def test_the_kept_counts_follow_every_kind_of_write(store):
     store.create_map("ka", crs="EPSG:25832")
     check("made anew")
     assert store.summary("ka").count == 0 and len(steps) == 9
+
+
+def test_a_box_holding_the_whole_map_reads_the_map_whole(store):
+    """A box that holds the whole map (a client zoomed out past it) gives what the map gives
+    without a box: its pages in id order with the map's count, its iteration, its count and its
+    summary, read without a box (on SQLite, in the index order of its ids); a box just around
+    the map still holds every marking, read through the grid."""
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(4)
+    ids = store.add_markings("ka", [_m(a, b, source="detected", score=float(v), status=st)
+                                    for (a, b), v, st in zip(rng.uniform(0, 900, (60, 2)), rng.uniform(0, 1, 60),
+                                                              ["unreviewed", "accepted", "rejected"] * 20)])  # fmt: skip
+    world = (-180.0, -90.0, 180.0, 90.0)
+    w, s_, e, n = store.get_map("ka").bounds_wgs84()
+    around = (w - 1e-4, s_ - 1e-4, e + 1e-4, n + 1e-4)
+    for box in (world, around, (w, s_, e, n)):
+        page, total = store.query_lonlat_box("ka", box, limit=7, offset=14)
+        assert ([m.id for m in page], total) == (ids[14:21], 60)
+        assert store.query_lonlat_box("ka", box, statuses=["accepted"], limit=100)[1] == 20
+        assert [m.id for m in store.iter_markings("ka", batch=9, lonlat_box=box)] == ids
+        assert store.count_markings("ka", ["rejected"], lonlat_box=box) == 20
+        assert store.summary("ka", lonlat_box=box) == store.summary("ka")
+        assert store.review_queue("ka", lonlat_box=box) == store.review_queue("ka")
+    if store.dialect == "sqlite":
+        page_plan = _sqlite_plans(store, lambda: store.query_lonlat_box("ka", around, limit=7), "markings")[-1]
+        assert page_plan == ["SEARCH markings USING INDEX ix_markings_map (map_id=?)"]
+        page_plan = _sqlite_plans(store, lambda: store.query_lonlat_box("ka", (w, s_, e, n), limit=7), "markings")[-1]
+        assert page_plan[0].startswith("SEARCH markings USING INDEX ix_markings_grid")
+    half = (w, s_, (w + e) / 2, n)
+    inside = [m.id for m in store.iter_markings("ka") if m.lon <= (w + e) / 2]
+    assert 0 < len(inside) < 60 and [m.id for m in store.iter_markings("ka", lonlat_box=half)] == inside
+    assert store.summary("ka", lonlat_box=half).count == len(inside)
 
 
 def test_a_large_load_has_postgresql_count_the_table(postgres_url):
