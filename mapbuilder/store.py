@@ -1013,6 +1013,18 @@ class Store:
             rows = conn.execute(select(maps).order_by(maps.c.id)).all()
             return [self._map_info(r, self._count_at(conn, r)) for r in rows]
 
+    def _kept_count(self, conn: Connection, map_id: str, statuses=None, source: str | None = None) -> int:
+        """How many of the map's markings have one of ``statuses`` (None: any) and ``source``
+        (None: any), from the counts every write keeps (``marking_counts``): a sum over a few
+        rows where a count of the markings read them all (a scan on PostgreSQL)."""
+        mc = marking_counts.c
+        q = select(func.coalesce(func.sum(mc.n), 0)).where(mc.map_id == map_id)
+        if statuses:
+            q = q.where(mc.status.in_(list(statuses)))
+        if source is not None:
+            q = q.where(mc.source == source)
+        return int(conn.execute(q).scalar_one())
+
     def _count_at(self, conn: Connection, row) -> int:
         """The number of markings of the map of ``row`` (a ``maps`` row), counted once per revision.
 
@@ -1442,6 +1454,8 @@ class Store:
             where = self._selection(conn, map_id, statuses, lonlat_box)
             if where is None:
                 return 0
+            if self._box_within(conn, map_id, lonlat_box) is None:
+                return self._kept_count(conn, map_id, statuses)
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
     def summary(self, map_id: str, lonlat_box: tuple[float, float, float, float] | None = None) -> MapSummary:
@@ -1648,10 +1662,7 @@ class Store:
         if statuses:
             where = and_(where, markings.c.status.in_(list(statuses)))
         row = self._map_row(conn, map_id)
-        if statuses:
-            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
-        else:
-            total = self._count_at(conn, row)
+        total = self._kept_count(conn, map_id, statuses) if statuses else self._count_at(conn, row)
         rows = conn.execute(
             select(*_READ_COLUMNS).where(where).order_by(markings.c.id).limit(limit).offset(offset)
         ).all()
@@ -1675,7 +1686,10 @@ class Store:
             if where is None:
                 return [], 0
             where = and_(where, c.source == "detected")
-            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            if self._box_within(conn, map_id, lonlat_box) is None:
+                total = self._kept_count(conn, map_id, ["unreviewed"], "detected")
+            else:
+                total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
             if after is not None:
                 score, last = after
                 if score is None:

@@ -648,6 +648,12 @@ def test_the_kept_counts_follow_every_kind_of_write(store):
     def check(what):
         kept, whole = _summary_as_counted(store, "ka")
         assert kept == whole, what
+        held = list(store.iter_markings("ka"))
+        for statuses in (["accepted"], ["unreviewed", "rejected"]):
+            n = sum(m.status in statuses for m in held)
+            assert store.count_markings("ka", statuses) == store.list_markings("ka", 1, statuses=statuses)[1] == n
+        queue = sum(m.status == "unreviewed" and m.source == "detected" for m in held)
+        assert store.review_queue("ka", limit=1)[1] == queue, what
         steps.append(what)
 
     scores = [None, -0.5, 0.0, 0.1, 0.3, 0.7, 0.9, 0.95, 1.0, 1.5, *rng.uniform(0, 1, 20).round(3)]
