@@ -30,6 +30,7 @@ from sqlalchemy import (
     Text, and_, bindparam, case, create_engine, delete, event, func, insert, literal_column, or_, select, text,
     type_coerce, update,
 )  # fmt: skip
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection, Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
 
@@ -685,8 +686,8 @@ def _count_key(status: str, source: str, kind: str | None, score: float | None) 
     return status, source, kind or "", b
 
 
-def _json_key(d: dict[str, Any]) -> tuple[str, str, str, int]:
-    """:func:`_count_key` of a marking as the edit log holds it."""
+def _dict_key(d: dict[str, Any]) -> tuple[str, str, str, int]:
+    """:func:`_count_key` of a marking as a dict: a row to write, or a state the edit log holds."""
     return _count_key(d["status"], d["source"], d["kind"], d["score"])
 
 
@@ -697,10 +698,7 @@ def _tally(conn: Connection, map_id: str, delta: Counter) -> None:
             for k, n in delta.items() if n]  # fmt: skip
     if not rows:
         return
-    if conn.dialect.name == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert as upsert
-    else:
-        from sqlalchemy.dialects.sqlite import insert as upsert
+    upsert = postgresql.insert if conn.dialect.name == "postgresql" else sqlite.insert
     stmt = upsert(marking_counts)
     stmt = stmt.on_conflict_do_update(index_elements=list(marking_counts.primary_key.columns),
                                       set_={"n": marking_counts.c.n + stmt.excluded.n})  # fmt: skip
@@ -751,8 +749,6 @@ class Store:
 
     def __init__(self, url: str | None = None, *, upgrade: bool = True):
         self.url = normalize_url(url or Settings().resolved_database_url())
-        #: map id -> (revision, number of markings) (:meth:`_count_at`)
-        self._counts: dict[str, tuple[int, int]] = {}
         self.engine = self._make_engine(self.url)
         self.dialect = self.engine.dialect.name
         if upgrade:
@@ -1005,13 +1001,15 @@ class Store:
     def get_map(self, map_id: str, *, with_count: bool = False) -> MapInfo:
         with self._read() as conn:
             row = self._map_row(conn, map_id)
-            count = self._count_at(conn, row) if with_count else None
+            count = self._kept_count(conn, map_id) if with_count else None
         return self._map_info(row, count)
 
     def list_maps(self) -> list[MapInfo]:
         with self._read() as conn:
             rows = conn.execute(select(maps).order_by(maps.c.id)).all()
-            return [self._map_info(r, self._count_at(conn, r)) for r in rows]
+            mc = marking_counts.c
+            counts = {m: n for m, n in conn.execute(select(mc.map_id, func.sum(mc.n)).group_by(mc.map_id))}
+            return [self._map_info(r, int(counts.get(r.id, 0))) for r in rows]
 
     def _kept_count(self, conn: Connection, map_id: str, statuses=None, source: str | None = None) -> int:
         """How many of the map's markings have one of ``statuses`` (None: any) and ``source``
@@ -1024,20 +1022,6 @@ class Store:
         if source is not None:
             q = q.where(mc.source == source)
         return int(conn.execute(q).scalar_one())
-
-    def _count_at(self, conn: Connection, row) -> int:
-        """The number of markings of the map of ``row`` (a ``maps`` row), counted once per revision.
-
-        Every write of a map's markings moves its revision on (and a map made anew starts past
-        its old one's), so a count kept under the revision it was read at stays exact until
-        then: a map of a million markings took 60-150 ms to count at every listing.
-        """
-        cached = self._counts.get(row.id)
-        if cached is not None and cached[0] == row.revision:
-            return cached[1]
-        n = conn.execute(select(func.count()).select_from(markings).where(markings.c.map_id == row.id)).scalar_one()
-        self._counts[row.id] = (int(row.revision), int(n))
-        return int(n)
 
     def map_extents(self) -> list[tuple[str, str | None, tuple[float, float, float, float] | None]]:
         """Every map's id, storage CRS and bounds in it (None while it has none), by id: one
@@ -1198,7 +1182,7 @@ class Store:
                 row["revision"] = rev
                 rows.append(row)
             ids = self._insert_rows(conn, rows, progress)
-            _tally(conn, map_id, Counter(_count_key(r["status"], r["source"], r["kind"], r["score"]) for r in rows))
+            _tally(conn, map_id, Counter(_dict_key(r) for r in rows))
             cs = conn.execute(
                 insert(changesets).values(
                     map_id=map_id, who=who, at=now, comment=comment, n_create=len(ids),
@@ -1302,7 +1286,7 @@ class Store:
             for m in items:
                 row = marking_row(m, crs, now)
                 row["map_id"], row["version"], row["revision"] = map_id, 1, rev
-                counts[_count_key(row["status"], row["source"], row["kind"], row["score"])] += 1
+                counts[_dict_key(row)] += 1
                 minx, miny = min(minx, row["x"]), min(miny, row["y"])
                 maxx, maxy = max(maxx, row["x"]), max(maxy, row["y"])
                 buf.append(row)
@@ -1394,34 +1378,35 @@ class Store:
         return and_(self._bbox_clause(info.id, minx - pad, miny - pad, maxx + pad, maxy + pad),
                     c.lon.between(w, e), c.lat.between(s, n))  # fmt: skip
 
-    def _box_within(self, conn: Connection, map_id: str, lonlat_box):
+    @staticmethod
+    def _box_within(info: MapInfo, lonlat_box):
         """``lonlat_box`` (minLon, minLat, maxLon, maxLat; degrees), or None where it holds the
-        whole map with :data:`COVER_MARGIN_DEG` to spare: then the map is read whole (in its ids'
-        index order, its summary from its kept counts) rather than grid cell by grid cell, as a
+        whole map of ``info`` with :data:`COVER_MARGIN_DEG` to spare: then the map is read whole
+        (in its ids' index order, its counts kept) rather than grid cell by grid cell, as a
         client zoomed out past the map asks (on 1,000,000 markings, SQLite counted such a box
         in 4.9 s where the kept counts answer in 2 ms)."""
-        if lonlat_box is None:
-            return None
-        mb = self._map_info(self._map_row(conn, map_id)).bounds_wgs84()
+        mb = None if lonlat_box is None else info.bounds_wgs84()
         m = COVER_MARGIN_DEG
-        w, s, e, n = lonlat_box
-        if mb is not None and w <= mb[0] - m and s <= mb[1] - m and e >= mb[2] + m and n >= mb[3] + m:
-            return None
+        if mb is not None:
+            w, s, e, n = lonlat_box
+            if w <= mb[0] - m and s <= mb[1] - m and e >= mb[2] + m and n >= mb[3] + m:
+                return None
         return lonlat_box
 
     def _selection(self, conn: Connection, map_id: str, statuses, lonlat_box):
         """The WHERE clause of a map's markings with these statuses inside ``lonlat_box``
-        (either None: all), or None when no marking can match."""
-        row = self._map_row(conn, map_id)
+        (either None: all), or None when no marking can match; and the box it reads, None
+        where that is the whole map (:meth:`_box_within`)."""
+        info = self._map_info(self._map_row(conn, map_id))
+        box = self._box_within(info, lonlat_box)
         where = markings.c.map_id == map_id
-        lonlat_box = self._box_within(conn, map_id, lonlat_box)
-        if lonlat_box is not None:
-            where = self._lonlat_clause(self._map_info(row), lonlat_box)
+        if box is not None:
+            where = self._lonlat_clause(info, box)
             if where is None:
-                return None
+                return None, box
         if statuses:
             where = and_(where, markings.c.status.in_(list(statuses)))
-        return where
+        return where, box
 
     def query_lonlat_box(
         self,
@@ -1434,9 +1419,9 @@ class Store:
         """A page of the markings whose centroid lies in ``lonlat_box`` (minLon, minLat, maxLon,
         maxLat; degrees), by id, and how many there are in all."""
         with self._read() as conn:
-            if self._box_within(conn, map_id, lonlat_box) is None:
+            where, box = self._selection(conn, map_id, statuses, lonlat_box)
+            if box is None:
                 return self._page(conn, map_id, limit, offset, statuses)
-            where = self._selection(conn, map_id, statuses, lonlat_box)
             if where is None:
                 return [], 0
             total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
@@ -1451,10 +1436,10 @@ class Store:
     ) -> int:  # fmt: skip
         """How many of a map's markings :meth:`iter_markings` would give for the same filters."""
         with self._read() as conn:
-            where = self._selection(conn, map_id, statuses, lonlat_box)
+            where, box = self._selection(conn, map_id, statuses, lonlat_box)
             if where is None:
                 return 0
-            if self._box_within(conn, map_id, lonlat_box) is None:
+            if box is None:
                 return self._kept_count(conn, map_id, statuses)
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
@@ -1468,23 +1453,23 @@ class Store:
         from its markings (about a second per million).
         """
         c, mc = markings.c, marking_counts.c
-        edges = _BIN_EDGES + [math.inf]
-        per_bin = [func.coalesce(func.sum(case((and_(c.score >= lo, c.score < hi), 1), else_=0)), 0)
-                   for lo, hi in zip(edges[:-1], edges[1:])]  # fmt: skip
         hist = [0] * SCORE_BINS
         with self.snapshot() as conn:
             row = self._map_row(conn, map_id)
-            lonlat_box = self._box_within(conn, map_id, lonlat_box)
-            if lonlat_box is None:
+            where, box = self._selection(conn, map_id, None, lonlat_box)
+            if box is None:
                 kept = conn.execute(select(mc.status, mc.source, mc.kind, mc.score_bin, mc.n)
                                     .where(mc.map_id == map_id, mc.n != 0)).all()  # fmt: skip
                 groups = [(st, src, kind or None, n) for st, src, kind, _, n in kept]
                 for st, src, _, b, n in kept:
                     if src == "detected" and st == "unreviewed" and b >= 0:
                         hist[b] += n
-            elif (where := self._selection(conn, map_id, None, lonlat_box)) is None:  # the box misses the map
+            elif where is None:  # the box misses the map
                 groups = []
             else:
+                edges = _BIN_EDGES + [math.inf]
+                per_bin = [func.coalesce(func.sum(case((and_(c.score >= lo, c.score < hi), 1), else_=0)), 0)
+                           for lo, hi in zip(edges[:-1], edges[1:])]  # fmt: skip
                 groups = conn.execute(
                     select(c.status, c.source, c.kind, func.count()).where(where).group_by(c.status, c.source, c.kind)
                 ).all()  # fmt: skip
@@ -1636,8 +1621,7 @@ class Store:
         last = -1
         while True:
             with self._read() as conn:
-                box = self._box_within(conn, map_id, lonlat_box)
-                where = self._selection(conn, map_id, statuses, box)
+                where, box = self._selection(conn, map_id, statuses, lonlat_box)
                 if where is None:
                     return
                 key = markings.c.id if box is None else _BOXED_ID
@@ -1652,8 +1636,8 @@ class Store:
     def list_markings(
         self, map_id: str, limit: int = 100, offset: int = 0, statuses=None
     ) -> tuple[list[Marking], int]:
-        """A page of a map's markings by id, and the total count (of them all counted once per
-        revision, :meth:`_count_at`)."""
+        """A page of a map's markings by id, and the total count (from the counts every write
+        keeps, :meth:`_kept_count`)."""
         with self._read() as conn:
             return self._page(conn, map_id, limit, offset, statuses)
 
@@ -1661,8 +1645,8 @@ class Store:
         where = markings.c.map_id == map_id
         if statuses:
             where = and_(where, markings.c.status.in_(list(statuses)))
-        row = self._map_row(conn, map_id)
-        total = self._kept_count(conn, map_id, statuses) if statuses else self._count_at(conn, row)
+        self._map_row(conn, map_id)
+        total = self._kept_count(conn, map_id, statuses)
         rows = conn.execute(
             select(*_READ_COLUMNS).where(where).order_by(markings.c.id).limit(limit).offset(offset)
         ).all()
@@ -1682,11 +1666,11 @@ class Store:
         """
         c = markings.c
         with self._read() as conn:
-            where = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
+            where, box = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
             if where is None:
                 return [], 0
             where = and_(where, c.source == "detected")
-            if self._box_within(conn, map_id, lonlat_box) is None:
+            if box is None:
                 total = self._kept_count(conn, map_id, ["unreviewed"], "detected")
             else:
                 total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
@@ -1804,9 +1788,9 @@ class Store:
                     raise InvalidMarkingError(f"change {i} ({c.op}): {exc}") from None
                 results.append(res)
                 if before is not None:
-                    counts[_json_key(before)] -= 1
+                    counts[_dict_key(before)] -= 1
                 if after is not None:
-                    counts[_json_key(after)] += 1
+                    counts[_dict_key(after)] += 1
                     written[res["id"]] = _marking_from_json(after)
                     written[res["id"]].id, written[res["id"]].version = res["id"], res["version"]
                     xs.append(after["x"])
@@ -1874,7 +1858,7 @@ class Store:
             pick.append(c.score < reject_below)
         with self._write() as conn:
             row = self._map_row(conn, map_id, lock=True)
-            where = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
+            where, _ = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
             rows = [] if where is None else conn.execute(
                 select(markings).where(where, c.source == "detected", c.score.is_not(None), or_(*pick))
                 .order_by(c.id)
@@ -2103,8 +2087,8 @@ class Store:
             _insert_many(conn, edits, log_new)
             counts = Counter()
             for e in log_rows:
-                counts[_json_key(e.after)] -= 1
-                counts[_json_key(e.before)] += 1
+                counts[_dict_key(e.after)] -= 1
+                counts[_dict_key(e.before)] += 1
             _tally(conn, map_id, counts)
             self._touch_map(conn, map_id, xs, ys)
         written = {r["marking_id"]: Marking(**{**r["after"], "id": r["marking_id"]}) for r in log_new}
@@ -2179,7 +2163,7 @@ class Store:
                     keep = d2.min(axis=1) > r * r
                     rows = [row for row, ok in zip(rows, keep) if ok]
             _insert_many(conn, markings, rows)
-            counts.update(_count_key(r["status"], r["source"], r["kind"], r["score"]) for r in rows)
+            counts.update(_dict_key(r) for r in rows)
             _tally(conn, map_id, counts)
             if job_id is not None:
                 conn.execute(

@@ -118,7 +118,7 @@ def current_index(store, map_id: str, crs: str, coverage: str, files: "IndexFile
         if since is not None:
             # The update's cap is a share of the index, not of the map: its rejected markings are
             # not in it. The index's size now differs from the file's by no more than the changes.
-            indexed = store.list_markings(map_id, limit=1, statuses=INDEXED_STATUSES)[1]
+            indexed = store.count_markings(map_id, INDEXED_STATUSES)
             if store.count_changes(map_id, since) <= update_cap(indexed):
                 older = files.load(map_id, head, coverage)
         imaged = store.imaged_footprint(map_id) if older is not None and coverage == "imagery" else None

@@ -860,8 +860,8 @@ def test_a_changeset_past_the_drivers_parameter_limit_is_reverted_whole(store):
 
 
 def test_counts_follow_writes_made_by_another_store(store):
-    """A store counts a map's markings once per revision: another process's writes (here another
-    Store on the same database) move the revision on, and the next listing counts again."""
+    """A map's counts follow every write, another process's too (here another Store on the
+    same database), and a map made anew starts from none."""
     store.create_map("ka", crs="EPSG:25832")
     store.add_markings("ka", [_m(3.0 * k, 0.0) for k in range(4)])
     assert _count(store, "ka") == 4 and [m.count for m in store.list_maps()] == [4]
