@@ -17,6 +17,7 @@ import json
 import math
 import re
 import shutil
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -106,6 +107,7 @@ def feature_to_marking(feature: Any, index: int | None = None, *, default_source
     if kind is not None and not isinstance(kind, str):
         raise GeoJSONError(f"{where}: property 'kind' must be a string")
     extra = {k: v for k, v in props.items() if k not in KNOWN_PROPERTIES and k not in OUTPUT_ONLY}
+    # One string per distinct value rather than one per marking: 170 bytes a marking of a city's import.
     return Marking(
         x=math.nan,
         y=math.nan,
@@ -116,9 +118,9 @@ def feature_to_marking(feature: Any, index: int | None = None, *, default_source
         width_m=width or 0.0,
         bearing_deg=(_num(where, "bearing_deg", props.get("bearing_deg")) or 0.0) % 180.0,
         score=_num(where, "score", props.get("score")),
-        kind=kind,
-        source=source,
-        status=status,
+        kind=kind if kind is None else sys.intern(kind),
+        source=sys.intern(source),
+        status=sys.intern(status),
         extra=extra,
     )
 

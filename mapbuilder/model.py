@@ -16,7 +16,7 @@ SOURCES: tuple[str, ...] = ("detected", "manual", "imported")
 STATUSES: tuple[str, ...] = ("unreviewed", "accepted", "rejected")
 
 
-@dataclass
+@dataclass(slots=True)
 class Marking:
     """One lane-marking centroid with its shape.
 

@@ -14,6 +14,7 @@ from mapbuilder.model import Marking
 from mapbuilder.schema import GRID_CELL_M
 from mapbuilder.store import (
     MAP_COVERAGES,
+    INSERT_BATCH,
     Change,
     ConflictError,
     InvalidMarkingError,
@@ -242,6 +243,34 @@ def test_add_markings_fills_lonlat_and_is_all_or_nothing(store):
     assert total == 1 and history[0].op == "import" and history[0].after["count"] == 2
     assert history[0].who == "alice" and history[0].comment == "first"
 
+
+
+def test_an_import_written_batch_by_batch_is_still_all_or_nothing(store):
+    """An import writes a batch at a time: a marking found invalid after two batches were
+    written leaves nothing of it, and one that succeeds counts and bounds every batch."""
+    store.create_map("ka", crs="EPSG:25832")
+    store.add_markings("ka", [_m(0, 0)])
+    before = store.get_map("ka", with_count=True)
+    n = 2 * INSERT_BATCH + 3
+    bad = [_m(float(k % 500), float(k // 500), kind="dash") for k in range(n)]
+    bad[-2] = Marking(x=E0, y=N0, weight=-1)
+    with pytest.raises(InvalidMarkingError, match=f"marking {n - 2}: weight must be > 0"):
+        store.add_markings("ka", bad)
+    after = store.get_map("ka", with_count=True)
+    assert (after.count, after.revision, after.bounds) == (1, before.revision, before.bounds)
+    assert store.summary("ka").by_kind == {"unknown": 1}
+    assert [m.x for m in store.iter_markings("ka")] == [pytest.approx(E0)]
+
+    # The same markings, valid, with the widest ones in the last, short batch.
+    good = [_m(float(k % 500), float(k // 500), kind="dash") for k in range(n - 1)] + [_m(-700.0, 900.0)]
+    ids = store.add_markings("ka", good)
+    assert len(ids) == n and len(set(ids)) == n
+    info = store.get_map("ka", with_count=True)
+    assert info.count == n + 1 and info.revision == before.revision + 1
+    assert info.bounds == pytest.approx((E0 - 700.0, N0, E0 + 499.0, N0 + 900.0))
+    assert store.summary("ka").by_kind["dash"] == n - 1
+    got = store.get_marking("ka", ids[INSERT_BATCH])
+    assert (got.x, got.y) == (pytest.approx(E0 + INSERT_BATCH % 500), pytest.approx(N0 + INSERT_BATCH // 500))
 
 def test_crs_is_chosen_from_first_lonlat_import(store):
     store.create_map("anywhere")
