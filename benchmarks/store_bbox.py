@@ -5,7 +5,8 @@ about 10 per 1,000 m²), then times bbox queries that each return about 1,000
 markings. Prints p50/p95/max latency, and how long a summary of the map
 (``Store.summary``: counts by status, source and kind, the review's scores)
 takes: of the whole map (the kept counts), of a hundredth of it and of the
-whole map counted from its markings (a box around it). The markings are unreviewed detections with scores, as a build leaves
+whole map counted from its markings (a box around it); and a page of boxes over 3 %,
+10 % and 95 % of the map (the API's ``/items?bbox=``). The markings are unreviewed detections with scores, as a build leaves
 them. SQLite by default; pass ``--url`` for PostgreSQL.
 
     .venv/bin/python benchmarks/store_bbox.py [--n 1000000] [--url URL] [--queries 200]
@@ -97,6 +98,17 @@ def main() -> None:
     print(f"summary       {np.median(whole) * 1000:.1f} ms (the counts every write keeps, of {sm.count:,} markings "
           f"and the histogram of {sum(sm.unreviewed_scores):,} scores; median of 5); a hundredth of the map, "
           f"counted: {np.median(part) * 1000:.0f} ms; the whole map counted: {scan:.2f} s")
+    for share in (0.03, 0.1, 0.95):  # wide boxes, centred: WIDE_BOX_SHARE picks how they are read
+        k = math.sqrt(share) / 2
+        cx, cy = (w + e) / 2, (s_ + n) / 2
+        box = (cx - k * (e - w), cy - k * (n - s_), cx + k * (e - w), cy + k * (n - s_))
+        times = []
+        for at in (0, 0.5):
+            t = time.perf_counter()
+            _, total = store.query_lonlat_box("bench", box, limit=1000, offset=int(at * counted.count * share))
+            times.append((time.perf_counter() - t) * 1000)
+        print(f"wide box      {share:.0%} of the map ({total:,} markings): a page of 1,000 with its count "
+              f"{times[0]:.0f} ms at the start, {times[1]:.0f} ms half-way through")
 
 if __name__ == "__main__":
     main()

@@ -523,11 +523,17 @@ def test_sqlite_reads_markings_through_the_index_each_read_needs(sqlite_url):
     assert _sqlite_plans(store, lambda: list(store.iter_markings("ka", batch=10)), "markings") == [by_id] * 5
     assert _sqlite_plans(store, lambda: store.list_markings("ka", offset=10), "markings")[-1] == [
         "SEARCH markings USING INDEX ix_markings_map (map_id=?)"]  # fmt: skip
-    box = store.get_map("ka").bounds_wgs84()  # a box reaching past the map reads the map whole
+    w, s_, e, n = store.get_map("ka").bounds_wgs84()  # a box reaching past the map reads the map whole
+    box = (w, s_, w + (e - w) * 0.04, n)  # two markings of 40: through the grid
     assert _sqlite_plans(store, lambda: list(store.iter_markings("ka", lonlat_box=box)), "markings") == [
         [grid, "USE TEMP B-TREE FOR ORDER BY"]] * 2  # fmt: skip
     assert _sqlite_plans(store, lambda: store.query_lonlat_box("ka", box), "markings")[-1] == [
         grid, "USE TEMP B-TREE FOR ORDER BY"]  # fmt: skip
+    box = (w, s_, w + (e - w) * 0.06, n)  # three of 40, past WIDE_BOX_SHARE: through the ids in order
+    assert _sqlite_plans(store, lambda: list(store.iter_markings("ka", lonlat_box=box)), "markings") == [by_id] * 2
+    assert _sqlite_plans(store, lambda: store.query_lonlat_box("ka", box, offset=1), "markings")[-1] == [
+        "SEARCH markings USING INDEX ix_markings_map (map_id=?)"]  # fmt: skip
+    assert [m.id for m in store.query_lonlat_box("ka", box, offset=1)[0]] == ids[1:3]
     assert _sqlite_plans(store, lambda: store.query_bbox("ka", E0, N0, E0 + 9, N0 + 1), "markings") == [
         [grid, "USE TEMP B-TREE FOR ORDER BY"]]  # fmt: skip
     assert [m.id for m in store.query_bbox("ka", E0 + 2.5, N0 - 1, E0 + 5.5, N0 + 1)] == ids[3:6]
@@ -745,14 +751,55 @@ def test_a_box_holding_the_whole_map_reads_the_map_whole(store):
         assert store.summary("ka", lonlat_box=box) == store.summary("ka")
         assert store.review_queue("ka", lonlat_box=box) == store.review_queue("ka")
     if store.dialect == "sqlite":
-        page_plan = _sqlite_plans(store, lambda: store.query_lonlat_box("ka", around, limit=7), "markings")[-1]
-        assert page_plan == ["SEARCH markings USING INDEX ix_markings_map (map_id=?)"]
-        page_plan = _sqlite_plans(store, lambda: store.query_lonlat_box("ka", (w, s_, e, n), limit=7), "markings")[-1]
-        assert page_plan[0].startswith("SEARCH markings USING INDEX ix_markings_grid")
+        for box in (around, (w, s_, e, n)):  # read whole; walked in id order, each marking tested
+            page_plan = _sqlite_plans(store, lambda: store.query_lonlat_box("ka", box, limit=7), "markings")[-1]
+            assert page_plan == ["SEARCH markings USING INDEX ix_markings_map (map_id=?)"]
     half = (w, s_, (w + e) / 2, n)
     inside = [m.id for m in store.iter_markings("ka") if m.lon <= (w + e) / 2]
     assert 0 < len(inside) < 60 and [m.id for m in store.iter_markings("ka", lonlat_box=half)] == inside
     assert store.summary("ka", lonlat_box=half).count == len(inside)
+
+
+def test_a_wide_box_reads_what_the_grid_reads(store):
+    """A box over ``WIDE_BOX_SHARE`` of the map or more is read by walking the map's ids in
+    order, a narrower one through the grid: both give exactly the markings whose stored lon/lat
+    lie in the box, in id order, the same pages, counts, summaries and review queue, at a map's
+    edge and across a box's corners."""
+    from mapbuilder.store import WIDE_BOX_SHARE
+
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(8)
+    n = 400
+    xy = rng.uniform(0, 2000, (n, 2))
+    xy[:40, 1] = rng.uniform(0, 30, 40)  # a dense strip: a box's share of the area is not of the markings
+    ids = store.add_markings("ka", [_m(a, b, source="detected", score=float(v), status=st, kind=k)
+                                    for (a, b), v, st, k in zip(xy, rng.uniform(0, 1, n),
+                                                                ["unreviewed", "accepted", "rejected", "unreviewed"] * 100,
+                                                                ["dash", None] * 200)])  # fmt: skip
+    every = list(store.iter_markings("ka"))
+    w, s_, e, n_ = store.get_map("ka").bounds_wgs84()
+    dx, dy = e - w, n_ - s_
+    boxes = [(w + dx * a, s_ + dy * b, w + dx * c, s_ + dy * d) for a, b, c, d in (
+        (0.4, 0.4, 0.5, 0.5), (0.0, 0.0, 0.2, 0.2), (0.1, -0.5, 0.9, 0.03),  # 1 %, 4 %, 2.4 %: grid
+        (0.3, 0.3, 0.6, 0.6), (-0.2, -0.2, 0.5, 0.99), (0.0, 0.0, 1.0, 0.5),  # 9 %, 50 %, 50 %: ids
+        (0.01, 0.01, 0.99, 0.99), (0.2, 0.2, 0.2 + 0.2237, 0.2 + 0.2237))]  # fmt: skip
+    shares = [store._box_share(store.get_map("ka"), b) for b in boxes]
+    assert sum(sh < WIDE_BOX_SHARE for sh in shares) == 3 and sum(sh >= WIDE_BOX_SHARE for sh in shares) == 5
+    for box in boxes:
+        inside = [m for m in every if box[0] <= m.lon <= box[2] and box[1] <= m.lat <= box[3]]
+        want = [m.id for m in inside]
+        assert want, box
+        page, total = store.query_lonlat_box("ka", box, limit=9, offset=3)
+        assert ([m.id for m in page], total) == (want[3:12], len(want))
+        assert [m.id for m in store.iter_markings("ka", batch=7, lonlat_box=box)] == want
+        acc = [m.id for m in inside if m.status == "accepted"]
+        assert store.query_lonlat_box("ka", box, statuses=["accepted"], limit=500)[0] == \
+            [m for m in inside if m.status == "accepted"] and len(acc) == store.count_markings("ka", ["accepted"], box)
+        summary = store.summary("ka", lonlat_box=box)
+        assert summary.count == len(want) and summary.by_kind.get("dash", 0) == sum(m.kind == "dash" for m in inside)
+        queue = sorted((m for m in inside if m.status == "unreviewed"), key=lambda m: (m.score, m.id))
+        assert [m.id for m in store.review_queue("ka", lonlat_box=box, limit=1000)[0]] == [m.id for m in queue]
+    assert len({len(store.query_lonlat_box("ka", b, limit=1)[0]) for b in boxes}) == 1  # each box holds markings
 
 
 def test_a_large_load_has_postgresql_count_the_table(postgres_url):
