@@ -155,6 +155,39 @@ def _no_constant(value: str):
     raise GeoJSONError(f"invalid JSON number {value}")  # as lanemap reads GeoJSON: NaN is no number
 
 
+
+def test_a_geopackage_is_built_a_chunk_at_a_time_and_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """A GeoPackage's columns are built ``GPKG_CHUNK`` markings at a time: every marking arrives
+    once, in order, with its fields; an empty map is an empty layer; a failure after some chunks
+    leaves the file that was there before, and no part of the new one."""
+    import shapely
+
+    from mapbuilder import geojson
+    from mapbuilder.model import Marking
+
+    monkeypatch.setattr(geojson, "GPKG_CHUNK", 7)
+    ms = [Marking(x=457000.0 + k, y=5428000.0 - k, weight=k + 1, score=None if k % 5 else k / 30, kind="dash",
+                  id=100 + k, version=2, extra={"k": k}) for k in range(23)]  # fmt: skip
+    assert geojson.write_gpkg(tmp_path / "m.gpkg", iter(ms), "EPSG:25832") == 23
+    meta, _, geometry, fields = pyogrio.raw.read(tmp_path / "m.gpkg")
+    col = dict(zip(meta["fields"], fields))
+    assert meta["crs"] == "EPSG:25832" and list(col["marking_id"]) == [m.id for m in ms]
+    assert [p.x for p in shapely.from_wkb(geometry)] == [m.x for m in ms]
+    assert list(col["weight"]) == [m.weight for m in ms] and [json.loads(e)["k"] for e in col["extra"]] == list(range(23))
+    assert np.isnan(col["score"][1]) and col["score"][5] == pytest.approx(5 / 30)
+
+    assert geojson.write_gpkg(tmp_path / "empty.gpkg", iter([]), "EPSG:25832") == 0
+    assert pyogrio.read_info(tmp_path / "empty.gpkg")["features"] == 0
+
+    def failing():
+        yield from ms[:15]
+        raise RuntimeError("the database went away")
+
+    before = (tmp_path / "m.gpkg").read_bytes()
+    with pytest.raises(RuntimeError, match="went away"):
+        geojson.write_gpkg(tmp_path / "m.gpkg", failing(), "EPSG:25832")
+    assert (tmp_path / "m.gpkg").read_bytes() == before and sorted(os.listdir(tmp_path)) == ["empty.gpkg", "m.gpkg"]
+
 def test_a_file_is_read_a_feature_at_a_time_as_json_would_read_it(tmp_path):
     """``read_geojson_file`` parses a FeatureCollection's features one at a time (a city's file
     would not fit in memory parsed whole) and reads the same markings as ``json.loads`` then
