@@ -777,6 +777,7 @@ def test_a_wide_box_reads_what_the_grid_reads(store):
                                                                 ["unreviewed", "accepted", "rejected", "unreviewed"] * 100,
                                                                 ["dash", None] * 200)])  # fmt: skip
     every = list(store.iter_markings("ka"))
+    assert [m.id for m in every] == ids
     w, s_, e, n_ = store.get_map("ka").bounds_wgs84()
     dx, dy = e - w, n_ - s_
     boxes = [(w + dx * a, s_ + dy * b, w + dx * c, s_ + dy * d) for a, b, c, d in (
