@@ -43,6 +43,11 @@ class GeoJSONError(ValueError):
     """The GeoJSON cannot be read as markings; the message names the feature and problem."""
 
 
+class InvalidJSONError(GeoJSONError):
+    """The text is not JSON at all (not UTF-8, a syntax error, a number that is not finite, or
+    nested too deeply), as opposed to JSON that is not GeoJSON of markings."""
+
+
 def _num(where: str, name: str, value: Any, *, optional: bool = True) -> float | None:
     if value is None:
         if optional:
@@ -163,7 +168,7 @@ def _check_collection(obj: Any) -> None:
 
 
 def _reject_constant(value: str):
-    raise GeoJSONError(f"invalid JSON number {value}")
+    raise InvalidJSONError(f"invalid JSON number {value}")
 
 
 def _readable(path: str | Path) -> Path:
@@ -195,17 +200,41 @@ def read_geojson_stream(fh: BinaryIO, name: str,
     data = fh.read(MAX_FILE_BYTES + 1)
     if len(data) > MAX_FILE_BYTES:
         raise GeoJSONError(f"{name} is larger than {MAX_FILE_BYTES} bytes")
+    text = decode_json_bytes(data, name)
+    del data  # held once as text while it is read, not twice
+    return read_geojson_text(text, name, progress)
+
+
+def decode_json_bytes(data: bytes, name: str) -> str:
+    """JSON text encoded as UTF-8 (a byte order mark, as some Windows tools write, is dropped);
+    :class:`InvalidJSONError` where it is not UTF-8."""
     try:
-        text = data.decode("utf-8-sig")  # a byte order mark, as some Windows tools write, is dropped
-        del data
-        return _read_collection_text(text, progress)
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError:
-        raise GeoJSONError(f"{name} is not UTF-8 text") from None
+        raise InvalidJSONError(f"{name} is not UTF-8 text") from None
+
+
+def read_geojson_text(text: str, name: str,
+                      progress: Callable[[int, int], None] | None = None) -> list[Marking]:  # fmt: skip
+    """Read markings from GeoJSON text, a feature at a time; ``name`` names the source in errors.
+    Raises :class:`InvalidJSONError` where ``text`` is not JSON, and :class:`GeoJSONError` where
+    it is not GeoJSON of markings."""
+    try:
+        return _read_collection_text(text, progress)
     except json.JSONDecodeError as exc:
-        raise GeoJSONError(f"{name} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+        raise InvalidJSONError(f"{name} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except RecursionError:
+        raise InvalidJSONError(f"{name} is not valid JSON: nested too deeply") from None
 
 
-_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if not math.isfinite(v):
+        raise InvalidJSONError(f"invalid JSON number {text} (numbers must be finite)")
+    return v
+
+
+_DECODER = json.JSONDecoder(parse_constant=_reject_constant, parse_float=_finite_float)
 
 
 def _read_collection_text(text: str, progress: Callable[[int, int], None] | None) -> list[Marking]:

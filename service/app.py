@@ -30,7 +30,8 @@ log = logging.getLogger(__name__)
 
 EDITOR_DIR = Path(__file__).resolve().parent / "static" / "editor"
 #: Routes that stream their own body (uploads), past the JSON body guard.
-STREAM_PATHS = r"^/collections/[^/]+/imagery/?$"
+#: Routes that read their own body, under their own limits: uploads and imports.
+STREAM_PATHS = r"^/collections/[^/]+/(imagery|import)/?$"
 
 API_DESCRIPTION = """\
 Lane-marking maps as OGC API Features (Part 1 Core, Part 4 editing), atomic

@@ -90,6 +90,11 @@ class ServiceSettings(IndexDirSettings):
         Largest JSON request body, bytes.
     max_upload_bytes : int
         Largest imagery upload, bytes.
+    max_import_bytes : int
+        Largest GeoJSON body of an import (``POST /collections/{id}/import``),
+        bytes. It is read a feature at a time and written in one transaction; at
+        its peak an import holds its body as text and about 470 bytes per marking
+        (a body of 256 MB, 1,000,000 markings, raised a server's memory by 737 MB).
     items_default_limit, items_max_limit : int
         Page sizes of ``/collections/{mapId}/items``.
     max_observations : int
@@ -163,6 +168,7 @@ class ServiceSettings(IndexDirSettings):
     cors_origins: str = ""
     max_body_bytes: int = Field(16 * 1024 * 1024, ge=1)
     max_upload_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1)
+    max_import_bytes: int = Field(256 * 1024 * 1024, ge=1)
     items_default_limit: int = Field(100, ge=1)
     items_max_limit: int = Field(10_000, ge=1)
     max_observations: int = Field(500, ge=1)

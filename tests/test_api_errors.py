@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import socket
@@ -30,7 +31,7 @@ def strict(tmp_path_factory):
     server = start_server(
         f"sqlite:///{tmp / 'db.sqlite'}", tmp / "data",
         env={"LANEMAP_READ_TOKEN_REQUIRED": "1", "LANEMAP_READ_TOKENS": f"fleet={READ_TOKEN}",
-             "LANEMAP_MAX_BODY_BYTES": "20000",
+             "LANEMAP_MAX_BODY_BYTES": "20000", "LANEMAP_MAX_IMPORT_BYTES": "40000",
              "LANEMAP_MAX_UPLOAD_BYTES": "100000", "LANEMAP_CORS_ORIGINS": "http://editor.example",
              "LANEMAP_MAX_OBSERVATIONS": "50", "LANEMAP_MAX_DRIVE_OBSERVATIONS": "120"},
     )  # fmt: skip
@@ -95,7 +96,13 @@ def test_limits_read_tokens_and_cors(strict):
     map_id = strict.new_map()
     big = {"type": "FeatureCollection", "features": [feature(8.4, 49.0, note="x" * 100)] * 300}
     r = c.post(f"/collections/{map_id}/import", json=big, headers=strict.auth)
-    assert_problem(r, 413, "limit")
+    assert_problem(r, 413, "40000 bytes")
+    # An import has a limit of its own (LANEMAP_MAX_IMPORT_BYTES), above that of other JSON bodies.
+    mid = {"type": "FeatureCollection", "features": [feature(8.4, 49.0, note="x" * 100)] * 150}
+    assert 20000 < len(json.dumps(mid)) < 40000
+    assert_problem(c.post(f"/collections/{map_id}/evaluate", json=mid, headers=strict.auth), 413, "20000 bytes")
+    r = c.post(f"/collections/{map_id}/import", json=mid, headers=strict.auth)
+    assert r.status_code == 201 and r.json()["imported"] == 150
     # a body that lies about its size is cut off at the limit as well
     with socket.create_connection(("127.0.0.1", int(strict.base_url.rsplit(":", 1)[1]))) as s:
         s.sendall(b"POST /collections/%s/import HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\n"
@@ -103,7 +110,7 @@ def test_limits_read_tokens_and_cors(strict):
                   % (map_id.encode(), strict.token.encode()))  # fmt: skip
         chunk = b"[" * 8000
         try:
-            for _ in range(4):
+            for _ in range(6):
                 s.sendall(b"%x\r\n%s\r\n" % (len(chunk), chunk))
             s.sendall(b"0\r\n\r\n")
         except (BrokenPipeError, ConnectionResetError):
@@ -208,11 +215,12 @@ def test_every_answer_carries_a_request_id_that_the_log_shows(api, strict):
     for bad in ("two words", "x" * 129, "a;b", 'q"uote'):
         got = httpx.get(f"{api.base_url}/conformance", headers={"X-Request-ID": bad}).headers.get_list("x-request-id")
         assert len(got) == 1 and fresh.fullmatch(got[0]), (bad, got)
-    # the body guard's refusal, before any route
-    r = httpx.post(f"{strict.base_url}/collections/x/import", content=b"{}", headers={
-        **strict.auth, "Content-Type": "text/plain", "X-Request-ID": "refused-1"})  # fmt: skip
-    assert_problem(r, 415)
-    assert r.headers["x-request-id"] == "refused-1"
+    # the body guard's refusal, before any route; and the import's own, which reads its body itself
+    for path in ("evaluate", "import"):
+        r = httpx.post(f"{strict.base_url}/collections/x/{path}", content=b"{}", headers={
+            **strict.auth, "Content-Type": "text/plain", "X-Request-ID": f"refused-{path}"})  # fmt: skip
+        assert_problem(r, 415)
+        assert r.headers["x-request-id"] == f"refused-{path}"
     # a browser may send one and read it back
     pre = httpx.options(f"{strict.base_url}/collections", headers={
         "Origin": "http://editor.example", "Access-Control-Request-Method": "GET",

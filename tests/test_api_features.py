@@ -318,3 +318,37 @@ def test_import_errors_name_the_feature(api):
         assert_problem(c.post(f"/collections/{map_id}/import", json=fc), 422, "feature 1")
         assert_problem(c.post(f"/collections/{map_id}/import", json={"type": "Nope"}), 422, "FeatureCollection")
         assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 0
+
+
+def test_an_import_reads_its_own_body_and_writes_all_of_it_or_nothing(api):
+    """An import reads its body itself (it may be larger than other JSON bodies): what is not
+    JSON is 400, JSON that is not markings 422, an unknown map 404, and a body whose last
+    marking is bad writes none of the thousands before it."""
+    map_id = api.new_map()
+    json_type = {**api.auth, "Content-Type": "application/geo+json"}
+    with api.client(headers=json_type) as c:
+        for body, status, words in (
+            (b'{"type": "FeatureCollection", "features": [', 400, ("not valid JSON",)),
+            (b'{"type": "FeatureCollection", "features": [NaN]}', 400, ("NaN",)),
+            (b'{"type": "FeatureCollection", "features": [], "x": 1e999}', 400, ("1e999",)),
+            (b"[" * 100_000 + b"]" * 100_000, 400, ("nested too deeply",)),
+            ('{"type": "FeatureCollection"}'.encode("utf-16"), 400, ("UTF-8",)),
+            (b"", 422, ("empty",)),
+            (b'{"type": "FeatureCollection", "features": []}', 422, ("no features",)),
+            (b'{"type": "Feature"}', 422, ("Point",)),
+        ):  # fmt: skip
+            assert_problem(c.post(f"/collections/{map_id}/import", content=body), status, *words)
+        ok = b'{"type": "FeatureCollection", "features": [{"type": "Feature", "geometry": {"type": "Point", ' \
+             b'"coordinates": [8.4, 49.0]}, "properties": {}}]}'
+        assert_problem(c.post("/collections/no-such-map/import", content=ok), 404)
+        feats = [feature(8.4 + 1e-6 * k, 49.0) for k in range(12_000)]
+        feats[-1]["properties"]["weight"] = -1
+        r = c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats})
+        assert_problem(r, 422, "feature 11999", "weight")
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 0
+        feats[-1]["properties"]["weight"] = 2.0
+        r = c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats},
+                   params={"comment": "a district"})  # fmt: skip
+        assert r.status_code == 201 and r.json()["imported"] == 12_000
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 12_000
+        assert c.get(f"/collections/{map_id}/changesets").json()["changesets"][0]["comment"] == "a district"

@@ -10,13 +10,17 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Header, Query, Request, Response
 from fastapi import Path as PathParam
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
+from starlette.requests import ClientDisconnect
 
+from mapbuilder.geojson import GeoJSONError, InvalidJSONError, decode_json_bytes, read_geojson_text
 from mapbuilder.model import STATUSES
 from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, Marking, UnknownMarkingError
 
 from ..deps import Context, get_ctx, require_read, require_write
+from ..middleware import is_json_type
 from ..problems import Problem
 from ..settings import MapCoverage
 from ._common import (
@@ -31,7 +35,6 @@ from ._common import (
     if_match_versions,
     link,
     marking_from_feature,
-    markings_of_body,
     parse_id,
     patched_marking,
     statuses_param,
@@ -253,22 +256,69 @@ def delete_collection(mapId: str = MapId, ctx: Context = Depends(get_ctx), who: 
     openapi_extra={"requestBody": {"required": True, "content": {GEOJSON: {"schema": {"type": "object"}},
                                                                   JSON: {"schema": {"type": "object"}}}}},
 )  # fmt: skip
-def import_features(
+async def import_features(
     request: Request,
     mapId: str = MapId,
-    body: Any = Body(..., media_type=GEOJSON),
     comment: str = Query("", max_length=2000, description="Comment of the import changeset"),
     ctx: Context = Depends(get_ctx),
     who: str = Depends(require_write),
 ):
-    ctx.store.get_map(mapId)
-    items = markings_of_body(body)
-    ids = ctx.store.add_markings(mapId, items, who=who, comment=comment or "import", lonlat=True)
+    """Import a GeoJSON FeatureCollection of markings (Points, WGS84) in one transaction: all of
+    them or none. The body may be up to ``LANEMAP_MAX_IMPORT_BYTES`` long (a city's map; other
+    JSON bodies are bounded by ``LANEMAP_MAX_BODY_BYTES``), and is read a feature at a time."""
+    limit = ctx.settings.max_import_bytes
+    ctype = request.headers.get("content-type", "")
+    if not is_json_type(ctype):
+        raise Problem(415, f"Content-Type {ctype or '(none)'} is not accepted here: send application/json",
+                      "unsupported-media-type")  # fmt: skip
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        try:
+            if int(declared) > limit:
+                raise Problem(413, f"request body of {declared} bytes exceeds the limit of {limit} bytes", "too-large")
+        except ValueError:
+            raise Problem(400, "Content-Length is not a number") from None
+    await run_in_threadpool(ctx.store.get_map, mapId)
+    chunks: list[bytes] = []
+    size = 0
+    try:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise Problem(413, f"request body exceeds the limit of {limit} bytes", "too-large")
+            chunks.append(chunk)
+    except ClientDisconnect:
+        log.info("import into %s aborted by the client after %d bytes", mapId, size)
+        raise Problem(400, "the request body was interrupted", "truncated-upload") from None
+    if declared is not None and size != int(declared):
+        raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
+    items = await run_in_threadpool(_markings_of_chunks, chunks)
+    ids = await run_in_threadpool(ctx.store.add_markings, mapId, items, who, comment or "import", lonlat=True)
     return JSONResponse(
         {"imported": len(ids), "first_id": str(min(ids)), "last_id": str(max(ids))},
         status_code=201,
         headers={"Location": f"{base_url(request)}/collections/{mapId}/items"},
     )
+
+
+def _markings_of_chunks(chunks: list[bytes]) -> list[Marking]:
+    """The markings of an import's body, received as ``chunks`` (emptied: the body is held as
+    bytes and as text only while it is decoded, then as text while it is read)."""
+    data = b"".join(chunks)
+    chunks.clear()
+    if not data or data.isspace():
+        raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
+    try:
+        text = decode_json_bytes(data, "body")
+        del data
+        items = read_geojson_text(text, "body")
+    except InvalidJSONError as exc:
+        raise Problem(400, f"request body is not valid JSON: {exc}") from None
+    except GeoJSONError as exc:
+        raise Problem(422, f"body: {exc}", "invalid-geojson") from None
+    if not items:
+        raise Problem(422, "body: the FeatureCollection has no features", "invalid-geojson")
+    return items
 
 
 # ---------------------------------------------------------------------------- items (Part 1)
