@@ -464,9 +464,9 @@ def read_gpkg(path: str | Path, progress: Callable[[int, int], None] | None = No
                     continue
                 v = _plain(col[i])
                 if name == "extra" and isinstance(v, str):
-                    try:
-                        extra = json.loads(v)
-                    except json.JSONDecodeError:
+                    try:  # finite numbers only: an extra holding Infinity could not be exported
+                        extra = _DECODER.decode(v)
+                    except (json.JSONDecodeError, InvalidJSONError, RecursionError):
                         extra = None
                     if isinstance(extra, dict):
                         props.update({k: x for k, x in extra.items() if k not in props})

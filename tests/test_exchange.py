@@ -239,7 +239,13 @@ def test_bad_input_is_one_clear_line_and_writes_nothing(db_url, tmp_path, cli):
     good = tmp_path / "good.geojson"
     good.write_text(json.dumps(_fc(_pt(), _pt(8.431, 49.001))))
     run(["import", "m", good, "--create"], db_url, tmp_path)
-    for k, (content, message) in enumerate(BAD_FILES):
+    # JSON that Python's own parser reads, but lanemap does not: a number that overflows to
+    # infinity (stored in a marking's extra, no export could write it), and nesting deep enough
+    # to exhaust the parser's recursion.
+    beyond = [(json.dumps(_fc(_pt(weight=2))).replace('"weight": 2', '"note": 1e999, "weight": 2'), "invalid JSON number 1e999"),
+              ('{"type": "FeatureCollection", "features": [' + "[" * 100_000 + "]" * 100_000 + "]}",
+               "nested too deeply")]  # fmt: skip
+    for k, (content, message) in enumerate(BAD_FILES + beyond):
         bad = tmp_path / f"bad{k}.geojson"
         bad.write_text(content)
         proc = run(["import", "m", bad], db_url, tmp_path, check=False)
@@ -549,6 +555,18 @@ def _write_layer(path, crs, points, fields: dict, layer="survey", geometry_type=
         warnings.simplefilter("ignore", UserWarning)  # pyogrio's note on a layer written without a CRS
         pyogrio.raw.write(str(path), geometry=shapely.to_wkb(geoms), field_data=[np.asarray(v) for v in fields.values()],
                           fields=list(fields), crs=crs, geometry_type=geometry_type, driver="GPKG", layer=layer)  # fmt: skip
+
+
+def test_a_geopackage_extra_that_is_not_finite_json_stays_text(sqlite_url, tmp_path, cli):
+    """An ``extra`` column is taken apart only where it is JSON with finite numbers: one that
+    holds Infinity is kept as text, so that the map it is imported into can be exported again."""
+    pts = np.array([[457000.0, 5428000.0], [457010.0, 5428000.0]])
+    _write_layer(tmp_path / "x.gpkg", "EPSG:25832", pts,
+                 {"extra": np.array(['{"lane": 2}', '{"lane": Infinity}'], dtype=object)})  # fmt: skip
+    cli(["import", "x", "x.gpkg", "--create"], sqlite_url, tmp_path)
+    got = json.loads(cli(["export", "x", "-"], sqlite_url, tmp_path).stdout)["features"]
+    assert [f["properties"].get("lane") for f in got] == [2, None]
+    assert got[1]["properties"]["extra"] == '{"lane": Infinity}'
 
 
 def test_a_geopackage_survey_in_another_crs_is_imported_and_scored(sqlite_url, tmp_path, cli):
