@@ -221,6 +221,8 @@ def read_geojson_text(text: str, name: str,
     it is not GeoJSON of markings."""
     try:
         return _read_collection_text(text, progress)
+    except InvalidJSONError as exc:  # a number that is not finite
+        raise InvalidJSONError(f"{name} is not valid JSON: {exc}") from None
     except json.JSONDecodeError as exc:
         raise InvalidJSONError(f"{name} is not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
     except RecursionError:

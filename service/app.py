@@ -29,8 +29,7 @@ from .settings import ServiceSettings, Token, resolve_tokens
 log = logging.getLogger(__name__)
 
 EDITOR_DIR = Path(__file__).resolve().parent / "static" / "editor"
-#: Routes that stream their own body (uploads), past the JSON body guard.
-#: Routes that read their own body, under their own limits: uploads and imports.
+#: Routes that read their own body under limits of their own (uploads, imports), past the JSON body guard.
 STREAM_PATHS = r"^/collections/[^/]+/(imagery|import)/?$"
 
 API_DESCRIPTION = """\

@@ -309,11 +309,11 @@ def _markings_of_chunks(chunks: list[bytes]) -> list[Marking]:
     if not data or data.isspace():
         raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
     try:
-        text = decode_json_bytes(data, "body")
+        text = decode_json_bytes(data, "request body")
         del data
-        items = read_geojson_text(text, "body")
+        items = read_geojson_text(text, "request body")
     except InvalidJSONError as exc:
-        raise Problem(400, f"request body is not valid JSON: {exc}") from None
+        raise Problem(400, str(exc)) from None
     except GeoJSONError as exc:
         raise Problem(422, f"body: {exc}", "invalid-geojson") from None
     if not items:
