@@ -26,7 +26,12 @@ from sqlalchemy import (
     String,
     Table,
     Text,
+    text,
 )
+
+#: The markings of a map's review queue: the predicate of ``ix_markings_queue``, written out as SQL
+#: so that a query holding it word for word can read the index.
+QUEUED = "source = 'detected' AND status = 'unreviewed'"
 
 #: Side of a grid cell of the spatial key, metres. About the size of a
 #: typical query window's share of one lane; chosen by benchmarks/store_bbox.py.
@@ -101,6 +106,10 @@ markings = Table(
     Index("ix_markings_revision", "map_id", "revision", "id"),
     # A map's markings in id order: pages of /items and exports, without sorting the map.
     Index("ix_markings_map", "map_id", "id"),
+    # The review queue, a map's unreviewed detections by score, without sorting them for every page;
+    # partial: what is decided leaves it, and the rest of the map is not written to it.
+    Index("ix_markings_queue", "map_id", "score", "id",
+          sqlite_where=text(QUEUED), postgresql_where=text(QUEUED)),  # fmt: skip
     # Never reuse the id of a deleted marking: ids are feature ids and ETag scopes.
     sqlite_autoincrement=True,
 )

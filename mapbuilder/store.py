@@ -27,8 +27,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from sqlalchemy import (
-    Text, and_, bindparam, case, create_engine, delete, event, func, insert, literal_column, or_, select, text,
-    type_coerce, update,
+    Text, and_, bindparam, case, create_engine, delete, event, func, insert, literal, literal_column, or_, select,
+    text, tuple_, type_coerce, update,
 )  # fmt: skip
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection, Engine, make_url
@@ -38,7 +38,7 @@ from . import migrate
 from .crs import CRSError, from_wgs84, metric_crs, to_wgs84, utm_crs_for
 from .model import SOURCES, STATUSES, Marking
 from .schema import (
-    GRID_CELL_M, changesets, edits, imaged_ground, imagery, job_tiles, jobs, maps, marking_counts, markings,
+    GRID_CELL_M, QUEUED, changesets, edits, imaged_ground, imagery, job_tiles, jobs, maps, marking_counts, markings,
     removed_markings, retired_maps,
 )  # fmt: skip
 from .settings import Settings
@@ -1707,11 +1707,11 @@ class Store:
             where, box, _ = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
             if where is None:
                 return [], 0
-            where = and_(where, c.source == "detected")
             if box is None:
                 total = self._kept_count(conn, map_id, ["unreviewed"], "detected")
-            else:
-                total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+                return self._queue_page(conn, map_id, after, limit), int(total)
+            where = and_(where, c.source == "detected")
+            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
             if after is not None:
                 score, last = after
                 if score is None:
@@ -1722,6 +1722,30 @@ class Store:
                 select(*_READ_COLUMNS).where(where).order_by(c.score.is_(None), c.score, c.id).limit(limit)
             ).all()  # fmt: skip
         return _markings_from_rows(rows), int(total)
+
+    @staticmethod
+    def _queue_page(conn: Connection, map_id: str, after: tuple[float | None, int] | None,
+                    limit: int) -> list[Marking]:  # fmt: skip
+        """A page of a whole map's review queue read in the order of ``ix_markings_queue``: the
+        scored detections after ``after`` by (score, id), then those without a score by id. Its
+        predicate is written out as the index's (:data:`QUEUED`), which lets SQLite read it; a
+        page of 500 among 1,000,000 took 15 ms instead of 0.3 s sorted."""
+        c = markings.c
+        queued = and_(c.map_id == map_id, text(QUEUED))
+        rows: list = []
+        if after is None or after[0] is not None:
+            scored = and_(queued, c.score.is_not(None))
+            if after is not None:
+                scored = and_(scored, tuple_(c.score, c.id) > tuple_(literal(float(after[0])), literal(int(after[1]))))
+            rows = conn.execute(select(*_READ_COLUMNS).where(scored).order_by(c.score, c.id).limit(limit)).all()
+        if len(rows) < limit:
+            unscored = and_(queued, c.score.is_(None))
+            if after is not None and after[0] is None:
+                unscored = and_(unscored, c.id > after[1])
+            rows += conn.execute(
+                select(*_READ_COLUMNS).where(unscored).order_by(c.id).limit(limit - len(rows))
+            ).all()  # fmt: skip
+        return _markings_from_rows(rows)
 
     def get_marking(self, map_id: str, marking_id: int) -> Marking:
         with self._read() as conn:

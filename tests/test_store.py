@@ -803,6 +803,38 @@ def test_a_wide_box_reads_what_the_grid_reads(store):
     assert len({len(store.query_lonlat_box("ka", b, limit=1)[0]) for b in boxes}) == 1  # each box holds markings
 
 
+def test_the_review_queue_is_read_in_the_order_of_its_index(store):
+    """A whole map's review queue is read through ``ix_markings_queue``, a partial index of its
+    unreviewed detections by (score, id): every page, from any key, in any size, gives what a
+    sort of the queue gives (ties by id, negative scores first, those without a score last, a
+    page reaching across from the scored ones to the rest), and on SQLite no page sorts."""
+    store.create_map("ka", crs="EPSG:25832")
+    rng = np.random.default_rng(5)
+    scores = [None if k % 7 == 0 else float(v) for k, v in enumerate(rng.choice([-0.5, 0.1, 0.25, 0.5, 0.9], 60))]
+    ms = [_m(float(k), 0.0, source=("manual" if k % 11 == 3 else "detected"),
+             status=("accepted" if k % 13 == 5 else "unreviewed"), score=v) for k, v in enumerate(scores)]  # fmt: skip
+    ids = store.add_markings("ka", ms)
+    queue = sorted((i for i, m in zip(ids, ms) if m.source == "detected" and m.status == "unreviewed"),
+                   key=lambda i: (scores[ids.index(i)] is None, scores[ids.index(i)] or 0.0, i))  # fmt: skip
+    assert 40 < len(queue) < 60 and scores[ids.index(queue[-1])] is None
+    for size in (1, 4, 7, 100):
+        got, after = [], None
+        while True:
+            page, total = store.review_queue("ka", after=after, limit=size)
+            assert total == len(queue) and len(page) <= size
+            if not page:
+                break
+            got += [m.id for m in page]
+            after = (page[-1].score, page[-1].id)
+        assert got == queue, size
+    if store.dialect == "sqlite":
+        key = (scores[ids.index(queue[10])], queue[10])
+        plans = _sqlite_plans(store, lambda: store.review_queue("ka", after=key, limit=100), "markings")
+        plans = [p for p in plans if "ix_markings_queue" in " ".join(p)]
+        assert plans == [["SEARCH markings USING INDEX ix_markings_queue (map_id=? AND score>?)"],
+                         ["SEARCH markings USING INDEX ix_markings_queue (map_id=? AND score=?)"]], plans
+
+
 def test_a_large_load_has_postgresql_count_the_table(postgres_url):
     """After a load of ``ANALYZE_FROM`` markings or more PostgreSQL's statistics count them (it
     plans a box's read by them), without waiting for autovacuum; a small load leaves that to it."""
