@@ -47,6 +47,21 @@ def link(href: str, rel: str, type_: str | None = None, title: str | None = None
     return out
 
 
+def declared_length(request: Request, limit: int, what: str = "request body") -> int | None:
+    """The ``Content-Length`` of a body a route reads itself (an upload, an import), or None where
+    it is not given; 413 where it passes ``limit`` bytes, 400 where it is not a number."""
+    declared = request.headers.get("content-length")
+    if declared is None:
+        return None
+    try:
+        n = int(declared)
+    except ValueError:
+        raise Problem(400, "Content-Length is not a number") from None
+    if n > limit:
+        raise Problem(413, f"{what} of {n} bytes exceeds the limit of {limit} bytes", "too-large")
+    return n
+
+
 def parse_id(value: str | int, field: str = "featureId") -> int:
     """A feature, job, changeset or imagery id as an integer (they are strings in URLs)."""
     if isinstance(value, bool):

@@ -30,6 +30,7 @@ from ._common import (
     base_url,
     bbox_param,
     crs_uri,
+    declared_length,
     etag,
     feature_of,
     if_match_versions,
@@ -271,13 +272,7 @@ async def import_features(
     if not is_json_type(ctype):
         raise Problem(415, f"Content-Type {ctype or '(none)'} is not accepted here: send application/json",
                       "unsupported-media-type")  # fmt: skip
-    declared = request.headers.get("content-length")
-    if declared is not None:
-        try:
-            if int(declared) > limit:
-                raise Problem(413, f"request body of {declared} bytes exceeds the limit of {limit} bytes", "too-large")
-        except ValueError:
-            raise Problem(400, "Content-Length is not a number") from None
+    declared = declared_length(request, limit)
     await run_in_threadpool(ctx.store.get_map, mapId)
     chunks: list[bytes] = []
     size = 0
@@ -290,7 +285,7 @@ async def import_features(
     except ClientDisconnect:
         log.info("import into %s aborted by the client after %d bytes", mapId, size)
         raise Problem(400, "the request body was interrupted", "truncated-upload") from None
-    if declared is not None and size != int(declared):
+    if declared is not None and size != declared:
         raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
     items = await run_in_threadpool(_markings_of_chunks, chunks)
     ids = await run_in_threadpool(ctx.store.add_markings, mapId, items, who, comment or "import", lonlat=True)

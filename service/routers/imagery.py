@@ -22,7 +22,7 @@ from mapbuilder.store import ImageryInfo
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem, storage_problem
-from ._common import JSON, base_url, link, parse_id
+from ._common import JSON, base_url, declared_length, link, parse_id
 
 log = logging.getLogger(__name__)
 
@@ -124,13 +124,7 @@ async def upload_imagery(
     if ctype not in {t.split(";")[0] for t in UPLOAD_TYPES}:
         raise Problem(415, f"Content-Type {ctype or '(none)'} is not accepted: send the GeoTIFF as image/tiff",
                       "unsupported-media-type")  # fmt: skip
-    declared = request.headers.get("content-length")
-    if declared is not None:
-        try:
-            if int(declared) > limit:
-                raise Problem(413, f"upload of {declared} bytes exceeds the limit of {limit} bytes", "too-large")
-        except ValueError:
-            raise Problem(400, "Content-Length is not a number") from None
+    declared = declared_length(request, limit, "upload")
     info = await run_in_threadpool(ctx.store.get_map, mapId)
     folder = ctx.data_dir / "imagery" / mapId
     tmp_dir = ctx.data_dir / "imagery" / ".incoming"
@@ -174,7 +168,7 @@ async def upload_imagery(
                 raise write_error
         finally:
             await run_in_threadpool(fh.close)
-        if declared is not None and size != int(declared):
+        if declared is not None and size != declared:
             raise Problem(400, f"upload is truncated: {size} of {declared} bytes arrived", "truncated-upload")
         if size == 0:
             raise Problem(422, "body: the upload is empty; send a GeoTIFF", "invalid-imagery")
