@@ -1185,25 +1185,13 @@ class Store:
                     m.x, m.y = float(x), float(y)
             insert_batch = self._batch_inserter(conn, len(items))
             ids: list[int] = []
-            counts: Counter = Counter()
-            lo, hi = [math.inf, math.inf], [-math.inf, -math.inf]
-            for start in range(0, len(items), INSERT_BATCH):
-                rows = []
-                for i in range(start, min(start + INSERT_BATCH, len(items))):
-                    try:
-                        row = marking_row(items[i], crs, now)
-                    except InvalidMarkingError as exc:
-                        raise InvalidMarkingError(f"marking {i}: {exc}") from None
-                    row["map_id"], row["version"], row["revision"] = map_id, 1, rev
-                    counts[_dict_key(row)] += 1
-                    rows.append(row)
-                x, y = [r["x"] for r in rows], [r["y"] for r in rows]
-                lo = [min(lo[0], *x), min(lo[1], *y)]
-                hi = [max(hi[0], *x), max(hi[1], *y)]
+
+            def write(rows):
                 ids.extend(insert_batch(rows))
                 if progress is not None:
                     progress(len(ids), len(items))
-            _tally(conn, map_id, counts)
+
+            self._write_new(conn, map_id, items, crs, rev, now, write, INSERT_BATCH)
             cs = conn.execute(
                 insert(changesets).values(
                     map_id=map_id, who=who, at=now, comment=comment, n_create=len(ids),
@@ -1217,9 +1205,45 @@ class Store:
                     comment=comment,
                 )
             )  # fmt: skip
-            self._touch_map(conn, map_id, [lo[0], hi[0]], [lo[1], hi[1]])
         self._analyze_after(len(ids))
         return ids
+
+    def _write_new(self, conn: Connection, map_id: str, items: Iterable[Marking], crs: str, rev: int,
+                   now: datetime, write: Callable[[list[dict[str, Any]]], Any], batch: int) -> int:  # fmt: skip
+        """Check new markings and turn them into rows of revision ``rev``, ``batch`` at a time,
+        each batch handed to ``write`` before the next is built (a city's rows are never held
+        at once); then count them into ``marking_counts`` and widen the map's bounds. How many
+        were written; an invalid marking raises :class:`InvalidMarkingError` naming its index."""
+        counts: Counter = Counter()
+
+        def batches() -> Iterator[list[dict[str, Any]]]:
+            rows = []
+            for i, m in enumerate(items):
+                try:
+                    row = marking_row(m, crs, now)
+                except InvalidMarkingError as exc:
+                    raise InvalidMarkingError(f"marking {i}: {exc}") from None
+                row["map_id"], row["version"], row["revision"] = map_id, 1, rev
+                counts[_dict_key(row)] += 1
+                rows.append(row)
+                if len(rows) >= batch:
+                    yield rows
+                    rows = []
+            if rows:
+                yield rows
+
+        lo, hi = [math.inf, math.inf], [-math.inf, -math.inf]
+        n = 0
+        for rows in batches():
+            x, y = [r["x"] for r in rows], [r["y"] for r in rows]
+            lo = [min(lo[0], *x), min(lo[1], *y)]
+            hi = [max(hi[0], *x), max(hi[1], *y)]
+            write(rows)
+            n += len(rows)
+        if n:
+            _tally(conn, map_id, counts)
+            self._touch_map(conn, map_id, [lo[0], hi[0]], [lo[1], hi[1]])
+        return n
 
     def _analyze_after(self, n: int) -> None:
         """After ``n`` markings were loaded at once, have PostgreSQL count the table again
@@ -1284,31 +1308,11 @@ class Store:
     def bulk_load(self, map_id: str, items: Iterable[Marking], chunk: int = 20000) -> int:
         """Insert many markings fast (benchmarks, large imports): no edit log, one transaction."""
         now = _now()
-        n = 0
         with self._write() as conn:
             crs = self._crs_for_write(conn, map_id)
             rev = self._next_revision(conn, map_id)
-            buf: list[dict[str, Any]] = []
-            counts: Counter = Counter()
-            minx = miny = math.inf
-            maxx = maxy = -math.inf
-            for m in items:
-                row = marking_row(m, crs, now)
-                row["map_id"], row["version"], row["revision"] = map_id, 1, rev
-                counts[_dict_key(row)] += 1
-                minx, miny = min(minx, row["x"]), min(miny, row["y"])
-                maxx, maxy = max(maxx, row["x"]), max(maxy, row["y"])
-                buf.append(row)
-                if len(buf) >= chunk:
-                    _insert_many(conn, markings, buf)
-                    n += len(buf)
-                    buf = []
-            if buf:
-                _insert_many(conn, markings, buf)
-                n += len(buf)
-            if n:
-                _tally(conn, map_id, counts)
-                self._touch_map(conn, map_id, [minx, maxx], [miny, maxy])
+            n = self._write_new(conn, map_id, items, crs, rev, now,
+                                lambda rows: _insert_many(conn, markings, rows), chunk)  # fmt: skip
         self._analyze_after(n)
         return n
 
@@ -1363,9 +1367,10 @@ class Store:
         with self._read() as conn:
             return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
 
-    def _lonlat_clause(self, info: MapInfo, lonlat_box: tuple[float, float, float, float], wide: bool = False):
-        """Markings of ``info``'s map whose centroid lies in a lon/lat box (degrees), or None
-        when none can (the box misses the map, or the map has no CRS yet).
+    def _lonlat_clause(self, info: MapInfo, mb, lonlat_box: tuple[float, float, float, float], wide: bool = False):
+        """Markings of ``info``'s map, whose lon/lat bounds are ``mb``, whose centroid lies in a
+        lon/lat box (degrees), or None when none can (the box misses the map, or the map has no
+        CRS yet).
 
         The box becomes a larger one in the storage CRS (its edges are curves there); the grid
         keys narrow the search to that, and the stored ``lon``/``lat`` keep exactly the
@@ -1373,7 +1378,6 @@ class Store:
         A ``wide`` box is tested on the stored ``lon``/``lat`` alone, with no grid keys for the
         database to read it by (:data:`WIDE_BOX_SHARE`).
         """
-        mb = info.bounds_wgs84()
         if mb is None or info.crs is None:
             return None
         w, s, e, n = (max(lonlat_box[0], mb[0]), max(lonlat_box[1], mb[1]),
@@ -1393,24 +1397,22 @@ class Store:
                     c.lon.between(w, e), c.lat.between(s, n))  # fmt: skip
 
     @staticmethod
-    def _box_within(info: MapInfo, lonlat_box):
+    def _box_within(mb, lonlat_box):
         """``lonlat_box`` (minLon, minLat, maxLon, maxLat; degrees), or None where it holds the
-        whole map of ``info`` with :data:`COVER_MARGIN_DEG` to spare: then the map is read whole
-        (in its ids' index order, its counts kept) rather than grid cell by grid cell, as a
+        whole map (lon/lat bounds ``mb``) with :data:`COVER_MARGIN_DEG` to spare: then the map
+        is read whole (in its ids' index order, its counts kept) rather than grid cell by grid cell, as a
         client zoomed out past the map asks (on 1,000,000 markings, SQLite counted such a box
         in 4.9 s where the kept counts answer in 2 ms)."""
-        mb = None if lonlat_box is None else info.bounds_wgs84()
         m = COVER_MARGIN_DEG
-        if mb is not None:
+        if mb is not None and lonlat_box is not None:
             w, s, e, n = lonlat_box
             if w <= mb[0] - m and s <= mb[1] - m and e >= mb[2] + m and n >= mb[3] + m:
                 return None
         return lonlat_box
 
     @staticmethod
-    def _box_share(info: MapInfo, lonlat_box) -> float:
-        """How much of the lon/lat bounds of ``info``'s map ``lonlat_box`` covers, 0 to 1."""
-        mb = info.bounds_wgs84()
+    def _box_share(mb, lonlat_box) -> float:
+        """How much of a map's lon/lat bounds ``mb`` the box ``lonlat_box`` covers, 0 to 1."""
         if mb is None:
             return 0.0
         w, s = max(lonlat_box[0], mb[0]), max(lonlat_box[1], mb[1])
@@ -1434,11 +1436,12 @@ class Store:
         walk costs at most a pass over the map (about 0.2 s per million markings), the grid's
         way a read and sort of the whole box for every page."""
         info = self._map_info(self._map_row(conn, map_id))
-        box = self._box_within(info, lonlat_box)
+        mb = None if lonlat_box is None else info.bounds_wgs84()  # once a read: 21 points a side through PROJ
+        box = self._box_within(mb, lonlat_box)
         where, key = markings.c.map_id == map_id, markings.c.id
         if box is not None:
-            wide = self._box_share(info, box) >= WIDE_BOX_SHARE
-            where = self._lonlat_clause(info, box, wide=wide)
+            wide = self._box_share(mb, box) >= WIDE_BOX_SHARE
+            where = self._lonlat_clause(info, mb, box, wide=wide)
             if where is None:
                 return None, box, key
             if not wide:
@@ -2130,8 +2133,10 @@ class Store:
             moved = "x" in changed or "y" in changed
             if moved:
                 changed += ["lon", "lat"]
-            updates, log_new, results, xs, ys = [], [], [], [], []
+            updates, log_new, results, xs, ys, counts = [], [], [], [], [], Counter()
             for e in log_rows:
+                counts[_dict_key(e.after)] -= 1
+                counts[_dict_key(e.before)] += 1
                 version = e.after["version"] + 1
                 after = {**e.before, "version": version}
                 u = {"_id": e.marking_id, **{f"_v_{k}": after[k] for k in changed}}
@@ -2147,10 +2152,6 @@ class Store:
                 results.append({"op": "update", "id": e.marking_id, "version": version})
             _update_many(conn, updates)
             _insert_many(conn, edits, log_new)
-            counts = Counter()
-            for e in log_rows:
-                counts[_dict_key(e.after)] -= 1
-                counts[_dict_key(e.before)] += 1
             _tally(conn, map_id, counts)
             self._touch_map(conn, map_id, xs, ys)
         written = {r["marking_id"]: Marking(**{**r["after"], "id": r["marking_id"]}) for r in log_new}

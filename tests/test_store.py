@@ -784,7 +784,7 @@ def test_a_wide_box_reads_what_the_grid_reads(store):
         (0.4, 0.4, 0.5, 0.5), (0.0, 0.0, 0.2, 0.2), (0.1, -0.5, 0.9, 0.03),  # 1 %, 4 %, 2.4 %: grid
         (0.3, 0.3, 0.6, 0.6), (-0.2, -0.2, 0.5, 0.99), (0.0, 0.0, 1.0, 0.5),  # 9 %, 50 %, 50 %: ids
         (0.01, 0.01, 0.99, 0.99), (0.2, 0.2, 0.2 + 0.2237, 0.2 + 0.2237))]  # fmt: skip
-    shares = [store._box_share(store.get_map("ka"), b) for b in boxes]
+    shares = [store._box_share(store.get_map("ka").bounds_wgs84(), b) for b in boxes]
     assert sum(sh < WIDE_BOX_SHARE for sh in shares) == 3 and sum(sh >= WIDE_BOX_SHARE for sh in shares) == 5
     for box in boxes:
         inside = [m for m in every if box[0] <= m.lon <= box[2] and box[1] <= m.lat <= box[3]]
