@@ -52,7 +52,16 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
         reads = [f"/collections/{map_id}/items?limit=5", f"/collections/{map_id}/items/{fid}",
                  f"/collections/{map_id}", f"/collections/{map_id}/history", "/jobs", "/health"]  # fmt: skip
 
+        errors: list[str] = []
+
         def hammer() -> None:
+            try:
+                _hammer()
+            except Exception as exc:  # a thread that dies would read as a server that never recovered
+                errors.append(f"{phase[0]}: {exc!r}")
+                raise
+
+        def _hammer() -> None:
             with httpx.Client(base_url=server.base_url, headers=server.auth, timeout=30) as c:
                 i = 0
                 while not stop.is_set():
@@ -92,7 +101,12 @@ def test_postgres_down_under_requests_is_503_and_recovers_by_itself(mode, tmp_pa
             last = [s for s in seen[-24:] if s[0] == "back"]
             return len(last) >= 16 and all(s[2] in (200, 201) for s in last)
 
-        wait_for(recovered, 30, what="recovery after PostgreSQL came back")
+        try:
+            wait_for(recovered, 30, what="recovery after PostgreSQL came back")
+        except AssertionError as exc:
+            tail = [(s[0], s[1], s[2], (s[5] or {}).get("detail")) for s in seen[-24:]]
+            raise AssertionError(f"{exc}; the last answers: {tail}; the clients' errors: {errors}\nserver: {server.log()[-3000:]}\n"
+                                 f"PostgreSQL: {pg.server_log()[-2000:]}") from None
         stop.set()
         for t in threads:
             t.join(30)
