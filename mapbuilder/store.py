@@ -405,6 +405,20 @@ def _finite(name: str, value: Any, *, optional: bool = False) -> float | None:
     return v
 
 
+def _check_json(name: str, value: Any) -> None:
+    """Refuse what JSON cannot hold: numbers that are not finite (SQLite would store them, and
+    the map could then not be exported or served) and values that are not JSON at all."""
+    try:
+        json.dumps(value, allow_nan=False)
+    except ValueError as exc:
+        if "float" in str(exc):  # "Out of range float values are not JSON compliant"
+            raise InvalidMarkingError(f"{name} holds a number that is not finite (JSON has no NaN or "
+                                      "Infinity)") from None
+        raise InvalidMarkingError(f"{name} is not JSON: {exc}") from None
+    except (TypeError, RecursionError) as exc:
+        raise InvalidMarkingError(f"{name} is not JSON: {exc}") from None
+
+
 def marking_row(m: Marking, crs: str, now: datetime) -> dict[str, Any]:
     """Validate a marking and turn it into a ``markings`` row (without id/map_id)."""
     x, y = _finite("x", m.x), _finite("y", m.y)
@@ -426,6 +440,8 @@ def marking_row(m: Marking, crs: str, now: datetime) -> dict[str, Any]:
     extra = m.extra if m.extra is not None else {}
     if not isinstance(extra, dict):
         raise InvalidMarkingError("extra must be a JSON object")
+    if extra:
+        _check_json("extra", extra)
     return {
         "tile_key": m.tile_key,
         "gx": math.floor(x / GRID_CELL_M),

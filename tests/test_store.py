@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import multiprocessing as mp
 
@@ -1086,3 +1087,66 @@ def test_a_connection_lost_while_a_maps_arrays_are_read_is_an_outage(postgres_ur
         assert len(store.marking_arrays("ka")) == 30  # the pool gives a working connection again
     finally:
         store.close()
+
+
+@pytest.mark.parametrize("extra, why", [
+    ({"gain": math.inf}, "not finite"),
+    ({"trace": [1.0, {"gain": -math.inf}]}, "not finite"),
+    ({"gain": math.nan}, "not finite"),
+    ({"seen": {1, 2}}, "extra is not JSON"),
+])  # fmt: skip
+def test_an_extra_json_cannot_hold_is_refused_and_writes_nothing(store, extra, why):
+    """JSON has no NaN or Infinity: an extra holding one could be stored on SQLite, and the map
+    then neither exported nor served. A create and an update are refused alike."""
+    store.create_map("ka", crs="EPSG:25832")
+    (mid,) = store.add_markings("ka", [_m(0, 0, extra={"gain": 2.5})])
+    rev = store.map_head("ka")[0]
+    with pytest.raises(InvalidMarkingError, match=f"marking 1: {why}" if "JSON" in why else why):
+        store.add_markings("ka", [_m(1, 1), _m(2, 2, extra=extra)])
+    with pytest.raises(InvalidMarkingError, match=why):
+        store.apply_changeset("ka", [Change("update", id=mid, fields={"extra": extra})], who="t")
+    with pytest.raises(InvalidMarkingError, match=why):
+        store.apply_changeset("ka", [Change("create", marking=_m(3, 3, extra=extra))], who="t")
+    assert _count(store, "ka") == 1 and store.map_head("ka")[0] == rev
+    kept = store.get_marking("ka", mid)
+    assert kept.extra == {"gain": 2.5} and kept.version == 1
+    store.close()
+
+
+def test_an_upgrade_names_the_numbers_json_cannot_hold(tmp_path, monkeypatch):
+    """Schema revision 0009: a map that an import gave ``Infinity`` or ``NaN`` in an extra (the
+    store on SQLite took them before they were refused) reads, serves and exports again, the
+    numbers kept as their names, in the edit log too; other extras are left as they were."""
+    from mapbuilder import store as st
+    from mapbuilder.geojson import write_geojson
+
+    url = f"sqlite:///{tmp_path / 'old.sqlite'}"
+    old = Store(url, upgrade=False)
+    old.upgrade("0008")
+    monkeypatch.setattr(st, "_check_json", lambda name, value: None)  # as the store was before
+    old.create_map("ka", crs="EPSG:25832")
+    ids = old.add_markings("ka", [_m(0, 0, extra={"gain": math.inf, "note": "NaN is fine as text"}),
+                                  _m(1, 1, extra={"trace": [math.nan, -math.inf, 1.5], "deep": {"x": math.inf}}),
+                                  _m(2, 2, extra={"note": "Infinity and NaN, said in words"}),
+                                  _m(3, 3)])  # fmt: skip
+    old.apply_changeset("ka", [Change("update", id=ids[0], fields={"status": "accepted"})], who="t")
+    old.close()
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="not JSON compliant"):  # what an export did before
+        json.dumps(Store(url, upgrade=False).get_marking("ka", ids[0]).extra, allow_nan=False)
+
+    up = Store(url, upgrade=False)
+    assert up.upgrade() == ("0008", migrate.head_revision())
+    up.close()
+    store = Store(url)
+    got = {m.id: m.extra for m in store.iter_markings("ka")}
+    assert got == {ids[0]: {"gain": "Infinity", "note": "NaN is fine as text"},
+                   ids[1]: {"trace": ["NaN", "-Infinity", 1.5], "deep": {"x": "Infinity"}},
+                   ids[2]: {"note": "Infinity and NaN, said in words"}, ids[3]: {}}  # fmt: skip
+    (edit,), _ = store.history("ka", limit=1)
+    assert edit.before["extra"]["gain"] == "Infinity" and edit.after["extra"]["gain"] == "Infinity"
+    assert store.get_marking("ka", ids[0]).status == "accepted" and store.map_head("ka")[0] == 2
+    out = tmp_path / "ka.geojson"
+    write_geojson(out, store.iter_markings("ka"))
+    assert json.loads(out.read_text())["features"][0]["properties"]["gain"] == "Infinity"
+    store.close()
