@@ -15,8 +15,9 @@ import json
 import logging
 import math
 import re
+import threading
 from bisect import bisect_right
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
@@ -174,6 +175,28 @@ class MapHead(NamedTuple):
     #: When the map last changed: with the revision, it tells the same revision of a map
     #: written twice (a database restored from a backup, then edited) from itself.
     updated: str
+
+
+class _Selection(NamedTuple):
+    """What a read of a map's markings reads (:meth:`Store._selection`)."""
+
+    #: The WHERE clause; None when no marking can match (a box beside the map).
+    where: Any
+    #: The lon/lat box it reads, clipped to the map (:meth:`Store._box_within`); None: the whole map.
+    box: tuple[float, float, float, float] | None
+    #: What to order the markings by: their id, or an expression of it (``_BOXED_ID``).
+    key: Any
+    #: The state of the map it reads (:func:`_state_of`).
+    state: tuple
+    #: The statuses it selects, sorted; empty: all.
+    statuses: tuple[str, ...]
+
+
+def _state_of(info: MapInfo) -> tuple:
+    """What tells one state of a map's markings from another, as :class:`MapHead` does: the
+    revision every write moves on, when the map was made (a map made anew under a deleted
+    one's id) and last changed (the same revision written twice, after a restore)."""
+    return info.revision, info.created_at, info.updated_at
 
 
 @dataclass
@@ -622,6 +645,9 @@ INSERT_BATCH = 5000
 #: marking tested against the box, rather than through the grid and sorted (:meth:`Store._selection`).
 WIDE_BOX_SHARE = 0.05
 
+#: Counts of boxes a store keeps, each for one state of its map (:meth:`Store._box_count`).
+BOX_COUNTS_KEPT = 256
+
 #: A load of at least this many markings has PostgreSQL count the table again (``ANALYZE``).
 ANALYZE_FROM = 10_000
 
@@ -774,6 +800,8 @@ class Store:
         self.url = normalize_url(url or Settings().resolved_database_url())
         self.engine = self._make_engine(self.url)
         self.dialect = self.engine.dialect.name
+        self._counts: OrderedDict[tuple, int] = OrderedDict()
+        self._counts_lock = threading.Lock()
         if upgrade:
             self._ensure_schema()
 
@@ -1439,10 +1467,9 @@ class Store:
         # A map on a line (or a point) has no area: its share is what the box holds of its length.
         return (((e - w) / dx) if dx > 0 else 1.0) * (((n - s) / dy) if dy > 0 else 1.0)
 
-    def _selection(self, conn: Connection, map_id: str, statuses, lonlat_box):
-        """The WHERE clause of a map's markings with these statuses inside ``lonlat_box``
-        (either None: all), or None when no marking can match; the box it reads, None where
-        that is the whole map (:meth:`_box_within`); and the key to order them by.
+    def _selection(self, conn: Connection, map_id: str, statuses, lonlat_box) -> _Selection:
+        """What a read of a map's markings with these statuses inside ``lonlat_box`` (either
+        None: all) reads, as a :class:`_Selection`.
 
         A box is read through the grid index and its markings sorted by id, unless it covers
         :data:`WIDE_BOX_SHARE` of the map or more: then the map's markings are walked in id
@@ -1459,12 +1486,31 @@ class Store:
             wide = self._box_share(mb, box) >= WIDE_BOX_SHARE
             where = self._lonlat_clause(info, mb, box, wide=wide)
             if where is None:
-                return None, box, key
+                return _Selection(None, box, key, _state_of(info), ())
             if not wide:
                 key = _BOXED_ID
         if statuses:
             where = and_(where, markings.c.status.in_(list(statuses)))
-        return where, box, key
+        return _Selection(where, box, key, _state_of(info), tuple(sorted(statuses or ())))
+
+    def _box_count(self, conn: Connection, map_id: str, sel: _Selection, where, what: str = "markings") -> int:
+        """How many markings ``where`` (``sel.where`` or narrower, as ``what`` names) selects
+        in ``sel.box``, counted once per revision of the map: a client paging through a box
+        (the editor loads a view 5,000 at a time) asks with every page, and a box over 3 %
+        of 1,000,000 markings took 0.15 s to count. Every write of markings moves the map's
+        revision on (:func:`_state_of`), so a count is kept only for as long as it is right."""
+        key = (map_id, sel.state, sel.box, sel.statuses, what)
+        with self._counts_lock:
+            n = self._counts.get(key)
+            if n is not None:
+                self._counts.move_to_end(key)
+                return n
+        n = int(conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one())
+        with self._counts_lock:
+            self._counts[key] = n
+            while len(self._counts) > BOX_COUNTS_KEPT:
+                self._counts.popitem(last=False)
+        return n
 
     def query_lonlat_box(
         self,
@@ -1477,14 +1523,14 @@ class Store:
         """A page of the markings whose centroid lies in ``lonlat_box`` (minLon, minLat, maxLon,
         maxLat; degrees), by id, and how many there are in all."""
         with self._read() as conn:
-            where, box, key = self._selection(conn, map_id, statuses, lonlat_box)
-            if box is None:
+            sel = self._selection(conn, map_id, statuses, lonlat_box)
+            if sel.box is None:
                 return self._page(conn, map_id, limit, offset, statuses)
-            if where is None:
+            if sel.where is None:
                 return [], 0
-            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            total = self._box_count(conn, map_id, sel, sel.where)
             rows = conn.execute(
-                select(*_READ_COLUMNS).where(where).order_by(key).limit(limit).offset(offset)
+                select(*_READ_COLUMNS).where(sel.where).order_by(sel.key).limit(limit).offset(offset)
             ).all()
         return _markings_from_rows(rows), total
 
@@ -1494,12 +1540,12 @@ class Store:
     ) -> int:  # fmt: skip
         """How many of a map's markings :meth:`iter_markings` would give for the same filters."""
         with self._read() as conn:
-            where, box, _ = self._selection(conn, map_id, statuses, lonlat_box)
-            if where is None:
+            sel = self._selection(conn, map_id, statuses, lonlat_box)
+            if sel.where is None:
                 return 0
-            if box is None:
+            if sel.box is None:
                 return self._kept_count(conn, map_id, statuses)
-            return conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            return self._box_count(conn, map_id, sel, sel.where)
 
     def summary(self, map_id: str, lonlat_box: tuple[float, float, float, float] | None = None) -> MapSummary:
         """Count a map's markings by status, source and kind, and its unreviewed detections
@@ -1514,7 +1560,8 @@ class Store:
         hist = [0] * SCORE_BINS
         with self.snapshot() as conn:
             row = self._map_row(conn, map_id)
-            where, box, _ = self._selection(conn, map_id, None, lonlat_box)
+            sel = self._selection(conn, map_id, None, lonlat_box)
+            where, box = sel.where, sel.box
             if box is None:
                 kept = conn.execute(select(mc.status, mc.source, mc.kind, mc.score_bin, mc.n)
                                     .where(mc.map_id == map_id, mc.n != 0)).all()  # fmt: skip
@@ -1679,11 +1726,11 @@ class Store:
         last = -1
         while True:
             with self._read() as conn:
-                where, _, key = self._selection(conn, map_id, statuses, lonlat_box)
-                if where is None:
+                sel = self._selection(conn, map_id, statuses, lonlat_box)
+                if sel.where is None:
                     return
                 rows = conn.execute(
-                    select(*_READ_COLUMNS).where(where, key > last).order_by(key).limit(batch)
+                    select(*_READ_COLUMNS).where(sel.where, sel.key > last).order_by(sel.key).limit(batch)
                 ).all()
             if not rows:
                 return
@@ -1723,14 +1770,14 @@ class Store:
         """
         c = markings.c
         with self._read() as conn:
-            where, box, _ = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
-            if where is None:
+            sel = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
+            if sel.where is None:
                 return [], 0
-            if box is None:
+            if sel.box is None:
                 total = self._kept_count(conn, map_id, ["unreviewed"], "detected")
                 return self._queue_page(conn, map_id, after, limit), int(total)
-            where = and_(where, c.source == "detected")
-            total = conn.execute(select(func.count()).select_from(markings).where(where)).scalar_one()
+            where = and_(sel.where, c.source == "detected")
+            total = self._box_count(conn, map_id, sel, where, "detected")
             if after is not None:
                 score, last = after
                 if score is None:
@@ -1939,7 +1986,7 @@ class Store:
             pick.append(c.score < reject_below)
         with self._write() as conn:
             row = self._map_row(conn, map_id, lock=True)
-            where, _, _ = self._selection(conn, map_id, ["unreviewed"], lonlat_box)
+            where = self._selection(conn, map_id, ["unreviewed"], lonlat_box).where
             rows = [] if where is None else conn.execute(
                 select(markings).where(where, c.source == "detected", c.score.is_not(None), or_(*pick))
                 .order_by(c.id)

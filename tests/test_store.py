@@ -1150,3 +1150,63 @@ def test_an_upgrade_names_the_numbers_json_cannot_hold(tmp_path, monkeypatch):
     write_geojson(out, store.iter_markings("ka"))
     assert json.loads(out.read_text())["features"][0]["properties"]["gain"] == "Infinity"
     store.close()
+
+
+def test_a_box_is_counted_once_a_revision_and_every_write_counts_it_again(store, db_url):
+    """Paging through a box asks for its count with every page. The count is read once for
+    each state of the map, however many pages ask, and each way of writing markings, by this
+    store or by another process's, has the next page count again."""
+    from sqlalchemy import event
+
+    store.create_map("ka", crs="EPSG:25832")
+    ids = store.add_markings("ka", [_m(5 * k, 0, source="detected", score=k / 40) for k in range(40)]
+                             + [_m(0, 500), _m(500, 500)])  # fmt: skip
+    box = tuple(store.get_map("ka").bounds_wgs84())
+    box = (box[0] - 1e-4, box[1] - 1e-4, box[0] + (box[2] - box[0]) * 0.4, box[1] + (box[3] - box[1]) * 0.2)
+    counts: list[str] = []
+
+    @event.listens_for(store.engine, "before_cursor_execute")
+    def _seen(conn, cursor, statement, *args):
+        if "count(" in statement.lower():
+            counts.append(statement)
+
+    def pages(statuses=None) -> tuple[int, list[int]]:
+        got, totals = [], set()
+        for offset in range(0, 60, 7):
+            page, total = store.query_lonlat_box("ka", box, statuses=statuses, limit=7, offset=offset)
+            got += [m.id for m in page]
+            totals.add(total)
+        assert len(totals) == 1
+        return totals.pop(), got
+
+    assert pages() == (40, ids[:40]) and len(counts) == 1
+    assert pages(["unreviewed"]) == (40, ids[:40]) and len(counts) == 2  # another selection, its own count
+    assert store.count_markings("ka", lonlat_box=box) == 40 and len(counts) == 2
+    queue = [m.id for m in store.review_queue("ka", lonlat_box=box, limit=100)[0]]
+    assert queue == ids[:40] and store.review_queue("ka", lonlat_box=box, limit=5)[1] == 40 and len(counts) == 3
+
+    writes = [
+        (lambda: store.add_markings("ka", [_m(1, 1)]), 41),
+        (lambda: store.apply_changeset("ka", [Change("delete", id=ids[3])], who="t"), 40),
+        (lambda: store.apply_changeset("ka", [Change("update", id=ids[0], fields={"x": E0 + 500})], who="t"), 39),
+        (lambda: store.bulk_load("ka", [_m(2, 2), _m(3, 3)]), 41),
+    ]  # fmt: skip
+    for write, want in writes:
+        write()
+        assert pages()[0] == want and store.count_markings("ka", lonlat_box=box) == want
+    review = store.review_by_score("ka", reject_below=0.5, lonlat_box=box, who="t")
+    assert review.rejected > 0
+    assert pages(["unreviewed"])[0] == 41 - review.rejected
+    assert store.review_queue("ka", lonlat_box=box, limit=5)[1] == 38 - review.rejected
+    store.revert_changeset("ka", review.changeset_id, who="t")
+    assert pages(["unreviewed"])[0] == 41 and store.review_queue("ka", lonlat_box=box)[1] == 38
+
+    other = Store(db_url)  # another server process
+    other.add_markings("ka", [_m(4, 4)])
+    other.close()
+    assert pages() == (42, pages()[1]) and store.count_markings("ka", lonlat_box=box) == 42
+    store.delete_map("ka")
+    store.create_map("ka", crs="EPSG:25832")
+    store.add_markings("ka", [_m(5 * k, 0) for k in range(40)])
+    assert pages()[0] == 40
+    store.close()
