@@ -828,12 +828,35 @@ def test_the_review_queue_is_read_in_the_order_of_its_index(store):
             got += [m.id for m in page]
             after = (page[-1].score, page[-1].id)
         assert got == queue, size
+    # A box's queue: a wide one walked along the queue, a narrow one read through the grid.
+    from mapbuilder.store import WIDE_BOX_SHARE
+
+    by_id = {m.id: m for m in store.iter_markings("ka")}
+    w, s_, e, n_ = store.get_map("ka").bounds_wgs84()
+    wide, narrow = (w + (e - w) * 0.15, s_ - 1e-5, w + (e - w) * 0.7, n_ + 1e-5), \
+        (w + (e - w) * 0.3, s_ - 1e-5, w + (e - w) * 0.345, n_ + 1e-5)  # fmt: skip
+    for box, is_wide in ((wide, True), (narrow, False)):
+        assert (store._box_share(store.get_map("ka").bounds_wgs84(), box) >= WIDE_BOX_SHARE) is is_wide
+        inside = [i for i in queue if box[0] <= by_id[i].lon <= box[2]]
+        assert 1 < len(inside) < len(queue)
+        for size in (1, 3, 100):
+            got, after = [], None
+            while True:
+                page, total = store.review_queue("ka", after=after, limit=size, lonlat_box=box)
+                assert total == len(inside) and len(page) <= size
+                if not page:
+                    break
+                got += [m.id for m in page]
+                after = (page[-1].score, page[-1].id)
+            assert got == inside, (box, size)
     if store.dialect == "sqlite":
         key = (scores[ids.index(queue[10])], queue[10])
-        plans = _sqlite_plans(store, lambda: store.review_queue("ka", after=key, limit=100), "markings")
-        plans = [p for p in plans if "ix_markings_queue" in " ".join(p)]
-        assert plans == [["SEARCH markings USING INDEX ix_markings_queue (map_id=? AND score>?)"],
-                         ["SEARCH markings USING INDEX ix_markings_queue (map_id=? AND score=?)"]], plans
+        for box in (None, wide):
+            plans = _sqlite_plans(store, lambda: store.review_queue("ka", after=key, limit=100, lonlat_box=box),
+                                  "markings")  # fmt: skip
+            plans = [p for p in plans if "ix_markings_queue" in " ".join(p)]
+            assert plans == [["SEARCH markings USING INDEX ix_markings_queue (map_id=? AND score>?)"],
+                             ["SEARCH markings USING INDEX ix_markings_queue (map_id=? AND score=?)"]], (box, plans)
 
 
 def test_a_large_load_has_postgresql_count_the_table(postgres_url):
