@@ -1241,6 +1241,7 @@ class Store:
         *,
         lonlat: bool = False,
         progress: Callable[[int, int], None] | None = None,
+        job_id: int | None = None,
     ) -> list[int]:
         """Insert markings in one transaction and log it as one ``import`` changeset.
 
@@ -1253,6 +1254,10 @@ class Store:
         progress : callable, optional
             Called with the markings inserted so far and their total after
             each batch (up to :data:`INSERT_BATCH`).
+        job_id : int, optional
+            The import job this is: it is recorded ``successful``, with what was imported
+            (``params["result"]``), in the same transaction, so a job still active after a
+            crash imported nothing and can run again.
 
         Each batch is checked, turned into rows and written before the next: a city's
         import holds its markings, not their rows too (built whole, the rows of 1,000,000
@@ -1300,8 +1305,23 @@ class Store:
                     comment=comment,
                 )
             )  # fmt: skip
+            if job_id is not None:
+                self._finish_import_job(conn, job_id, {"imported": len(ids), "first_id": min(ids),
+                                                       "last_id": max(ids), "changeset": int(cs)})  # fmt: skip
         self._analyze_after(len(ids))
         return ids
+
+    @staticmethod
+    def _finish_import_job(conn: Connection, job_id: int, result: dict[str, Any]) -> None:
+        row = conn.execute(select(jobs.c.status, jobs.c.params).where(jobs.c.id == job_id)).first()
+        if row is None:
+            raise UnknownJobError(job_id)
+        if row.status not in ("accepted", "running"):
+            raise StoreError(f"job {job_id} is {row.status}; the import is not written")
+        now = _now()
+        conn.execute(update(jobs).where(jobs.c.id == job_id).values(
+            status="successful", progress=100.0, params={**dict(row.params or {}), "result": result},
+            updated_at=now, finished_at=now))  # fmt: skip
 
     def _write_new(self, conn: Connection, map_id: str, items: Iterable[Marking], crs: str, rev: int,
                    now: datetime, write: Callable[[list[dict[str, Any]]], Any], batch: int) -> int:  # fmt: skip

@@ -136,8 +136,79 @@ def run_build_job(db_url: str, job_id: int, server_pid: int | None = None,
         store.close()
 
 
+#: Share of an import job's progress its reading of the file takes; its writing takes the rest.
+IMPORT_READ_SHARE = 30.0
+#: Seconds between an import job's writes of its progress.
+PROGRESS_EVERY_S = 1.0
+
+
+def import_files(data_dir: Path) -> Path:
+    """The folder where the bodies of asynchronous imports wait for their job."""
+    return Path(data_dir) / "imports"
+
+
+def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> None:
+    """Body of a worker process: import the GeoJSON file of job ``job_id`` into its map.
+
+    All of it or none, as a synchronous import: the markings and the job's success are
+    written in one transaction (:meth:`Store.add_markings`), so a job still active after a
+    crash has imported nothing and runs again. Its reading of the file is the first
+    :data:`IMPORT_READ_SHARE` % of its progress. On PostgreSQL the writing moves it on too;
+    on SQLite it stays there until the job ends, as the transaction holds the database's
+    only writer.
+    """
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s import job %(process)d: %(message)s")
+    if server_pid is not None:
+        _exit_with_parent(server_pid)
+    from mapbuilder.geojson import GeoJSONError, read_geojson_file
+    from mapbuilder.store import StoreError
+
+    store = Store(db_url)
+    try:
+        job = store.get_job(job_id)
+        if job.status not in ACTIVE:
+            return
+        store.update_job(job_id, status="running", progress=0.0)
+        last = [0.0]
+
+        def report(share: float) -> None:
+            now = time.monotonic()
+            if now - last[0] >= PROGRESS_EVERY_S:
+                last[0] = now
+                store.update_job(job_id, progress=share)
+
+        path = job.params["file"]
+        try:
+            items = read_geojson_file(path, lambda k, n: report(IMPORT_READ_SHARE * k / max(n, 1)))
+            if not items:
+                raise GeoJSONError("the FeatureCollection has no features")
+        except GeoJSONError as exc:  # what the synchronous import answers as 400 or 422
+            msg = str(exc).replace(str(path), "body", 1)
+            store.update_job(job_id, status="failed", error=msg)
+            return
+        store.update_job(job_id, progress=IMPORT_READ_SHARE)
+        live = store.dialect != "sqlite"
+
+        def written(k: int, n: int) -> None:
+            if live:
+                report(IMPORT_READ_SHARE + (99.0 - IMPORT_READ_SHARE) * k / n)
+
+        try:
+            store.add_markings(job.map_id, items, job.params.get("who", "api"),
+                               job.params.get("comment") or "import", lonlat=True, progress=written,
+                               job_id=job_id)  # fmt: skip
+        except StoreError as exc:  # an invalid marking, a map deleted meanwhile: nothing was written
+            if store.get_job(job_id).status in ACTIVE:
+                store.update_job(job_id, status="failed", error=str(exc))
+            return
+        log.info("import job %d: %d markings into %s", job_id, len(items), job.map_id)
+        Path(path).unlink(missing_ok=True)
+    finally:
+        store.close()
+
+
 class JobRunner:
-    """Runs build jobs in spawned processes, at most ``workers`` at a time.
+    """Runs jobs (builds, asynchronous imports) in spawned processes, at most ``workers`` at a time.
 
     Parameters
     ----------
@@ -240,6 +311,9 @@ class JobRunner:
                     paths = [Path(i.get("path", "")) for i in job.params.get("images", [])]
                     if paths and all(p.resolve().is_relative_to(root) for p in paths):
                         self.submit(job.id)
+                for job in self.store.find_jobs(kind="import", status="accepted"):
+                    if job.id not in self._submitted and _own_import(job, self.data_dir):
+                        self.submit(job.id)
             except Exception:  # a busy or briefly unavailable database: try again later
                 log.debug("job poll failed", exc_info=True)
 
@@ -264,11 +338,13 @@ class JobRunner:
                     return
             except UnknownJobError:
                 return
-            proc = mp.get_context("spawn").Process(
-                target=run_build_job,
-                args=(self.store.url, job_id, os.getpid(), self.dask_address, self.dask_timeout_s),
-                name=f"lanemap-build-{job_id}",
-            )
+            job = self.store.get_job(job_id)
+            if job.kind == "import":
+                target, args = run_import_job, (self.store.url, job_id, os.getpid())
+            else:
+                target, args = run_build_job, (self.store.url, job_id, os.getpid(), self.dask_address,
+                                               self.dask_timeout_s)  # fmt: skip
+            proc = mp.get_context("spawn").Process(target=target, args=args, name=f"lanemap-{job.kind}-{job_id}")
             with self._lock:
                 proc.start()
                 self._procs[job_id] = proc
@@ -281,9 +357,11 @@ class JobRunner:
                 job = self.store.get_job(job_id)
                 if job.status in ACTIVE:
                     self.store.update_job(job_id, status="failed",
-                                          error=f"the build process ended unexpectedly (exit code {proc.exitcode})")
+                                          error=f"the {job.kind} process ended unexpectedly (exit code {proc.exitcode})")
             except Exception:  # the map (and its jobs) may have been deleted meanwhile
                 log.info("job %d is gone after its process ended", job_id)
+            if job.kind == "import":  # its body is no longer needed, whatever became of it
+                Path(job.params.get("file", "")).unlink(missing_ok=True)
 
     def cancel(self, job_id: int) -> None:
         """Dismiss a job: it will not start, or its process is ended."""
@@ -315,12 +393,20 @@ class JobRunner:
             self._lock_fh = None
 
 
+def _own_import(job, data_dir: Path) -> bool:
+    """Whether an import job's body waits in this server's data folder."""
+    path = Path(job.params.get("file", ""))
+    return path.name != "" and path.resolve().is_relative_to(import_files(data_dir).resolve())
+
+
 def recover_jobs(store: Store, data_dir: Path) -> tuple[list[int], list[int]]:
-    """Find the builds a stopped server left unfinished.
+    """Find the jobs a stopped server left unfinished.
 
     Jobs of imagery the server stored (under ``<data_dir>/imagery``) are
     returned to be resumed (``build_map`` continues a job tile by tile); other
     unfinished jobs — builds started elsewhere, e.g. by the CLI, are left alone.
+    An import left active imported nothing (it ends in the transaction that writes its
+    markings): it runs again while its body is kept, and fails when it is gone.
 
     Returns
     -------
@@ -339,5 +425,13 @@ def recover_jobs(store: Store, data_dir: Path) -> tuple[list[int], list[int]]:
             resume.append(job.id)
         else:
             store.update_job(job.id, status="failed", error="interrupted by a server restart; its imagery is gone")
+            failed.append(job.id)
+    for job in store.find_jobs(kind="import", status=ACTIVE):
+        if not _own_import(job, data_dir):
+            continue
+        if Path(job.params["file"]).is_file():
+            resume.append(job.id)
+        else:
+            store.update_job(job.id, status="failed", error="interrupted by a server restart; its body is gone")
             failed.append(job.id)
     return resume, failed

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+import time
 
 import httpx
 import pytest
@@ -352,3 +354,66 @@ def test_an_import_reads_its_own_body_and_writes_all_of_it_or_nothing(api):
         assert r.status_code == 201 and r.json()["imported"] == 12_000
         assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 12_000
         assert c.get(f"/collections/{map_id}/changesets").json()["changesets"][0]["comment"] == "a district"
+
+
+def _finished(c: httpx.Client, url: str, timeout: float = 120) -> dict:
+    deadline = time.monotonic() + timeout
+    seen = []
+    while time.monotonic() < deadline:
+        job = c.get(url).json()
+        seen.append((job["status"], job["progress"]))
+        if job["status"] in ("successful", "failed", "dismissed"):
+            return {**job, "seen": seen}
+        time.sleep(0.05)
+    raise AssertionError(f"{url} did not finish: {seen[-5:]}")
+
+
+def _gone(folder, timeout: float = 10) -> None:
+    """Wait for ``folder`` to hold no file: a job's body is removed as its process ends."""
+    deadline = time.monotonic() + timeout
+    while list(folder.glob("*")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not list(folder.glob("*"))
+
+
+def test_an_import_preferred_async_is_a_job_that_writes_all_of_it_or_nothing(api):
+    """``Prefer: respond-async``: 202 at once with the job (``Location``), whose progress moves
+    while it runs, which answers what the import wrote, and whose body is not kept once it
+    ended. A bad body fails the job with the error the import would answer, writing nothing."""
+    map_id = api.new_map()
+    prefer = {**api.auth, "Content-Type": "application/geo+json", "Prefer": "wait=5, respond-async"}
+    imports = api.data_dir / "imports"
+    feats = [feature(8.4 + 1e-6 * k, 49.0 + 1e-6 * (k % 7)) for k in range(40_000)]
+    with api.client(headers=prefer) as c:
+        r = c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": feats},
+                   params={"comment": "a district"})  # fmt: skip
+        assert r.status_code == 202, r.text
+        assert r.headers["preference-applied"] == "respond-async"
+        assert r.json()["processID"] == "import" and r.json()["status"] in ("accepted", "running")
+        job = _finished(c, r.headers["location"])
+        assert job["status"] == "successful", job
+        assert job["progress"] == 100 and [p for st, p in job["seen"] if 0 < p < 100], job["seen"]
+        got = job["result"]
+        assert got["imported"] == 40_000 and int(got["last_id"]) - int(got["first_id"]) == 39_999
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 40_000
+        cs = c.get(next(x["href"] for x in job["links"] if x["rel"] == "changeset")).json()
+        assert cs["comment"] == "a district" and cs["id"] == got["changeset"]
+        _gone(imports)
+
+        feats[-1]["properties"]["weight"] = -1
+        for body, words in ((json.dumps({"type": "FeatureCollection", "features": feats}).encode(),
+                             ("feature 39999", "weight")),
+                            (b'{"type": "FeatureCollection", "features": [', ("not valid JSON",)),
+                            (b'{"type": "FeatureCollection", "features": []}', ("no features",))):  # fmt: skip
+            r = c.post(f"/collections/{map_id}/import", content=body)
+            assert r.status_code == 202, r.text
+            job = _finished(c, r.headers["location"])
+            assert job["status"] == "failed" and all(w in job["message"] for w in words), job
+            assert "result" not in job and str(imports) not in job["message"]
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 40_000
+        _gone(imports)
+        # Refused before it is a job: what the synchronous import refuses at once.
+        assert_problem(c.post(f"/collections/{map_id}/import", content=b""), 422, "empty")
+        assert_problem(c.post("/collections/no-such-map/import", content=b"{}"), 404)
+        assert_problem(c.post(f"/collections/{map_id}/import", content=b"{}",
+                              headers={"Content-Type": "text/plain"}), 415)  # fmt: skip

@@ -324,6 +324,56 @@ def test_server_killed_inside_a_changeset_leaves_none_of_it(kind, tmp_path):
             admin.dispose()
 
 
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_server_killed_inside_an_import_job_imports_it_once_after_restart(kind, tmp_path):
+    """An import job's markings and its success are one transaction: killed while it writes,
+    the job imported nothing, and the restarted server runs it again from the body it kept,
+    which leaves every marking once, one changeset, and no body behind."""
+    from sqlalchemy import create_engine
+
+    from tests._api_helpers import POSTGRES_ADMIN_URL
+
+    admin = drop = None
+    if kind == "sqlite":
+        db_url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    else:
+        db_url, drop = fresh_postgres_db()
+        admin = create_engine(POSTGRES_ADMIN_URL.replace("postgresql://", "postgresql+psycopg://", 1),
+                              isolation_level="AUTOCOMMIT")  # fmt: skip
+    server = start_server(db_url, tmp_path / "data")
+    try:
+        map_id = server.new_map()
+        n = 150_000
+        fc = {"type": "FeatureCollection",
+              "features": [feature(LON + (i % 400) * 2e-5, LAT + (i // 400) * 2e-5) for i in range(n)]}
+        headers = {**server.auth, "Prefer": "respond-async"}
+        with server.client(headers=headers, timeout=120) as c:
+            r = c.post(f"/collections/{map_id}/import", json=fc)
+            assert r.status_code == 202, r.text
+            job_url = "/jobs/" + r.headers["location"].rsplit("/", 1)[1]  # the restarted server has another port
+            wait_for(lambda: c.get(job_url).json()["progress"] >= 30 and _writer_holds_lock(kind, db_url, admin),
+                     60, period=0.01, what="the import's transaction")  # fmt: skip
+        server.kill_hard()
+        assert len(list((tmp_path / "data" / "imports").glob("*.geojson"))) == 1  # kept for the restart
+
+        server = start_server(db_url, tmp_path / "data")
+        with server.client(headers=server.auth) as c:
+            job = wait_for(lambda: (j := c.get(job_url).json())["status"] not in ("accepted", "running") and j,
+                           120, what="the import job after the restart")  # fmt: skip
+            assert job["status"] == "successful" and job["result"]["imported"] == n, job
+            assert c.get(f"/collections/{map_id}/items?limit=1").json()["numberMatched"] == n
+            changesets = c.get(f"/collections/{map_id}/changesets").json()["changesets"]
+            assert [cs["created"] for cs in changesets] == [n]
+        wait_for(lambda: not list((tmp_path / "data" / "imports").glob("*")), 10, what="the body removed")
+        assert "Traceback" not in server.log()
+    finally:
+        server.stop()
+        if drop is not None:
+            drop()
+        if admin is not None:
+            admin.dispose()
+
+
 # --------------------------------------------------------------------------- storage faults
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import uuid
 from datetime import UTC
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,7 @@ from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, M
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..middleware import is_json_type
-from ..problems import Problem
+from ..problems import Problem, storage_problem
 from ..settings import MapCoverage
 from ._common import (
     CRS84,
@@ -254,6 +255,7 @@ def delete_collection(mapId: str = MapId, ctx: Context = Depends(get_ctx), who: 
 @router.post(
     "/collections/{mapId}/import", tags=["Maps"], summary="Import a GeoJSON FeatureCollection",
     status_code=201,
+    responses={202: {"description": "With `Prefer: respond-async`: the job that imports it, at `Location`"}},
     openapi_extra={"requestBody": {"required": True, "content": {GEOJSON: {"schema": {"type": "object"}},
                                                                   JSON: {"schema": {"type": "object"}}}}},
 )  # fmt: skip
@@ -266,7 +268,9 @@ async def import_features(
 ):
     """Import a GeoJSON FeatureCollection of markings (Points, WGS84) in one transaction: all of
     them or none. The body may be up to ``LANEMAP_MAX_IMPORT_BYTES`` long (a city's map; other
-    JSON bodies are bounded by ``LANEMAP_MAX_BODY_BYTES``), and is read a feature at a time."""
+    JSON bodies are bounded by ``LANEMAP_MAX_BODY_BYTES``), and is read a feature at a time.
+    With ``Prefer: respond-async`` the answer is 202 and a job (``/jobs/{id}``) that shows the
+    import's progress and, once successful, what it imported."""
     limit = ctx.settings.max_import_bytes
     ctype = request.headers.get("content-type", "")
     if not is_json_type(ctype):
@@ -287,6 +291,8 @@ async def import_features(
         raise Problem(400, "the request body was interrupted", "truncated-upload") from None
     if declared is not None and size != declared:
         raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
+    if respond_async(request) and ctx.jobs is not None:
+        return await _import_as_job(request, ctx, mapId, chunks, size, who, comment)
     items = await run_in_threadpool(_markings_of_chunks, chunks)
     ids = await run_in_threadpool(ctx.store.add_markings, mapId, items, who, comment or "import", lonlat=True)
     return JSONResponse(
@@ -294,6 +300,59 @@ async def import_features(
         status_code=201,
         headers={"Location": f"{base_url(request)}/collections/{mapId}/items"},
     )
+
+
+def respond_async(request: Request) -> bool:
+    """Whether the client prefers an answer before the work is done (RFC 7240 ``respond-async``)."""
+    prefs = ",".join(request.headers.getlist("prefer")).replace(";", ",")
+    return any(p.strip().lower() == "respond-async" for p in prefs.split(","))
+
+
+async def _import_as_job(request: Request, ctx: Context, map_id: str, chunks: list[bytes], size: int,
+                         who: str, comment: str) -> JSONResponse:  # fmt: skip
+    """Keep an import's body in the data folder and answer 202 with the job that imports it:
+    a city's import takes about a minute, longer than a proxy may hold a request open, and
+    the job shows its progress. The body is checked when the job reads it; the job fails
+    with the error the synchronous import would answer."""
+    from ..jobs import import_files
+    from .jobs import job_json
+
+    if not chunks or all(not c.strip() for c in chunks):
+        raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
+    folder = import_files(ctx.data_dir)
+    path = folder / f"{uuid.uuid4().hex}.geojson"
+
+    def keep() -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        part = path.with_suffix(".part")
+        try:
+            with open(part, "wb") as fh:
+                for c in chunks:
+                    fh.write(c)
+            part.replace(path)
+        finally:
+            part.unlink(missing_ok=True)
+        chunks.clear()
+
+    try:
+        await run_in_threadpool(keep)
+    except OSError as exc:
+        problem = storage_problem(exc, "import")
+        if problem is None:
+            raise
+        raise problem from None
+    try:
+        job_id = await run_in_threadpool(ctx.store.create_job, "import", map_id,
+                                         {"file": str(path.resolve()), "bytes": size, "who": who,
+                                          "comment": comment or "import"})  # fmt: skip
+    except Exception:
+        path.unlink(missing_ok=True)
+        raise
+    ctx.jobs.submit(job_id)
+    job = await run_in_threadpool(ctx.store.get_job, job_id)
+    url = f"{base_url(request)}/jobs/{job_id}"
+    return JSONResponse(job_json(job, request), status_code=202,
+                        headers={"Location": url, "Preference-Applied": "respond-async"})  # fmt: skip
 
 
 def _markings_of_chunks(chunks: list[bytes]) -> list[Marking]:

@@ -76,6 +76,12 @@ def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
     if images:
         out["links"].append(link(f"{base_url(request)}/jobs/{job.id}/quicklook.png", "preview", "image/png",
                                  "The map's markings over the build's imagery"))
+    result = job.params.get("result") if isinstance(job.params, dict) else None
+    if job.kind == "import" and result:  # what a synchronous import answers
+        out["result"] = {"imported": result["imported"], "first_id": str(result["first_id"]),
+                         "last_id": str(result["last_id"]), "changeset": str(result["changeset"])}  # fmt: skip
+        out["links"].append(link(f"{base_url(request)}/collections/{job.map_id}/changesets/{result['changeset']}",
+                                 "changeset", JSON, "The import's changeset"))  # fmt: skip
     if job.status == "failed":
         out["error"] = job.error or "failed"
     if job.map_id is not None:
