@@ -1,13 +1,17 @@
-"""Helpers shared by the routers: links, ETags, merge patches, feature conversion."""
+"""Helpers shared by the routers: links, ETags, merge patches, feature conversion, bodies read to files."""
 
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import re
+from pathlib import Path
 from typing import Any
 
 from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 
 from mapbuilder.crs import from_wgs84
 from mapbuilder.geojson import (
@@ -17,6 +21,8 @@ from mapbuilder.model import Marking
 
 from ..filters import parse_bbox, parse_statuses
 from ..problems import Problem
+
+log = logging.getLogger(__name__)
 
 CRS84 = "http://www.opengis.net/def/crs/OGC/1.3/CRS84"
 GEOJSON = "application/geo+json"
@@ -45,6 +51,56 @@ def link(href: str, rel: str, type_: str | None = None, title: str | None = None
     if title:
         out["title"] = title
     return out
+
+
+#: Bodies are written to their files in pieces of this size, off the event loop
+#: (:func:`receive_to_file`): a slow disk must not hold up the localizations the same
+#: server process answers meanwhile.
+WRITE_BLOCK_BYTES = 1 << 20
+
+
+async def receive_to_file(request: Request, path: Path, limit: int, what: str) -> int:
+    """Write the request's body to ``path`` as it arrives, a block at a time; its size in bytes.
+
+    413 once it passes ``limit``, 400 when the client breaks off (``what`` names the body in
+    both). A write that fails (a full disk) removes the file and reads the rest of the body
+    (up to the limit) before its ``OSError`` is raised, so that the client gets an answer
+    rather than a reset connection. The caller removes ``path`` on any error.
+    """
+    size = 0
+    write_error: OSError | None = None
+    pending = bytearray()
+    fh = await run_in_threadpool(open, path, "wb")
+
+    async def write_pending() -> None:
+        nonlocal write_error
+        if write_error is None and pending:
+            try:
+                await run_in_threadpool(fh.write, pending)
+            except OSError as exc:
+                write_error = exc  # free the space at once
+                await run_in_threadpool(path.unlink, missing_ok=True)
+        pending.clear()
+
+    try:
+        try:
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise Problem(413, f"{what} exceeds the limit of {limit} bytes", "too-large")
+                if write_error is None:
+                    pending += chunk
+                    if len(pending) >= WRITE_BLOCK_BYTES:
+                        await write_pending()
+            await write_pending()
+        except ClientDisconnect:
+            log.info("%s aborted by the client after %d bytes", what, size)
+            raise Problem(400, f"the {what} was interrupted", "truncated-upload") from None
+        if write_error is not None:
+            raise write_error
+    finally:
+        await run_in_threadpool(fh.close)
+    return size
 
 
 def declared_length(request: Request, limit: int, what: str = "request body") -> int | None:

@@ -39,6 +39,7 @@ from ._common import (
     marking_from_feature,
     parse_id,
     patched_marking,
+    receive_to_file,
     statuses_param,
     update_fields,
 )  # fmt: skip
@@ -278,6 +279,8 @@ async def import_features(
                       "unsupported-media-type")  # fmt: skip
     declared = declared_length(request, limit)
     await run_in_threadpool(ctx.store.get_map, mapId)
+    if respond_async(request) and ctx.jobs is not None:
+        return await _import_as_job(request, ctx, mapId, limit, declared, who, comment)
     chunks: list[bytes] = []
     size = 0
     try:
@@ -291,8 +294,6 @@ async def import_features(
         raise Problem(400, "the request body was interrupted", "truncated-upload") from None
     if declared is not None and size != declared:
         raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
-    if respond_async(request) and ctx.jobs is not None:
-        return await _import_as_job(request, ctx, mapId, chunks, size, who, comment)
     items = await run_in_threadpool(_markings_of_chunks, chunks)
     ids = await run_in_threadpool(ctx.store.add_markings, mapId, items, who, comment or "import", lonlat=True)
     return JSONResponse(
@@ -308,39 +309,36 @@ def respond_async(request: Request) -> bool:
     return any(p.strip().lower() == "respond-async" for p in prefs.split(","))
 
 
-async def _import_as_job(request: Request, ctx: Context, map_id: str, chunks: list[bytes], size: int,
+async def _import_as_job(request: Request, ctx: Context, map_id: str, limit: int, declared: int | None,
                          who: str, comment: str) -> JSONResponse:  # fmt: skip
-    """Keep an import's body in the data folder and answer 202 with the job that imports it:
-    a city's import takes about a minute, longer than a proxy may hold a request open, and
-    the job shows its progress. The body is checked when the job reads it; the job fails
+    """Write an import's body to the data folder as it arrives and answer 202 with the job that
+    imports it: a city's import takes about a minute, longer than a proxy may hold a request
+    open, and the job shows its progress. The body is read when the job runs; the job fails
     with the error the synchronous import would answer."""
     from ..jobs import import_files
     from .jobs import job_json
 
-    if not chunks or all(not c.strip() for c in chunks):
-        raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
     folder = import_files(ctx.data_dir)
-    path = folder / f"{uuid.uuid4().hex}.geojson"
-
-    def keep() -> None:
-        folder.mkdir(parents=True, exist_ok=True)
-        part = path.with_suffix(".part")
-        try:
-            with open(part, "wb") as fh:
-                for c in chunks:
-                    fh.write(c)
-            part.replace(path)
-        finally:
-            part.unlink(missing_ok=True)
-        chunks.clear()
-
+    token = uuid.uuid4().hex
+    part, path = folder / f"{token}.part", folder / f"{token}.geojson"
     try:
-        await run_in_threadpool(keep)
+        await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
+        size = await receive_to_file(request, part, limit, "request body")
+        if declared is not None and size != declared:
+            raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
+        if size == 0 or (size < 4096 and (await run_in_threadpool(part.read_bytes)).isspace()):
+            raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
+        await run_in_threadpool(part.replace, path)
     except OSError as exc:
         problem = storage_problem(exc, "import")
         if problem is None:
             raise
         raise problem from None
+    finally:
+        try:
+            part.unlink(missing_ok=True)
+        except OSError:  # an unwritable folder holds no partial file either
+            log.warning("could not remove %s", part)
     try:
         job_id = await run_in_threadpool(ctx.store.create_job, "import", map_id,
                                          {"file": str(path.resolve()), "bytes": size, "who": who,

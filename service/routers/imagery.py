@@ -16,19 +16,14 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
-from starlette.requests import ClientDisconnect
 
 from mapbuilder.store import ImageryInfo
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..problems import Problem, storage_problem
-from ._common import JSON, base_url, declared_length, link, parse_id
+from ._common import JSON, base_url, declared_length, link, parse_id, receive_to_file
 
 log = logging.getLogger(__name__)
-
-#: Uploads are written in pieces of this size, off the event loop: a slow disk
-#: must not hold up the localizations the same server process answers meanwhile.
-WRITE_BLOCK_BYTES = 1 << 20
 
 router = APIRouter(tags=["Imagery"], dependencies=[Depends(require_read)])
 
@@ -134,40 +129,7 @@ async def upload_imagery(
     size = 0
     try:
         await run_in_threadpool(tmp_dir.mkdir, parents=True, exist_ok=True)
-        write_error: OSError | None = None
-        pending = bytearray()
-
-        async def write_pending() -> None:
-            nonlocal write_error
-            if write_error is None and pending:
-                try:
-                    await run_in_threadpool(fh.write, pending)
-                except OSError as exc:
-                    # Read the rest (to the limit) so that the client gets the answer
-                    # instead of a reset connection; free the space at once.
-                    write_error = exc
-                    await run_in_threadpool(tmp.unlink, missing_ok=True)
-            pending.clear()
-
-        fh = await run_in_threadpool(open, tmp, "wb")
-        try:
-            try:
-                async for chunk in request.stream():
-                    size += len(chunk)
-                    if size > limit:
-                        raise Problem(413, f"upload exceeds the limit of {limit} bytes", "too-large")
-                    if write_error is None:
-                        pending += chunk
-                        if len(pending) >= WRITE_BLOCK_BYTES:
-                            await write_pending()
-                await write_pending()
-            except ClientDisconnect:
-                log.info("upload to %s aborted by the client after %d bytes", mapId, size)
-                raise Problem(400, "the upload was interrupted", "truncated-upload") from None
-            if write_error is not None:
-                raise write_error
-        finally:
-            await run_in_threadpool(fh.close)
+        size = await receive_to_file(request, tmp, limit, "upload")
         if declared is not None and size != declared:
             raise Problem(400, f"upload is truncated: {size} of {declared} bytes arrived", "truncated-upload")
         if size == 0:
@@ -180,7 +142,7 @@ async def upload_imagery(
         problem = storage_problem(exc, "upload")
         if problem is None:
             raise
-        log.error("upload to %s failed after %d bytes: %s", mapId, size, exc)
+        log.error("upload to %s failed: %s", mapId, exc)
         raise problem from None
     finally:
         try:
