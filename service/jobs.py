@@ -72,7 +72,7 @@ def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
     def watch():
         while True:
             if os.getppid() != parent:
-                log.warning("the server died; ending the build worker")
+                log.warning("the server died; ending the job's worker")
                 os._exit(3)
             time.sleep(period_s)
 
@@ -325,7 +325,7 @@ class JobRunner:
             if job_id in self._submitted:
                 return
             self._submitted.add(job_id)
-        t = threading.Thread(target=self._run, args=(job_id,), name=f"build-job-{job_id}", daemon=True)
+        t = threading.Thread(target=self._run, args=(job_id,), name=f"job-{job_id}", daemon=True)
         self._threads.append(t)
         t.start()
 
@@ -334,11 +334,11 @@ class JobRunner:
             if self._stopping:
                 return
             try:
-                if self.store.get_job(job_id).status not in ACTIVE:
-                    return
+                job = self.store.get_job(job_id)
             except UnknownJobError:
                 return
-            job = self.store.get_job(job_id)
+            if job.status not in ACTIVE:
+                return
             if job.kind == "import":
                 target, args = run_import_job, (self.store.url, job_id, os.getpid())
             else:
