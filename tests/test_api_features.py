@@ -412,6 +412,16 @@ def test_an_import_preferred_async_is_a_job_that_writes_all_of_it_or_nothing(api
             assert "result" not in job and str(imports) not in job["message"]
         assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 40_000
         _gone(imports)
+        # Cancelled (DELETE /jobs/{id}) while it reads or writes: dismissed, nothing written, no body kept.
+        big = [feature(8.41 + 1e-6 * k, 49.01) for k in range(150_000)]
+        r = c.post(f"/collections/{map_id}/import", json={"type": "FeatureCollection", "features": big})
+        assert r.status_code == 202, r.text
+        assert c.delete(r.headers["location"]).status_code == 200
+        job = _finished(c, r.headers["location"])
+        assert job["status"] == "dismissed" and "result" not in job, job
+        time.sleep(1.0)  # a process ended mid-write has rolled back; one that was not would commit now
+        assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 40_000
+        _gone(imports)
         # Refused before it is a job: what the synchronous import refuses at once.
         assert_problem(c.post(f"/collections/{map_id}/import", content=b""), 422, "empty")
         assert_problem(c.post("/collections/no-such-map/import", content=b"{}"), 404)
