@@ -250,20 +250,24 @@ def _map_state(server, map_id: str) -> tuple[dict, list, int, set]:
     return feats, changesets.json()["changesets"], history["numberMatched"], {e["comment"] for e in history["edits"]}
 
 
-@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
-def test_server_killed_inside_a_changeset_leaves_none_of_it(kind, tmp_path):
+def _fresh_database(kind: str, tmp_path: Path):
+    """A new database of ``kind``: its URL, an AUTOCOMMIT engine on the server's admin database
+    (PostgreSQL; None for SQLite) and what drops it (None for SQLite)."""
+    if kind == "sqlite":
+        return f"sqlite:///{tmp_path / 'db.sqlite'}", None, None
     from sqlalchemy import create_engine
 
     from tests._api_helpers import POSTGRES_ADMIN_URL
 
-    admin = None
-    drop = None
-    if kind == "sqlite":
-        db_url = f"sqlite:///{tmp_path / 'db.sqlite'}"
-    else:
-        db_url, drop = fresh_postgres_db()
-        admin = create_engine(POSTGRES_ADMIN_URL.replace("postgresql://", "postgresql+psycopg://", 1),
-                              isolation_level="AUTOCOMMIT")  # fmt: skip
+    db_url, drop = fresh_postgres_db()
+    admin = create_engine(POSTGRES_ADMIN_URL.replace("postgresql://", "postgresql+psycopg://", 1),
+                          isolation_level="AUTOCOMMIT")  # fmt: skip
+    return db_url, admin, drop
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_server_killed_inside_a_changeset_leaves_none_of_it(kind, tmp_path):
+    db_url, admin, drop = _fresh_database(kind, tmp_path)
     server = start_server(db_url, tmp_path / "data")
     try:
         map_id = server.new_map()
@@ -329,17 +333,7 @@ def test_server_killed_inside_an_import_job_imports_it_once_after_restart(kind, 
     """An import job's markings and its success are one transaction: killed while it writes,
     the job imported nothing, and the restarted server runs it again from the body it kept,
     which leaves every marking once, one changeset, and no body behind."""
-    from sqlalchemy import create_engine
-
-    from tests._api_helpers import POSTGRES_ADMIN_URL
-
-    admin = drop = None
-    if kind == "sqlite":
-        db_url = f"sqlite:///{tmp_path / 'db.sqlite'}"
-    else:
-        db_url, drop = fresh_postgres_db()
-        admin = create_engine(POSTGRES_ADMIN_URL.replace("postgresql://", "postgresql+psycopg://", 1),
-                              isolation_level="AUTOCOMMIT")  # fmt: skip
+    db_url, admin, drop = _fresh_database(kind, tmp_path)
     server = start_server(db_url, tmp_path / "data")
     try:
         map_id = server.new_map()

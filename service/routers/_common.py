@@ -6,6 +6,8 @@ import copy
 import logging
 import math
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +22,7 @@ from mapbuilder.geojson import (
 from mapbuilder.model import Marking
 
 from ..filters import parse_bbox, parse_statuses
-from ..problems import Problem
+from ..problems import Problem, storage_problem
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +103,28 @@ async def receive_to_file(request: Request, path: Path, limit: int, what: str) -
     finally:
         await run_in_threadpool(fh.close)
     return size
+
+
+@contextmanager
+def storage_failures(what: str, partial: Path, *, also: tuple[Path, ...] = ()) -> Iterator[None]:
+    """Answer a failed write of the server's files as its problem (:func:`storage_problem`: 507
+    for a full disk, 500 for a folder the server may not write), removing ``also`` then, and
+    ``partial`` whatever happens: nothing half-written stays."""
+    try:
+        yield
+    except OSError as exc:
+        for p in also:
+            p.unlink(missing_ok=True)
+        problem = storage_problem(exc, what)
+        if problem is None:
+            raise
+        log.error("%s failed: %s", what, exc)
+        raise problem from None
+    finally:
+        try:
+            partial.unlink(missing_ok=True)
+        except OSError:  # an unwritable folder holds no partial file either
+            log.warning("could not remove %s", partial)
 
 
 def declared_length(request: Request, limit: int, what: str = "request body") -> int | None:

@@ -22,7 +22,7 @@ from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, M
 
 from ..deps import Context, get_ctx, require_read, require_write
 from ..middleware import is_json_type
-from ..problems import Problem, storage_problem
+from ..problems import Problem
 from ..settings import MapCoverage
 from ._common import (
     CRS84,
@@ -41,6 +41,7 @@ from ._common import (
     patched_marking,
     receive_to_file,
     statuses_param,
+    storage_failures,
     update_fields,
 )  # fmt: skip
 
@@ -321,7 +322,7 @@ async def _import_as_job(request: Request, ctx: Context, map_id: str, limit: int
     folder = import_files(ctx.data_dir)
     token = uuid.uuid4().hex
     part, path = folder / f"{token}.part", folder / f"{token}.geojson"
-    try:
+    with storage_failures("import", part):
         await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
         size = await receive_to_file(request, part, limit, "request body")
         if declared is not None and size != declared:
@@ -329,16 +330,6 @@ async def _import_as_job(request: Request, ctx: Context, map_id: str, limit: int
         if size == 0 or (size < 4096 and (await run_in_threadpool(part.read_bytes)).isspace()):
             raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
         await run_in_threadpool(part.replace, path)
-    except OSError as exc:
-        problem = storage_problem(exc, "import")
-        if problem is None:
-            raise
-        raise problem from None
-    finally:
-        try:
-            part.unlink(missing_ok=True)
-        except OSError:  # an unwritable folder holds no partial file either
-            log.warning("could not remove %s", part)
     try:
         job_id = await run_in_threadpool(ctx.store.create_job, "import", map_id,
                                          {"file": str(path.resolve()), "bytes": size, "who": who,

@@ -20,8 +20,8 @@ from fastapi.responses import JSONResponse
 from mapbuilder.store import ImageryInfo
 
 from ..deps import Context, get_ctx, require_read, require_write
-from ..problems import Problem, storage_problem
-from ._common import JSON, base_url, declared_length, link, parse_id, receive_to_file
+from ..problems import Problem
+from ._common import JSON, base_url, declared_length, link, parse_id, receive_to_file, storage_failures
 
 log = logging.getLogger(__name__)
 
@@ -126,8 +126,7 @@ async def upload_imagery(
     token = uuid.uuid4().hex
     tmp = tmp_dir / f"{token}.tif"
     dst = folder / f"{token}.cog.tif"
-    size = 0
-    try:
+    with storage_failures("upload", tmp, also=(dst,)):
         await run_in_threadpool(tmp_dir.mkdir, parents=True, exist_ok=True)
         size = await receive_to_file(request, tmp, limit, "upload")
         if declared is not None and size != declared:
@@ -136,19 +135,6 @@ async def upload_imagery(
             raise Problem(422, "body: the upload is empty; send a GeoTIFF", "invalid-imagery")
         await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
         raster = await run_in_threadpool(convert_to_cog, tmp, dst, info.crs)
-    except OSError as exc:
-        # Nothing half-written stays: the partial upload and COG are removed below.
-        dst.unlink(missing_ok=True)
-        problem = storage_problem(exc, "upload")
-        if problem is None:
-            raise
-        log.error("upload to %s failed: %s", mapId, exc)
-        raise problem from None
-    finally:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:  # an unwritable folder holds no partial file either
-            log.warning("could not remove %s", tmp)
     grid = raster.grid
     try:
         imagery_id = await run_in_threadpool(
