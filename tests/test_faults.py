@@ -250,11 +250,13 @@ def _map_state(server, map_id: str) -> tuple[dict, list, int, set]:
     return feats, changesets.json()["changesets"], history["numberMatched"], {e["comment"] for e in history["edits"]}
 
 
-def _fresh_database(kind: str, tmp_path: Path):
-    """A new database of ``kind``: its URL, an AUTOCOMMIT engine on the server's admin database
-    (PostgreSQL; None for SQLite) and what drops it (None for SQLite)."""
-    if kind == "sqlite":
-        return f"sqlite:///{tmp_path / 'db.sqlite'}", None, None
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request, tmp_path):
+    """A new database of each kind: (kind, its URL, an AUTOCOMMIT engine on the server's admin
+    database, None for SQLite); dropped afterwards."""
+    if request.param == "sqlite":
+        yield "sqlite", f"sqlite:///{tmp_path / 'db.sqlite'}", None
+        return
     from sqlalchemy import create_engine
 
     from tests._api_helpers import POSTGRES_ADMIN_URL
@@ -262,18 +264,24 @@ def _fresh_database(kind: str, tmp_path: Path):
     db_url, drop = fresh_postgres_db()
     admin = create_engine(POSTGRES_ADMIN_URL.replace("postgresql://", "postgresql+psycopg://", 1),
                           isolation_level="AUTOCOMMIT")  # fmt: skip
-    return db_url, admin, drop
+    yield "postgresql", db_url, admin
+    drop()
+    admin.dispose()
 
 
-@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
-def test_server_killed_inside_a_changeset_leaves_none_of_it(kind, tmp_path):
-    db_url, admin, drop = _fresh_database(kind, tmp_path)
+def _grid(n: int, per_row: int, **props) -> dict:
+    """A FeatureCollection of ``n`` markings on a grid of 2 m cells, ``per_row`` a row."""
+    return {"type": "FeatureCollection", "features": [
+        feature(LON + (i % per_row) * 2e-5, LAT + (i // per_row) * 2e-5, **props) for i in range(n)]}
+
+
+def test_server_killed_inside_a_changeset_leaves_none_of_it(database, tmp_path):
+    kind, db_url, admin = database
     server = start_server(db_url, tmp_path / "data")
     try:
         map_id = server.new_map()
         n = 1000
-        fc = {"type": "FeatureCollection",
-              "features": [feature(LON + (i % 50) * 2e-5, LAT + (i // 50) * 2e-5, kind="dash") for i in range(n)]}
+        fc = _grid(n, 50, kind="dash")
         with server.client(headers=server.auth) as c:
             assert c.post(f"/collections/{map_id}/import", json=fc).status_code == 201
         before = _map_state(server, map_id)
@@ -322,24 +330,18 @@ def test_server_killed_inside_a_changeset_leaves_none_of_it(kind, tmp_path):
         assert css[0]["comment"] == "doomed"
     finally:
         server.stop()
-        if drop is not None:
-            drop()
-        if admin is not None:
-            admin.dispose()
 
 
-@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
-def test_server_killed_inside_an_import_job_imports_it_once_after_restart(kind, tmp_path):
+def test_server_killed_inside_an_import_job_imports_it_once_after_restart(database, tmp_path):
     """An import job's markings and its success are one transaction: killed while it writes,
     the job imported nothing, and the restarted server runs it again from the body it kept,
     which leaves every marking once, one changeset, and no body behind."""
-    db_url, admin, drop = _fresh_database(kind, tmp_path)
+    kind, db_url, admin = database
     server = start_server(db_url, tmp_path / "data")
     try:
         map_id = server.new_map()
         n = 150_000
-        fc = {"type": "FeatureCollection",
-              "features": [feature(LON + (i % 400) * 2e-5, LAT + (i // 400) * 2e-5) for i in range(n)]}
+        fc = _grid(n, 400)
         headers = {**server.auth, "Prefer": "respond-async"}
         with server.client(headers=headers, timeout=120) as c:
             r = c.post(f"/collections/{map_id}/import", json=fc)
@@ -362,10 +364,6 @@ def test_server_killed_inside_an_import_job_imports_it_once_after_restart(kind, 
         assert "Traceback" not in server.log()
     finally:
         server.stop()
-        if drop is not None:
-            drop()
-        if admin is not None:
-            admin.dispose()
 
 
 # --------------------------------------------------------------------------- storage faults
