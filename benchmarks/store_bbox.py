@@ -5,8 +5,9 @@ about 10 per 1,000 m²), then times bbox queries that each return about 1,000
 markings. Prints p50/p95/max latency, and how long a summary of the map
 (``Store.summary``: counts by status, source and kind, the review's scores)
 takes: of the whole map (the kept counts), of a hundredth of it and of the
-whole map counted from its markings (a box around it); and a page of boxes over 3 %,
-10 % and 95 % of the map (the API's ``/items?bbox=``). The markings are unreviewed detections with scores, as a build leaves
+whole map counted from its markings (a box around it); and pages of boxes over 3 %,
+10 %, 30 % and 95 % of the map (the API's ``/items?bbox=``; a box's count is read for its first
+page and kept for the rest) and of their review queues. The markings are unreviewed detections with scores, as a build leaves
 them. SQLite by default; pass ``--url`` for PostgreSQL.
 
     .venv/bin/python benchmarks/store_bbox.py [--n 1000000] [--url URL] [--queries 200]
@@ -98,17 +99,32 @@ def main() -> None:
     print(f"summary       {np.median(whole) * 1000:.1f} ms (the counts every write keeps, of {sm.count:,} markings "
           f"and the histogram of {sum(sm.unreviewed_scores):,} scores; median of 5); a hundredth of the map, "
           f"counted: {np.median(part) * 1000:.0f} ms; the whole map counted: {scan:.2f} s")
-    for share in (0.03, 0.1, 0.95):  # wide boxes, centred: WIDE_BOX_SHARE picks how they are read
+    for share in (0.03, 0.1, 0.3, 0.95):  # boxes, centred: WIDE_BOX_SHARE picks how they are read
         k = math.sqrt(share) / 2
         cx, cy = (w + e) / 2, (s_ + n) / 2
         box = (cx - k * (e - w), cy - k * (n - s_), cx + k * (e - w), cy + k * (n - s_))
-        times = []
-        for at in (0, 0.5):
+        t = time.perf_counter()
+        _, total = store.query_lonlat_box("bench", box, limit=1000)  # its count read, then kept
+        first = (time.perf_counter() - t) * 1000
+        pages = []
+        for page in range(1, 10):
             t = time.perf_counter()
-            _, total = store.query_lonlat_box("bench", box, limit=1000, offset=int(at * counted.count * share))
-            times.append((time.perf_counter() - t) * 1000)
-        print(f"wide box      {share:.0%} of the map ({total:,} markings): a page of 1,000 with its count "
-              f"{times[0]:.0f} ms at the start, {times[1]:.0f} ms half-way through")
+            store.query_lonlat_box("bench", box, limit=1000, offset=1000 * page)
+            pages.append((time.perf_counter() - t) * 1000)
+        t = time.perf_counter()
+        store.query_lonlat_box("bench", box, limit=1000, offset=total // 2)
+        half = (time.perf_counter() - t) * 1000
+        t = time.perf_counter()
+        queue, queued = store.review_queue("bench", lonlat_box=box, limit=500)  # its count read, then kept
+        q_first = (time.perf_counter() - t) * 1000
+        for _ in range(20):
+            queue, _ = store.review_queue("bench", lonlat_box=box, limit=500, after=(queue[-1].score, queue[-1].id))
+        t = time.perf_counter()
+        store.review_queue("bench", lonlat_box=box, limit=500, after=(queue[-1].score, queue[-1].id))
+        q_21 = (time.perf_counter() - t) * 1000
+        print(f"box           {share:.0%} of the map ({total:,} markings): a page of 1,000 with its count "
+              f"{first:.0f} ms, pages 2-10 {np.median(pages):.0f} ms (median), half-way {half:.0f} ms; "
+              f"its review queue ({queued:,}), a page of 500 with its count {q_first:.0f} ms, the 21st {q_21:.0f} ms")
 
 if __name__ == "__main__":
     main()
