@@ -216,7 +216,7 @@ class JobRunner:
     data_dir : Path
         The server's data folder (uploaded imagery lives in ``imagery/``).
     workers : int
-        Build jobs running at the same time.
+        Build jobs running at the same time; asynchronous imports run one at a time beside them.
     dask_address : str, optional
         Dask scheduler the jobs run their tiles on; None: in the job's process.
     dask_timeout_s : float
@@ -230,6 +230,7 @@ class JobRunner:
         self.dask_address = dask_address or None
         self.dask_timeout_s = dask_timeout_s
         self._slots = threading.Semaphore(max(1, int(workers)))
+        self._import_slot = threading.Semaphore(1)
         self._procs: dict[int, Any] = {}
         self._lock = threading.Lock()
         self._stopping = False
@@ -330,7 +331,13 @@ class JobRunner:
         t.start()
 
     def _run(self, job_id: int) -> None:
-        with self._slots:
+        try:
+            kind = self.store.get_job(job_id).kind
+        except UnknownJobError:
+            return
+        # Imports take a slot of their own, one at a time: a city's import lasts about a
+        # minute, a build can last hours, and neither should wait for the other.
+        with self._import_slot if kind == "import" else self._slots:
             if self._stopping:
                 return
             try:

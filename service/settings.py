@@ -111,8 +111,8 @@ class ServiceSettings(IndexDirSettings):
         than by a pose seconds old). At about 20 ms per localization, 8 pending
         mean up to about 160 ms of waiting per process. 0: no limit.
     build_workers : int
-        Jobs (builds, and imports sent with ``Prefer: respond-async``) that run at the same time,
-        each in its own process.
+        Build jobs that run at the same time (each in its own process); imports sent with
+        ``Prefer: respond-async`` run one at a time beside them.
     dask_scheduler : str
         ``LANEMAP_DASK_SCHEDULER``: address of a Dask distributed scheduler
         (``tcp://host:8786``). Set: build jobs run their tiles on that cluster

@@ -14,7 +14,7 @@ import pytest
 import rasterio
 from pyproj import Transformer
 
-from tests._api_helpers import USGS_DIR, shared_server, start_server
+from tests._api_helpers import USGS_DIR, feature, shared_server, start_server
 from tests.test_api_features import assert_problem
 
 USGS = USGS_DIR / "201404_13SED190110_201404_0x1500m_CL_1.tif"
@@ -206,6 +206,34 @@ def test_build_runs_as_a_job_and_writes_detections(kind):
     assert_problem(httpx.post(f"{api.base_url}/collections/{map_id}/builds", json={"imagery": img["id"],
                               "threshold_low": 0.1, "hysteresis": False}, headers=api.auth),
                    422, "threshold_low")  # fmt: skip
+
+
+def test_an_import_job_runs_beside_the_builds_not_behind_them(tmp_path):
+    """With one build worker busy and builds waiting for it, an import sent with
+    ``Prefer: respond-async`` still runs at once, in a slot of its own."""
+    server = start_server(f"sqlite:///{tmp_path / 'db.sqlite'}", tmp_path / "data",
+                          env={"LANEMAP_BUILD_WORKERS": "1"})  # fmt: skip
+    try:
+        maps = [server.new_map(crs="EPSG:26913") for _ in range(5)]
+        imgs = [upload(server, m, USGS).json()["id"] for m in maps]
+        target = server.new_map()
+        builds = []
+        for m, img in zip(maps, imgs):
+            r = httpx.post(f"{server.base_url}/collections/{m}/builds", json={"imagery": img}, headers=server.auth)
+            assert r.status_code == 202, r.text
+            builds.append(r.json()["jobID"])
+        fc = {"type": "FeatureCollection", "features": [feature(8.4 + 1e-5 * k, 49.0) for k in range(500)]}
+        r = httpx.post(f"{server.base_url}/collections/{target}/import", json=fc,
+                       headers={**server.auth, "Prefer": "respond-async"})  # fmt: skip
+        assert r.status_code == 202, r.text
+        job = wait_job(server, r.json()["jobID"], timeout=60)
+        assert job["status"] == "successful" and job["result"]["imported"] == 500, job
+        # The last build still waits for the only build worker.
+        assert httpx.get(f"{server.base_url}/jobs/{builds[-1]}").json()["status"] == "accepted"
+        for b in builds:
+            httpx.delete(f"{server.base_url}/jobs/{b}", headers=server.auth)
+    finally:
+        server.stop()
 
 
 def test_cancel_a_waiting_job_and_restart_resumes_interrupted_ones(tmp_path):
