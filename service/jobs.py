@@ -147,15 +147,29 @@ def import_files(data_dir: Path) -> Path:
     return Path(data_dir) / "imports"
 
 
+def progress_file(body: str | Path) -> Path:
+    """Where an import job on SQLite keeps its progress while its transaction holds the only
+    writer: beside its body, in the data folder the API reads it from."""
+    return Path(body).with_suffix(".progress")
+
+
+def read_progress(job) -> float | None:
+    """An import job's progress from its :func:`progress_file`, in percent; None without one."""
+    try:
+        return float(progress_file(job.params["file"]).read_text())
+    except (KeyError, OSError, ValueError):
+        return None
+
+
 def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> None:
     """Body of a worker process: import the GeoJSON file of job ``job_id`` into its map.
 
     All of it or none, as a synchronous import: the markings and the job's success are
     written in one transaction (:meth:`Store.add_markings`), so a job still active after a
     crash has imported nothing and runs again. Its reading of the file is the first
-    :data:`IMPORT_READ_SHARE` % of its progress. On PostgreSQL the writing moves it on too;
-    on SQLite it stays there until the job ends, as the transaction holds the database's
-    only writer.
+    :data:`IMPORT_READ_SHARE` % of its progress, its writing the rest. On SQLite, where the
+    transaction holds the database's only writer, the writing's progress goes to a file
+    beside the body (:func:`progress_file`), which the job's answers read.
     """
     logging.basicConfig(level=logging.INFO, format="%(levelname)s import job %(process)d: %(message)s")
     if server_pid is not None:
@@ -169,6 +183,8 @@ def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> N
         if job.status not in ACTIVE:
             return
         store.update_job(job_id, status="running", progress=0.0)
+        path = job.params["file"]
+        progress_file(path).unlink(missing_ok=True)  # a run before a crash left it
         last = [0.0]
 
         def report(share: float) -> None:
@@ -177,7 +193,6 @@ def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> N
                 last[0] = now
                 store.update_job(job_id, progress=share)
 
-        path = job.params["file"]
         try:
             items = read_geojson_file(path, lambda k, n: report(IMPORT_READ_SHARE * k / max(n, 1)))
             if not items:
@@ -187,11 +202,17 @@ def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> N
             store.update_job(job_id, status="failed", error=msg)
             return
         store.update_job(job_id, progress=IMPORT_READ_SHARE)
-        live = store.dialect != "sqlite"
+        beside = progress_file(path) if store.dialect == "sqlite" else None
 
         def written(k: int, n: int) -> None:
-            if live:
-                report(IMPORT_READ_SHARE + (99.0 - IMPORT_READ_SHARE) * k / n)
+            share = IMPORT_READ_SHARE + (99.0 - IMPORT_READ_SHARE) * k / n
+            if beside is None:
+                report(share)
+            elif time.monotonic() - last[0] >= PROGRESS_EVERY_S:
+                last[0] = time.monotonic()
+                part = beside.with_suffix(".progress-part")
+                part.write_text(f"{share:.1f}")
+                part.replace(beside)
 
         try:
             store.add_markings(job.map_id, items, job.params.get("who", "api"),
@@ -202,9 +223,15 @@ def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> N
                 store.update_job(job_id, status="failed", error=str(exc))
             return
         log.info("import job %d: %d markings into %s", job_id, len(items), job.map_id)
-        Path(path).unlink(missing_ok=True)
+        _remove_import_files(path)
     finally:
         store.close()
+
+
+def _remove_import_files(body: str | Path) -> None:
+    """An import job's body and progress, once the job has ended."""
+    for p in (Path(body), progress_file(body), progress_file(body).with_suffix(".progress-part")):
+        p.unlink(missing_ok=True)
 
 
 class JobRunner:
@@ -367,8 +394,8 @@ class JobRunner:
                                           error=f"the {job.kind} process ended unexpectedly (exit code {proc.exitcode})")
             except Exception:  # the map (and its jobs) may have been deleted meanwhile
                 log.info("job %d is gone after its process ended", job_id)
-            if job.kind == "import":  # its body is no longer needed, whatever became of it
-                Path(job.params.get("file", "")).unlink(missing_ok=True)
+            if job.kind == "import" and job.params.get("file"):  # no longer needed, whatever became of it
+                _remove_import_files(job.params["file"])
 
     def cancel(self, job_id: int) -> None:
         """Dismiss a job: it will not start, or its process is ended."""

@@ -49,6 +49,15 @@ class BuildIn(BaseModel):
         "at or above `verify_threshold`, none")
 
 
+def _progress(job: JobInfo) -> float:
+    """A job's progress in percent; a running import's on SQLite from the file it keeps it in."""
+    if job.kind == "import" and job.status == "running":
+        from ..jobs import read_progress
+
+        return max(job.progress, read_progress(job) or 0.0)
+    return job.progress
+
+
 def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
     images = [i.get("path") for i in job.params.get("images", [])] if isinstance(job.params, dict) else []
     imagery_ids = []
@@ -63,7 +72,7 @@ def job_json(job: JobInfo, request: Request) -> dict[str, Any]:
         "type": "process",
         "processID": job.kind,
         "status": job.status,
-        "progress": int(round(job.progress)),
+        "progress": int(round(_progress(job))),
         "message": job.error or "",
         "created": job.created_at.isoformat() if job.created_at else None,
         "started": job.started_at.isoformat() if job.started_at else None,
