@@ -25,6 +25,7 @@ import multiprocessing as mp
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -161,6 +162,34 @@ def read_progress(job) -> float | None:
         return None
 
 
+class ImportBodyError(ValueError):
+    """An import's body that is not markings: the status and detail the import answers with,
+    for a request and a job alike (a plain error: a job's process need not load the web stack,
+    120 MB)."""
+
+    def __init__(self, status: int, detail: str, slug: str | None = None):
+        super().__init__(detail)
+        self.status, self.detail, self.slug = status, detail, slug
+
+
+def read_import(path: str | Path, progress: Callable[[int, int], None] | None = None) -> list:
+    """The markings of an import's body kept at ``path``; :class:`ImportBodyError` 400 where it
+    is not JSON, 422 where it is not markings. ``progress`` as for
+    :func:`mapbuilder.geojson.read_feature_collection`."""
+    from mapbuilder.geojson import GeoJSONError, InvalidJSONError, read_geojson_stream
+
+    try:
+        with open(path, "rb") as fh:
+            items = read_geojson_stream(fh, "request body", progress)
+    except InvalidJSONError as exc:
+        raise ImportBodyError(400, str(exc)) from None
+    except GeoJSONError as exc:
+        raise ImportBodyError(422, f"body: {exc}", "invalid-geojson") from None
+    if not items:
+        raise ImportBodyError(422, "body: the FeatureCollection has no features", "invalid-geojson")
+    return items
+
+
 def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> None:
     """Body of a worker process: import the GeoJSON file of job ``job_id`` into its map.
 
@@ -174,7 +203,6 @@ def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> N
     logging.basicConfig(level=logging.INFO, format="%(levelname)s import job %(process)d: %(message)s")
     if server_pid is not None:
         _exit_with_parent(server_pid)
-    from mapbuilder.geojson import GeoJSONError, read_geojson_file
     from mapbuilder.store import StoreError
 
     store = Store(db_url)
@@ -194,12 +222,9 @@ def run_import_job(db_url: str, job_id: int, server_pid: int | None = None) -> N
                 store.update_job(job_id, progress=share)
 
         try:
-            items = read_geojson_file(path, lambda k, n: report(IMPORT_READ_SHARE * k / max(n, 1)))
-            if not items:
-                raise GeoJSONError("the FeatureCollection has no features")
-        except GeoJSONError as exc:  # what the synchronous import answers as 400 or 422
-            msg = str(exc).replace(str(path), "body", 1)
-            store.update_job(job_id, status="failed", error=msg)
+            items = read_import(path, lambda k, n: report(IMPORT_READ_SHARE * k / max(n, 1)))
+        except ImportBodyError as exc:  # what the synchronous import answers
+            store.update_job(job_id, status="failed", error=exc.detail)
             return
         store.update_job(job_id, progress=IMPORT_READ_SHARE)
         beside = progress_file(path) if store.dialect == "sqlite" else None

@@ -354,6 +354,7 @@ def test_an_import_reads_its_own_body_and_writes_all_of_it_or_nothing(api):
         assert r.status_code == 201 and r.json()["imported"] == 12_000
         assert c.get(f"/collections/{map_id}/items").json()["numberMatched"] == 12_000
         assert c.get(f"/collections/{map_id}/changesets").json()["changesets"][0]["comment"] == "a district"
+    assert not list((api.data_dir / "imports").glob("*"))  # read from the data folder, and gone
 
 
 def _finished(c: httpx.Client, url: str, timeout: float = 120) -> dict:

@@ -14,13 +14,12 @@ from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
-from starlette.requests import ClientDisconnect
 
-from mapbuilder.geojson import GeoJSONError, InvalidJSONError, decode_json_bytes, read_geojson_text
 from mapbuilder.model import STATUSES
 from mapbuilder.store import MAX_TITLE_LENGTH, Change, ConflictError, MapInfo, Marking, UnknownMarkingError
 
 from ..deps import Context, get_ctx, require_read, require_write
+from ..jobs import ImportBodyError, import_files, read_import
 from ..middleware import is_json_type
 from ..problems import Problem
 from ..settings import MapCoverage
@@ -270,7 +269,8 @@ async def import_features(
 ):
     """Import a GeoJSON FeatureCollection of markings (Points, WGS84) in one transaction: all of
     them or none. The body may be up to ``LANEMAP_MAX_IMPORT_BYTES`` long (a city's map; other
-    JSON bodies are bounded by ``LANEMAP_MAX_BODY_BYTES``), and is read a feature at a time.
+    JSON bodies are bounded by ``LANEMAP_MAX_BODY_BYTES``), is written to the data folder as it
+    arrives, and is read from there a feature at a time.
     With ``Prefer: respond-async`` the answer is 202 and a job (``/jobs/{id}``) that shows the
     import's progress and, once successful, what it imported."""
     limit = ctx.settings.max_import_bytes
@@ -280,22 +280,28 @@ async def import_features(
                       "unsupported-media-type")  # fmt: skip
     declared = declared_length(request, limit)
     await run_in_threadpool(ctx.store.get_map, mapId)
-    if respond_async(request) and ctx.jobs is not None:
-        return await _import_as_job(request, ctx, mapId, limit, declared, who, comment)
-    chunks: list[bytes] = []
-    size = 0
-    try:
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > limit:
-                raise Problem(413, f"request body exceeds the limit of {limit} bytes", "too-large")
-            chunks.append(chunk)
-    except ClientDisconnect:
-        log.info("import into %s aborted by the client after %d bytes", mapId, size)
-        raise Problem(400, "the request body was interrupted", "truncated-upload") from None
-    if declared is not None and size != declared:
-        raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
-    items = await run_in_threadpool(_markings_of_chunks, chunks)
+    as_job = respond_async(request) and ctx.jobs is not None
+    # Both ways the body goes to the data folder as it arrives (a city's is about 250 MB),
+    # and is read from there: by this request, or by the job that imports it.
+    folder = import_files(ctx.data_dir)
+    token = uuid.uuid4().hex
+    part, path = folder / f"{token}.part", folder / f"{token}.geojson"
+    with storage_failures("import", part):
+        await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
+        size = await receive_to_file(request, part, limit, "request body")
+        if declared is not None and size != declared:
+            raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
+        if size == 0 or (size < 4096 and (await run_in_threadpool(part.read_bytes)).isspace()):
+            raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
+        if as_job:
+            await run_in_threadpool(part.replace, path)
+        else:
+            try:
+                items = await run_in_threadpool(read_import, part)
+            except ImportBodyError as exc:
+                raise Problem(exc.status, exc.detail, exc.slug) from None
+    if as_job:
+        return await _import_as_job(request, ctx, mapId, path, size, who, comment)
     ids = await run_in_threadpool(ctx.store.add_markings, mapId, items, who, comment or "import", lonlat=True)
     return JSONResponse(
         {"imported": len(ids), "first_id": str(min(ids)), "last_id": str(max(ids))},
@@ -310,26 +316,13 @@ def respond_async(request: Request) -> bool:
     return any(p.strip().lower() == "respond-async" for p in prefs.split(","))
 
 
-async def _import_as_job(request: Request, ctx: Context, map_id: str, limit: int, declared: int | None,
-                         who: str, comment: str) -> JSONResponse:  # fmt: skip
-    """Write an import's body to the data folder as it arrives and answer 202 with the job that
-    imports it: a city's import takes about a minute, longer than a proxy may hold a request
-    open, and the job shows its progress. The body is read when the job runs; the job fails
-    with the error the synchronous import would answer."""
-    from ..jobs import import_files
+async def _import_as_job(request: Request, ctx: Context, map_id: str, path: Path, size: int, who: str,
+                         comment: str) -> JSONResponse:  # fmt: skip
+    """Answer 202 with the job that imports the body kept at ``path``: a city's import takes
+    about a minute, longer than a proxy may hold a request open, and the job shows its
+    progress. The job fails with the error the synchronous import would answer."""
     from .jobs import job_json
 
-    folder = import_files(ctx.data_dir)
-    token = uuid.uuid4().hex
-    part, path = folder / f"{token}.part", folder / f"{token}.geojson"
-    with storage_failures("import", part):
-        await run_in_threadpool(folder.mkdir, parents=True, exist_ok=True)
-        size = await receive_to_file(request, part, limit, "request body")
-        if declared is not None and size != declared:
-            raise Problem(400, f"request body is truncated: {size} of {declared} bytes arrived", "truncated-upload")
-        if size == 0 or (size < 4096 and (await run_in_threadpool(part.read_bytes)).isspace()):
-            raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
-        await run_in_threadpool(part.replace, path)
     try:
         job_id = await run_in_threadpool(ctx.store.create_job, "import", map_id,
                                          {"file": str(path.resolve()), "bytes": size, "who": who,
@@ -342,26 +335,6 @@ async def _import_as_job(request: Request, ctx: Context, map_id: str, limit: int
     url = f"{base_url(request)}/jobs/{job_id}"
     return JSONResponse(job_json(job, request), status_code=202,
                         headers={"Location": url, "Preference-Applied": "respond-async"})  # fmt: skip
-
-
-def _markings_of_chunks(chunks: list[bytes]) -> list[Marking]:
-    """The markings of an import's body, received as ``chunks`` (emptied: the body is held as
-    bytes and as text only while it is decoded, then as text while it is read)."""
-    data = b"".join(chunks)
-    chunks.clear()
-    if not data or data.isspace():
-        raise Problem(422, "body: empty; send a GeoJSON FeatureCollection", "invalid-geojson")
-    try:
-        text = decode_json_bytes(data, "request body")
-        del data
-        items = read_geojson_text(text, "request body")
-    except InvalidJSONError as exc:
-        raise Problem(400, str(exc)) from None
-    except GeoJSONError as exc:
-        raise Problem(422, f"body: {exc}", "invalid-geojson") from None
-    if not items:
-        raise Problem(422, "body: the FeatureCollection has no features", "invalid-geojson")
-    return items
 
 
 # ---------------------------------------------------------------------------- items (Part 1)
